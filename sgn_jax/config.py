@@ -1,0 +1,385 @@
+"""Typed, frozen experiment configuration loaded from TOML.
+
+A config file has one table per section (``[case]``, ``[jar]``, ``[motion]``, ``[balls]``,
+``[material]``, ``[dem]``, ``[sdf]``, and optionally ``[model]``, ``[train]``, ``[rollout]``).
+Rules, chosen so that every number in an artifact can be traced to a file:
+
+- an unknown key (a typo) is an error that names it and lists the allowed keys;
+- a key without a default in the dataclass below is required, and its absence is an error
+  that names it;
+- the resolved config is saved next to every artifact (``save_config``), so defaults that
+  were filled in are written out explicitly.
+
+All values are SI units (m, s, kg, Pa) unless the field name says otherwise (``rpm``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sgn_jax.io_utils import atomic_write
+
+
+class ConfigError(ValueError):
+    """A config file or dict is malformed: unknown key, missing key or wrong type."""
+
+
+@dataclass(frozen=True)
+class CaseConfig:
+    """Identification of the case."""
+
+    name: str
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class JarConfig:
+    """The milling jar.
+
+    ``kind = "emax"``: the parametric Emax-like stadium cavity of SPEC section 2 (semicircles of
+    ``radius`` centred at x = +-straight_length/2, height ``height``, optional solid central post
+    of radius ``post_radius``; 0 means no post). ``kind = "stl"``: a closed mesh of the cavity read
+    from ``stl_path`` in ``stl_units`` ("m" or "mm"), jar-frame coordinates (floor centre at the
+    origin, y up).
+    """
+
+    kind: str
+    radius: float = 0.020
+    straight_length: float = 0.035
+    height: float = 0.047
+    post_radius: float = 0.0
+    stl_path: str = ""
+    stl_units: str = "m"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("emax", "stl"):
+            raise ConfigError(f"[jar] kind must be 'emax' or 'stl', got {self.kind!r}")
+        if self.kind == "stl" and not self.stl_path:
+            raise ConfigError("[jar] kind = 'stl' needs stl_path = 'path/to/jar.stl'")
+        if self.stl_units not in ("m", "mm"):
+            raise ConfigError(f"[jar] stl_units must be 'm' or 'mm', got {self.stl_units!r}")
+        if self.kind == "emax":
+            for name in ("radius", "straight_length", "height"):
+                if getattr(self, name) <= 0:
+                    raise ConfigError(f"[jar] {name} must be > 0, got {getattr(self, name)}")
+            if not 0 <= self.post_radius < self.radius:
+                raise ConfigError(
+                    f"[jar] post_radius must be in [0, radius), got {self.post_radius}"
+                )
+
+
+MOTION_KINDS = ("circle", "harmonic", "spline")
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Jar motion (translation in the x-z plane, y allowed for generality).
+
+    - ``circle``: offset = (A sin(2 pi f t + phase), 0, A cos(2 pi f t + phase)), f = rpm / 60.
+      Keys: rpm, amplitude, phase.
+    - ``harmonic``: each axis a sum over k = 1..K of ``{axis}_sin[k-1] sin(2 pi k f0 t) +
+      {axis}_cos[k-1] cos(2 pi k f0 t)`` with f0 = ``base_frequency_hz``; coefficients in m.
+      Motion 1 and Motion 2 of SPEC section 2 are harmonic series.
+    - ``spline``: a periodic cubic spline through ``points`` (M x 3, m) sampled uniformly over
+      ``period`` seconds, points[0] at t = 0.
+    """
+
+    kind: str
+    rpm: float = 300.0
+    amplitude: float = 0.017
+    phase: float = 0.0
+    base_frequency_hz: float = 5.0
+    x_sin: tuple[float, ...] = ()
+    x_cos: tuple[float, ...] = ()
+    y_sin: tuple[float, ...] = ()
+    y_cos: tuple[float, ...] = ()
+    z_sin: tuple[float, ...] = ()
+    z_cos: tuple[float, ...] = ()
+    period: float = 0.2
+    points: tuple[tuple[float, float, float], ...] = ()
+
+    _KEYS_BY_KIND = {
+        "circle": {"rpm", "amplitude", "phase"},
+        "harmonic": {"base_frequency_hz", "x_sin", "x_cos", "y_sin", "y_cos", "z_sin", "z_cos"},
+        "spline": {"period", "points"},
+    }
+
+    def __post_init__(self) -> None:
+        if self.kind not in MOTION_KINDS:
+            raise ConfigError(f"[motion] kind must be one of {MOTION_KINDS}, got {self.kind!r}")
+        if self.kind == "harmonic":
+            lengths = {len(getattr(self, a)) for a in ("x_sin", "x_cos", "y_sin", "y_cos",
+                                                       "z_sin", "z_cos")} - {0}
+            if len(lengths) > 1:
+                raise ConfigError(
+                    "[motion] harmonic coefficient lists must have the same length "
+                    f"(or be empty), got lengths {sorted(lengths)}"
+                )
+            if not lengths:
+                raise ConfigError("[motion] kind = 'harmonic' needs at least one of x_sin, "
+                                  "x_cos, y_sin, y_cos, z_sin, z_cos")
+        if self.kind == "spline":
+            if len(self.points) < 4 or any(len(p) != 3 for p in self.points):
+                raise ConfigError("[motion] kind = 'spline' needs points = [[x, y, z], ...] with "
+                                  "at least 4 points of 3 coordinates each")
+            if self.period <= 0:
+                raise ConfigError(f"[motion] period must be > 0, got {self.period}")
+
+    @classmethod
+    def check_keys_for_kind(cls, kind: str, keys: set[str]) -> None:
+        """Reject keys that belong to another motion kind (they would be silently ignored)."""
+        allowed = cls._KEYS_BY_KIND.get(kind, set()) | {"kind"}
+        foreign = sorted(keys - allowed)
+        if foreign:
+            raise ConfigError(
+                f"[motion] key(s) {foreign} are not used by motion kind {kind!r}; "
+                f"allowed keys for this kind: {sorted(allowed)}"
+            )
+
+
+@dataclass(frozen=True)
+class BallsConfig:
+    """The grinding balls (all identical)."""
+
+    count: int
+    radius: float
+    density: float
+
+    def __post_init__(self) -> None:
+        if self.count < 1:
+            raise ConfigError(f"[balls] count must be >= 1, got {self.count}")
+        if self.radius <= 0 or self.density <= 0:
+            raise ConfigError("[balls] radius and density must be > 0")
+
+
+@dataclass(frozen=True)
+class MaterialConfig:
+    """Contact material, the same for ball-ball and ball-wall (SPEC section 2)."""
+
+    young: float
+    poisson: float
+    restitution: float
+    friction: float
+    rolling_friction: float
+
+    def __post_init__(self) -> None:
+        if not 0 < self.restitution <= 1:
+            raise ConfigError(f"[material] restitution must be in (0, 1], got {self.restitution}")
+        if self.young <= 0:
+            raise ConfigError(f"[material] young must be > 0, got {self.young}")
+        if not -1 < self.poisson < 0.5:
+            raise ConfigError(f"[material] poisson must be in (-1, 0.5), got {self.poisson}")
+        if self.friction < 0 or self.rolling_friction < 0:
+            raise ConfigError("[material] friction and rolling_friction must be >= 0")
+
+
+@dataclass(frozen=True)
+class DEMConfig:
+    """DEM solver settings.
+
+    ``dt`` is the sampling step (s); the solver step is ``dt / k`` with the smallest integer k such
+    that ``dt / k <= dt_dem_max`` (SPEC section 2), so that every sample falls on a step.
+    """
+
+    dt: float = 1e-4
+    dt_dem_max: float = 9.5e-7
+    settle_time: float = 0.5
+    duration: float = 10.0
+    seed: int = 0
+    dtype: str = "float64"
+    clip_attractive: bool = False
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    chunk_samples: int = 1000
+    pp_capacity: int = 0
+
+    def __post_init__(self) -> None:
+        if self.dtype not in ("float64", "float32"):
+            raise ConfigError(f"[dem] dtype must be 'float64' or 'float32', got {self.dtype!r}")
+        if self.dt <= 0 or self.dt_dem_max <= 0:
+            raise ConfigError("[dem] dt and dt_dem_max must be > 0")
+        if self.settle_time < 0 or self.duration < 0:
+            raise ConfigError("[dem] settle_time and duration must be >= 0")
+        if len(self.gravity) != 3:
+            raise ConfigError("[dem] gravity must have 3 components")
+
+    @property
+    def substeps(self) -> int:
+        """Number of DEM steps per sample: the smallest k with dt / k <= dt_dem_max."""
+        import math
+
+        k = math.ceil(self.dt / self.dt_dem_max - 1e-9)
+        return max(k, 1)
+
+    @property
+    def dt_dem(self) -> float:
+        return self.dt / self.substeps
+
+
+@dataclass(frozen=True)
+class SDFConfig:
+    """SDF grid sampling for the surrogate (spacing no coarser than 0.5 mm by default)."""
+
+    spacing: float = 0.0005
+    margin: float = 0.003
+
+    def __post_init__(self) -> None:
+        if self.spacing <= 0 or self.margin < 0:
+            raise ConfigError("[sdf] spacing must be > 0 and margin >= 0")
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole experiment config: one attribute per TOML section."""
+
+    case: CaseConfig
+    jar: JarConfig
+    motion: MotionConfig
+    balls: BallsConfig
+    material: MaterialConfig
+    dem: DEMConfig = field(default_factory=DEMConfig)
+    sdf: SDFConfig = field(default_factory=SDFConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# Generic strict loading
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Convert a TOML value to the annotated type, or raise ConfigError naming ``where``."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], where)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where} must be a list, got {type(value).__name__}")
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(f"{where} must have {len(args)} elements, got {len(value)}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where} must be a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        return _build_dataclass(tp, value, where)
+    raise ConfigError(f"{where}: unsupported type {_type_name(tp)}")
+
+
+def _build_dataclass(cls: type, table: Any, where: str) -> Any:
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table, got {type(table).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"unknown key(s) {', '.join(f'{where}.{k}' for k in unknown)}; "
+            f"allowed keys in {where}: {', '.join(sorted(fields))}"
+        )
+    kwargs = {}
+    for name, f in fields.items():
+        if name in table:
+            kwargs[name] = _coerce(table[name], hints[name], f"{where}.{name}")
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(f"missing required key {where}.{name}")
+    if cls is MotionConfig and "kind" in table:
+        MotionConfig.check_keys_for_kind(table["kind"], set(table))
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+def config_from_dict(data: dict[str, Any], cls: type = Config) -> Any:
+    """Build a (frozen) config dataclass from a nested dict, strictly. Raises ConfigError."""
+    return _build_dataclass(cls, data, "config" if cls is Config else cls.__name__)
+
+
+def _to_plain(value: Any) -> Any:
+    if isinstance(value, MotionConfig):
+        # Only the keys of the motion's own kind: the others are unused and would be rejected.
+        keys = MotionConfig._KEYS_BY_KIND[value.kind] | {"kind"}
+        return {f.name: _to_plain(getattr(value, f.name))
+                for f in dataclasses.fields(value) if f.name in keys}
+    if dataclasses.is_dataclass(value):
+        return {f.name: _to_plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, tuple):
+        return [_to_plain(v) for v in value]
+    return value
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """The config as a nested dict of plain TOML/JSON types (tuples become lists)."""
+    return _to_plain(cfg)
+
+
+def load_config(path: str | Path) -> Config:
+    """Load and validate a TOML config file. Raises ConfigError with the file name on error."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def config_to_toml(cfg: Any) -> str:
+    import tomli_w
+
+    return tomli_w.dumps(config_to_dict(cfg))
+
+
+def save_config(cfg: Any, path: str | Path) -> None:
+    """Write the resolved config (defaults filled in) as TOML, atomically."""
+    with atomic_write(path, "w") as fh:
+        fh.write(config_to_toml(cfg))
+
+
+def replace_section(cfg: Config, section: str, **changes: Any) -> Config:
+    """Return a copy of ``cfg`` with fields of one section replaced (validated again)."""
+    new_section = dataclasses.replace(getattr(cfg, section), **changes)
+    return dataclasses.replace(cfg, **{section: new_section})
+
+
+def builtin_config_path(name: str) -> Path:
+    """Path of a config shipped with the package (``sgn_jax/configs/NAME.toml``)."""
+    path = Path(__file__).parent / "configs" / f"{name}.toml"
+    if not path.is_file():
+        available = sorted(p.stem for p in path.parent.glob("*.toml"))
+        raise ConfigError(f"no built-in config {name!r}; available: {available}")
+    return path
