@@ -234,6 +234,92 @@ class SDFConfig:
 
 
 @dataclass(frozen=True)
+class GraphConfig:
+    """The SGN graph featurizer (SPEC section 5, paper Table 3).
+
+    ``window`` slots of [v, phi, grad phi] per particle (a window needs window + 1 positions);
+    ball-ball edges where the centre distance is <= 2 R + ``pp_skin`` (a surface gap, m);
+    ball-wall edges where phi >= ``phi_pw`` (m); rollout snap-back where phi >= ``phi_sb``.
+    ``pp_edges_per_particle``: the static capacity of directed ball-ball edges per graph is this
+    times the number of balls (an overflow is counted and reported, never silently dropped).
+    """
+
+    window: int = 7
+    pp_skin: float = 1.5e-3
+    phi_pw: float = -0.0052
+    phi_sb: float = -0.0049
+    pp_edges_per_particle: int = 8
+
+    def __post_init__(self) -> None:
+        if self.window < 1:
+            raise ConfigError(f"[graph] window must be >= 1, got {self.window}")
+        if self.pp_skin < 0:
+            raise ConfigError(f"[graph] pp_skin must be >= 0 (a surface gap, m), got {self.pp_skin}")
+        if not self.phi_pw < self.phi_sb < 0:
+            raise ConfigError(
+                f"[graph] need phi_pw < phi_sb < 0 (m), got phi_pw={self.phi_pw}, "
+                f"phi_sb={self.phi_sb}"
+            )
+        if self.pp_edges_per_particle < 1:
+            raise ConfigError(
+                f"[graph] pp_edges_per_particle must be >= 1, got {self.pp_edges_per_particle}"
+            )
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The SGN network (paper Table 3): MLPs of ``mlp_layers`` linear layers of width ``hidden``."""
+
+    hidden: int = 256
+    mlp_layers: int = 4
+    interaction_layers: int = 1
+
+    def __post_init__(self) -> None:
+        if self.hidden < 1 or self.mlp_layers < 2 or self.interaction_layers < 1:
+            raise ConfigError(
+                "[model] need hidden >= 1, mlp_layers >= 2 and interaction_layers >= 1, got "
+                f"hidden={self.hidden}, mlp_layers={self.mlp_layers}, "
+                f"interaction_layers={self.interaction_layers}"
+            )
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """SGN training (SPEC section 5). Defaults are the paper's (batch 2, 2000 epochs, GPU).
+
+    The learning rate decays exponentially from ``lr_init`` to ``lr_final`` over all epochs.
+    Loss = ``node_loss_weight`` * Huber(node) + Huber(global), Huber as in paper Eq. 30 with
+    threshold ``huber_delta``. ``noise_std``: Gaussian noise on the normalised velocity features.
+    Split per trajectory, chronological: windows whose target step ends at t <= ``train_time``
+    (s of motion) train; windows lying wholly in (train_time, train_time + val_time] validate.
+    Each step packs up to ``batch_size`` graphs under a static edge capacity (docs/sgn.md).
+    """
+
+    batch_size: int = 2
+    epochs: int = 2000
+    lr_init: float = 1e-4
+    lr_final: float = 1e-6
+    node_loss_weight: float = 3.0
+    huber_delta: float = 2.0
+    noise_std: float = 0.005
+    train_time: float = 4.5
+    val_time: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1 or self.epochs < 1:
+            raise ConfigError("[train] batch_size and epochs must be >= 1")
+        if not 0 < self.lr_final <= self.lr_init:
+            raise ConfigError(
+                f"[train] need 0 < lr_final <= lr_init, got {self.lr_final}, {self.lr_init}"
+            )
+        if self.huber_delta <= 0 or self.noise_std < 0 or self.node_loss_weight < 0:
+            raise ConfigError("[train] need huber_delta > 0, noise_std >= 0, node_loss_weight >= 0")
+        if self.train_time <= 0 or self.val_time < 0:
+            raise ConfigError("[train] need train_time > 0 and val_time >= 0 (s)")
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole experiment config: one attribute per TOML section."""
 
@@ -244,6 +330,9 @@ class Config:
     material: MaterialConfig
     dem: DEMConfig = field(default_factory=DEMConfig)
     sdf: SDFConfig = field(default_factory=SDFConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
 
 
 # --------------------------------------------------------------------------------------------
