@@ -1,0 +1,367 @@
+"""Jar motions: pytrees of parameters with a jittable, differentiable ``offset(t)``.
+
+The jar only translates (SPEC section 1). ``offset(motion, t)`` is the lab-frame position (m) of
+the jar-frame origin at time ``t`` (s) since the start of motion; ``velocity`` and
+``acceleration`` are its first and second time derivatives, computed by JAX forward-mode
+autodiff of ``offset`` (so they can never disagree with it).
+
+Three kinds, all ``flax.struct`` dataclasses whose every field is a pytree leaf, so that
+
+- every parameter is differentiable (``jax.grad(lambda m: offset(m, t)[0])(motion)``),
+- a batch of motions of the same kind (and the same K or M) is one pytree with a leading batch
+  axis on every leaf (``stack_motions``) and can be ``jax.vmap``-ed over:
+  ``jax.vmap(offset, in_axes=(0, None))(stacked, t)``.
+
+``CircleMotion``
+    ``(A sin(2 pi f t + phase), 0, A cos(2 pi f t + phase))`` with ``f = rpm / 60`` (SPEC 2).
+``HarmonicMotion``
+    per axis ``sum_k sin_coeffs[k-1, axis] sin(2 pi k f0 t) + cos_coeffs[k-1, axis] cos(2 pi k f0 t)``.
+    Motion 1 and Motion 2 of SPEC section 2 are harmonic series (``motion1()``, ``motion2()``).
+``SplineMotion``
+    the periodic cubic spline through ``points[j]`` at ``t_j = j * period / M`` (C2, wraps with
+    ``period``); the spline system is solved in ``jnp`` (circulant solve by FFT), so the curve is
+    differentiable w.r.t. its points and its period.
+
+Time: ``t`` may be a Python float, a 0-d array or an array of any shape. For an array the
+functions are vmapped over its elements and return ``t.shape + (3,)``. Keep ``t`` in float64
+(integers are converted to float64): ``2 pi f t`` over 10 s of motion loses ~1e-5 rad in float32.
+The result dtype is the JAX promotion of the parameter dtype and the time dtype.
+
+SPEC note: during DEM settling the jar rests at ``offset(motion, 0)`` with zero velocity; at
+``t = 0`` the motion starts and the jar velocity jumps to ``velocity(motion, 0)``. These functions
+describe the motion for ``t >= 0`` only (they are periodic and also defined for ``t < 0``); the
+rest phase is the DEM driver's business.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgn_jax.config import ConfigError, MotionConfig
+
+_TWO_PI = 2.0 * np.pi
+
+
+@flax.struct.dataclass
+class CircleMotion:
+    """Circular translation in the x-z plane (SPEC section 2).
+
+    Attributes:
+        rpm: revolutions per minute (the jar centre's orbit frequency is ``rpm / 60`` Hz).
+        amplitude: orbit radius A (m).
+        phase: phase at t = 0 (rad); 0 puts the jar at ``(0, 0, A)`` at t = 0.
+    """
+
+    rpm: float | jax.Array
+    amplitude: float | jax.Array
+    phase: float | jax.Array = 0.0
+
+
+@flax.struct.dataclass
+class HarmonicMotion:
+    """A finite Fourier series per axis with base frequency ``base_frequency_hz``.
+
+    Attributes:
+        base_frequency_hz: f0 (Hz); harmonic k (1-based) oscillates at ``k * f0``.
+        sin_coeffs: (K, 3) m, coefficient of ``sin(2 pi k f0 t)`` for harmonic k = row + 1, axis.
+        cos_coeffs: (K, 3) m, coefficient of ``cos(2 pi k f0 t)``.
+    """
+
+    base_frequency_hz: float | jax.Array
+    sin_coeffs: jax.Array
+    cos_coeffs: jax.Array
+
+
+@flax.struct.dataclass
+class SplineMotion:
+    """Periodic cubic spline through ``points[j]`` at ``t_j = j * period / M``, j = 0..M-1.
+
+    Attributes:
+        period: the period (s); the curve returns to ``points[0]`` at ``t = period``.
+        points: (M, 3) m, M >= 3, the knots (uniformly spaced in time).
+    """
+
+    period: float | jax.Array
+    points: jax.Array
+
+
+Motion = CircleMotion | HarmonicMotion | SplineMotion
+
+
+# --------------------------------------------------------------------------------------------
+# Time handling
+
+
+def _as_time(t: float | jax.Array) -> jax.Array:
+    """``t`` as a floating JAX array (integers -> float64, so ``velocity`` can differentiate)."""
+    t = jnp.asarray(t)
+    if not jnp.issubdtype(t.dtype, jnp.floating):
+        t = t.astype(jnp.float64)
+    return t
+
+
+def _map_over_time(scalar_fn: Callable[[Motion, jax.Array], jax.Array],
+                   motion: Motion, t: float | jax.Array) -> jax.Array:
+    """Apply a scalar-time function to a scalar or an array of times (vmapped, shape t.shape+(3,))."""
+    t = _as_time(t)
+    if t.ndim == 0:
+        return scalar_fn(motion, t)
+    flat = jax.vmap(scalar_fn, in_axes=(None, 0))(motion, t.reshape(-1))
+    return flat.reshape(t.shape + (3,))
+
+
+# --------------------------------------------------------------------------------------------
+# Offsets per kind (scalar t)
+
+
+def _circle_offset(motion: CircleMotion, t: jax.Array) -> jax.Array:
+    angle = _TWO_PI * (motion.rpm / 60.0) * t + motion.phase
+    amplitude = jnp.asarray(motion.amplitude)
+    zero = jnp.zeros_like(amplitude * angle)
+    return jnp.stack([amplitude * jnp.sin(angle), zero, amplitude * jnp.cos(angle)])
+
+
+def _check_coeffs(name: str, coeffs: jax.Array) -> None:
+    if coeffs.ndim != 2 or coeffs.shape[1] != 3:
+        raise ValueError(
+            f"HarmonicMotion.{name} must have shape (K, 3) (one row per harmonic, columns x y z), "
+            f"got {coeffs.shape}; for a batch of motions use jax.vmap over the leading axis"
+        )
+
+
+def _harmonic_offset(motion: HarmonicMotion, t: jax.Array) -> jax.Array:
+    sin_coeffs = jnp.asarray(motion.sin_coeffs)
+    cos_coeffs = jnp.asarray(motion.cos_coeffs)
+    _check_coeffs("sin_coeffs", sin_coeffs)
+    _check_coeffs("cos_coeffs", cos_coeffs)
+    if sin_coeffs.shape != cos_coeffs.shape:
+        raise ValueError(
+            "HarmonicMotion.sin_coeffs and cos_coeffs must have the same shape (K, 3), got "
+            f"{sin_coeffs.shape} and {cos_coeffs.shape}; pad the shorter one with zero rows"
+        )
+    harmonics = jnp.arange(1, sin_coeffs.shape[0] + 1, dtype=t.dtype)  # (K,)
+    angles = _TWO_PI * motion.base_frequency_hz * harmonics * t  # (K,)
+    return jnp.sin(angles) @ sin_coeffs + jnp.cos(angles) @ cos_coeffs
+
+
+def spline_second_derivatives(period: float | jax.Array, points: jax.Array) -> jax.Array:
+    """Second time derivatives (m/s^2) of the periodic cubic spline at its knots, shape (M, 3).
+
+    With knot spacing ``h = period / M`` the C2 conditions read
+    ``m[j-1] + 4 m[j] + m[j+1] = 6 (p[j+1] - 2 p[j] + p[j-1]) / h^2`` (indices mod M), a
+    circulant system: it is diagonalised by the DFT with eigenvalues ``4 + 2 cos(2 pi k / M)``
+    (always >= 2, so the system is never singular) and solved by FFT, differentiably.
+    """
+    points = jnp.asarray(points)
+    n_knots = points.shape[0]
+    h = period / n_knots
+    rhs = 6.0 * (jnp.roll(points, -1, axis=0) - 2.0 * points + jnp.roll(points, 1, axis=0)) / h**2
+    k = jnp.arange(n_knots, dtype=points.dtype)
+    eigenvalues = 4.0 + 2.0 * jnp.cos(_TWO_PI * k / n_knots)  # (M,)
+    solution = jnp.fft.ifft(jnp.fft.fft(rhs, axis=0) / eigenvalues[:, None], axis=0)
+    return jnp.real(solution).astype(rhs.dtype)
+
+
+def _spline_offset(motion: SplineMotion, t: jax.Array) -> jax.Array:
+    points = jnp.asarray(motion.points)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 3:
+        raise ValueError(
+            f"SplineMotion.points must have shape (M, 3) with M >= 3, got {points.shape}; "
+            "for a batch of motions use jax.vmap over the leading axis"
+        )
+    n_knots = points.shape[0]
+    period = motion.period
+    h = period / n_knots
+    second = spline_second_derivatives(period, points)
+    # Local coordinate: segment j from t_j to t_{j+1}; jnp.mod wraps negative t too. The clip
+    # guards against mod returning `period` itself by rounding.
+    s = jnp.mod(t, period) / h
+    j = jnp.clip(jnp.floor(s), 0, n_knots - 1).astype(jnp.int32)
+    u = s - j  # in [0, 1]; d u / d t = 1 / h (floor has zero derivative)
+    j_next = jnp.mod(j + 1, n_knots)
+    p0, p1 = points[j], points[j_next]
+    m0, m1 = second[j], second[j_next]
+    # Standard cubic-spline segment in terms of u = x / h.
+    return (
+        m0 * h**2 * (1.0 - u) ** 3 / 6.0
+        + m1 * h**2 * u**3 / 6.0
+        + (p0 - m0 * h**2 / 6.0) * (1.0 - u)
+        + (p1 - m1 * h**2 / 6.0) * u
+    )
+
+
+def _scalar_offset(motion: Motion, t: jax.Array) -> jax.Array:
+    if isinstance(motion, CircleMotion):
+        return _circle_offset(motion, t)
+    if isinstance(motion, HarmonicMotion):
+        return _harmonic_offset(motion, t)
+    if isinstance(motion, SplineMotion):
+        return _spline_offset(motion, t)
+    raise TypeError(
+        f"expected a CircleMotion, HarmonicMotion or SplineMotion, got {type(motion).__name__}; "
+        "build one with motion_from_config(cfg.motion)"
+    )
+
+
+def _scalar_velocity(motion: Motion, t: jax.Array) -> jax.Array:
+    return jax.jvp(lambda tt: _scalar_offset(motion, tt), (t,), (jnp.ones_like(t),))[1]
+
+
+def _scalar_acceleration(motion: Motion, t: jax.Array) -> jax.Array:
+    return jax.jvp(lambda tt: _scalar_velocity(motion, tt), (t,), (jnp.ones_like(t),))[1]
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+
+
+def offset(motion: Motion, t: float | jax.Array) -> jax.Array:
+    """Lab-frame position (m) of the jar-frame origin at time ``t`` (s) since the start of motion.
+
+    Args:
+        motion: a CircleMotion, HarmonicMotion or SplineMotion.
+        t: scalar time (s), or an array of times (vmapped).
+    Returns:
+        (3,) for scalar ``t``, ``t.shape + (3,)`` for an array. Jittable and differentiable in
+        ``t`` and in every motion parameter.
+    """
+    return _map_over_time(_scalar_offset, motion, t)
+
+
+def velocity(motion: Motion, t: float | jax.Array) -> jax.Array:
+    """Jar velocity d offset / dt (m/s) by forward-mode autodiff; shape as ``offset``."""
+    return _map_over_time(_scalar_velocity, motion, t)
+
+
+def acceleration(motion: Motion, t: float | jax.Array) -> jax.Array:
+    """Jar acceleration d^2 offset / dt^2 (m/s^2) by forward-mode autodiff; shape as ``offset``."""
+    return _map_over_time(_scalar_acceleration, motion, t)
+
+
+def frequency_hz(motion: Motion) -> jax.Array:
+    """The "rotational frequency" (Hz) fed to the surrogate's wall node (SPEC section 5).
+
+    ``rpm / 60`` for a circle, ``base_frequency_hz`` for a harmonic series, ``1 / period`` for a
+    spline.
+    """
+    if isinstance(motion, CircleMotion):
+        return jnp.asarray(motion.rpm) / 60.0
+    if isinstance(motion, HarmonicMotion):
+        return jnp.asarray(motion.base_frequency_hz)
+    if isinstance(motion, SplineMotion):
+        return 1.0 / jnp.asarray(motion.period)
+    raise TypeError(f"expected a Motion, got {type(motion).__name__}")
+
+
+def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:
+    """Build the motion pytree described by a ``[motion]`` config section, leaves of ``dtype``.
+
+    Harmonic coefficient lists that are empty mean zero; all lists of one config have the same
+    length K (checked by MotionConfig).
+    """
+    if not isinstance(cfg, MotionConfig):
+        raise TypeError(
+            f"motion_from_config expects a sgn_jax.config.MotionConfig (cfg.motion), "
+            f"got {type(cfg).__name__}"
+        )
+    if cfg.kind == "circle":
+        return CircleMotion(
+            rpm=jnp.asarray(cfg.rpm, dtype),
+            amplitude=jnp.asarray(cfg.amplitude, dtype),
+            phase=jnp.asarray(cfg.phase, dtype),
+        )
+    if cfg.kind == "harmonic":
+        lists = {name: getattr(cfg, name) for name in
+                 ("x_sin", "y_sin", "z_sin", "x_cos", "y_cos", "z_cos")}
+        n_harmonics = max(len(v) for v in lists.values())
+        sin_coeffs = np.zeros((n_harmonics, 3))
+        cos_coeffs = np.zeros((n_harmonics, 3))
+        for axis, letter in enumerate("xyz"):
+            for target, kind in ((sin_coeffs, "sin"), (cos_coeffs, "cos")):
+                values = lists[f"{letter}_{kind}"]
+                if values:
+                    target[:, axis] = values
+        return HarmonicMotion(
+            base_frequency_hz=jnp.asarray(cfg.base_frequency_hz, dtype),
+            sin_coeffs=jnp.asarray(sin_coeffs, dtype),
+            cos_coeffs=jnp.asarray(cos_coeffs, dtype),
+        )
+    if cfg.kind == "spline":
+        return SplineMotion(period=jnp.asarray(cfg.period, dtype),
+                            points=jnp.asarray(np.array(cfg.points), dtype))
+    raise ConfigError(f"[motion] unknown kind {cfg.kind!r}")
+
+
+def standard_circle(dtype: jnp.dtype = jnp.float64) -> CircleMotion:
+    """The standard case (SPEC 2): circle, 300 rpm, amplitude 0.017 m, phase 0."""
+    return CircleMotion(rpm=jnp.asarray(300.0, dtype), amplitude=jnp.asarray(0.017, dtype),
+                        phase=jnp.asarray(0.0, dtype))
+
+
+def motion1(dtype: jnp.dtype = jnp.float64) -> HarmonicMotion:
+    """Motion 1 (SPEC 2): x = 1.7 sin(10 pi t) - 0.85 cos(20 pi t),
+    z = 1.7 cos(10 pi t) - 0.85 sin(20 pi t) (cm); f0 = 5 Hz."""
+    sin_coeffs = [[0.017, 0.0, 0.0], [0.0, 0.0, -0.0085]]
+    cos_coeffs = [[0.0, 0.0, 0.017], [-0.0085, 0.0, 0.0]]
+    return HarmonicMotion(base_frequency_hz=jnp.asarray(5.0, dtype),
+                          sin_coeffs=jnp.asarray(sin_coeffs, dtype),
+                          cos_coeffs=jnp.asarray(cos_coeffs, dtype))
+
+
+def motion2(dtype: jnp.dtype = jnp.float64) -> HarmonicMotion:
+    """Motion 2 (SPEC 2): x = 1.7 sin(10 pi t), z = 1.7 cos(20 pi t) (cm); f0 = 5 Hz."""
+    sin_coeffs = [[0.017, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    cos_coeffs = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.017]]
+    return HarmonicMotion(base_frequency_hz=jnp.asarray(5.0, dtype),
+                          sin_coeffs=jnp.asarray(sin_coeffs, dtype),
+                          cos_coeffs=jnp.asarray(cos_coeffs, dtype))
+
+
+def spline_from_motion(motion: Motion, n_points: int, period: float | jax.Array) -> SplineMotion:
+    """Sample any motion at ``t_j = j * period / n_points`` into a periodic spline.
+
+    ``period`` should be a period of ``motion`` (e.g. ``1 / frequency_hz(motion)``), otherwise
+    the spline closes a curve that does not close. Differentiable w.r.t. the motion's parameters.
+    """
+    if not isinstance(n_points, (int, np.integer)) or n_points < 3:
+        raise ValueError(f"n_points must be an integer >= 3, got {n_points!r}")
+    period = jnp.asarray(period)
+    times = jnp.arange(n_points, dtype=jnp.result_type(period, jnp.float32)) * (period / n_points)
+    return SplineMotion(period=period, points=offset(motion, times))
+
+
+def stack_motions(motions: list[Motion]) -> Motion:
+    """Stack motions of one kind (same K or M) into one pytree with a leading batch axis.
+
+    Use with ``jax.vmap(offset, in_axes=(0, None))(stacked, t)``.
+    """
+    if not motions:
+        raise ValueError("stack_motions needs at least one motion")
+    kinds = {type(m) for m in motions}
+    if len(kinds) != 1:
+        raise ValueError(f"stack_motions needs motions of one kind, got {sorted(k.__name__ for k in kinds)}")
+    return jax.tree.map(lambda *leaves: jnp.stack([jnp.asarray(x) for x in leaves]), *motions)
+
+
+__all__ = [
+    "CircleMotion",
+    "HarmonicMotion",
+    "Motion",
+    "SplineMotion",
+    "acceleration",
+    "frequency_hz",
+    "motion1",
+    "motion2",
+    "motion_from_config",
+    "offset",
+    "spline_from_motion",
+    "spline_second_derivatives",
+    "stack_motions",
+    "standard_circle",
+    "velocity",
+]
