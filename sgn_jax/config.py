@@ -359,7 +359,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
             raise ConfigError(f"{where} must have {len(args)} elements, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where} must be a number, got {value!r}")
@@ -398,7 +398,8 @@ def _build_dataclass(cls: type, table: Any, where: str) -> Any:
             kwargs[name] = _coerce(table[name], hints[name], f"{where}.{name}")
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(f"missing required key {where}.{name}")
-    if cls is MotionConfig and "kind" in table:
+    # An unknown kind is reported by MotionConfig itself (listing the kinds), not as foreign keys.
+    if cls is MotionConfig and table.get("kind") in MOTION_KINDS:
         MotionConfig.check_keys_for_kind(table["kind"], set(table))
     try:
         return cls(**kwargs)
