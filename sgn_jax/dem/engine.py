@@ -1,0 +1,722 @@
+"""The DEM engine: state pytree, jittable step, contact assembly and the energy ledger.
+
+``make_dem_step(spec, wall_fn) -> step(params, state) -> state`` (JAX-MD style). ``spec``
+(:class:`DEMSpec`) holds everything static (sizes, dt, dtype, pair mode); ``params``
+(:class:`DEMParams`) every number that may be batched with ``jax.vmap`` (material, ball, gravity,
+jar geometry, motion); ``state`` (:class:`DEMState`) the dynamic state.
+
+Time integration: symplectic (semi-implicit) Euler,
+
+    v_{n+1} = v_n + dt (F(x_n, v_n, w_n, d_t) / m + g),   w_{n+1} = w_n + dt tau / I,
+    x_{n+1} = x_n + dt v_{n+1},
+
+one force evaluation per step (the same integrator the surrogate uses, SPEC 5). The velocity
+dependent damping forces take the velocity of the start of the step. See docs/dem.md for why.
+
+Time is the integer ``state.step`` counting DEM steps since the start of motion (negative while
+settling); t = step * dt_dem in float64, so 10 s of motion accumulate no rounding drift. For
+step < 0 the jar rests at ``offset(motion, 0)`` with zero velocity; at step 0 its velocity jumps
+to ``velocity(motion, 0)`` (SPEC 2).
+
+Energy ledger (cumulative, float64 whatever the state dtype): per contact type (pp, pw) the
+dissipation by normal damping, tangential damping, Coulomb slip, rolling friction and the
+tangential-stiffness term (see :mod:`sgn_jax.dem.contact`), plus the work done by the moving
+wall on the balls. Each power uses the step's mean velocity, for which
+dKE = sum F . v_mid dt holds exactly, so that
+
+    work_wall = d(KE_trans + KE_rot + PE_grav + E_elastic) + sum of all dissipation
+
+up to the time-integration error of the conservative springs alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgn_jax.dem.contact import (
+    ContactLaw,
+    contact_dissipation,
+    contact_forces,
+    hertz_energy,
+    make_contact_law,
+)
+
+DISSIPATION_KINDS = ("normal", "tangential", "slip", "rolling", "stiffness")
+PAIR_MODES = ("auto", "dense", "neighbour")
+# Above this ball count "auto" switches from the dense all-pairs list to a neighbour table.
+DENSE_MAX_BALLS = 64
+
+WallFn = Callable[[Any, jnp.ndarray], tuple[jnp.ndarray, jnp.ndarray]]
+MotionFn = Callable[[Any, jnp.ndarray], jnp.ndarray]
+
+
+class DEMError(ValueError):
+    """Bad DEM input (sizes, parameters), with a message that says how to fix it."""
+
+
+# --------------------------------------------------------------------------------------------
+# Static spec, parameters, state
+
+
+@dataclasses.dataclass(frozen=True)
+class DEMSpec:
+    """Static DEM settings (hashable; changing one recompiles).
+
+    Attributes:
+        n_balls: N.
+        n_patches: P, number of wall patches returned by ``wall_fn`` (each its own contact).
+        dt_dem: solver step (s).
+        dtype: "float64" or "float32" for positions, velocities and forces.
+        clip_attractive: clip attractive normal forces to zero (SPEC 3: off by default).
+        pair_mode: "dense" (all i<j pairs, static), "neighbour" (per-ball candidate table of
+            fixed capacity, rebuilt when a ball moved more than half the skin) or "auto"
+            (dense for N <= 64).
+        neighbour_capacity: candidate slots per ball (pairs j > i) in neighbour mode.
+        neighbour_skin: m, surface gap within which a pair becomes a candidate.
+    """
+
+    n_balls: int
+    n_patches: int
+    dt_dem: float
+    dtype: str = "float64"
+    clip_attractive: bool = False
+    pair_mode: str = "auto"
+    neighbour_capacity: int = 16
+    neighbour_skin: float = 0.002
+
+    def __post_init__(self) -> None:
+        if self.n_balls < 1:
+            raise DEMError(f"n_balls must be >= 1, got {self.n_balls}")
+        if self.n_patches < 1:
+            raise DEMError(f"n_patches must be >= 1 (a wall function is required), got "
+                           f"{self.n_patches}")
+        if not self.dt_dem > 0:
+            raise DEMError(f"dt_dem must be > 0, got {self.dt_dem}")
+        if self.dtype not in ("float64", "float32"):
+            raise DEMError(f"dtype must be 'float64' or 'float32', got {self.dtype!r}")
+        if self.pair_mode not in PAIR_MODES:
+            raise DEMError(f"pair_mode must be one of {PAIR_MODES}, got {self.pair_mode!r}")
+        if self.neighbour_capacity < 1 or self.neighbour_skin < 0:
+            raise DEMError("neighbour_capacity must be >= 1 and neighbour_skin >= 0")
+
+    @property
+    def resolved_pair_mode(self) -> str:
+        if self.pair_mode != "auto":
+            return self.pair_mode
+        return "dense" if self.n_balls <= DENSE_MAX_BALLS else "neighbour"
+
+    @property
+    def n_pair_slots(self) -> int:
+        """K, the number of ball-ball contact slots (with tangential histories)."""
+        n = self.n_balls
+        if self.resolved_pair_mode == "dense":
+            return n * (n - 1) // 2
+        return n * min(self.neighbour_capacity, max(n - 1, 1))
+
+    @property
+    def jnp_dtype(self) -> Any:
+        return jnp.dtype(self.dtype)
+
+
+@flax.struct.dataclass
+class DEMParams:
+    """Everything numeric that a run depends on (vmappable).
+
+    Attributes:
+        radius: ball radius R (m).
+        mass: ball mass m (kg).
+        inertia: ball moment of inertia (2/5) m R^2 (kg m^2).
+        pp: ball-ball contact law.
+        pw: ball-wall contact law.
+        gravity: (3,) m/s^2.
+        geometry: pytree given to ``wall_fn`` (JarParams, SDFGrid, test planes, ...).
+        motion: pytree given to ``offset_fn`` / ``velocity_fn`` (a sgn_jax.motion Motion).
+    """
+
+    radius: Any
+    mass: Any
+    inertia: Any
+    pp: ContactLaw
+    pw: ContactLaw
+    gravity: Any
+    geometry: Any
+    motion: Any
+
+
+def make_params(
+    radius: float,
+    density: float,
+    young: float,
+    poisson: float,
+    restitution: float,
+    friction: float,
+    rolling_friction: float,
+    gravity: tuple[float, float, float],
+    geometry: Any,
+    motion: Any,
+) -> DEMParams:
+    """DEMParams for identical balls of one material against walls of the same material."""
+    mass = density * 4.0 / 3.0 * math.pi * radius**3
+    common = dict(young=young, poisson=poisson, restitution=restitution, friction=friction,
+                  rolling_friction=rolling_friction)
+    return DEMParams(
+        radius=float(radius),
+        mass=float(mass),
+        inertia=0.4 * mass * radius**2,
+        pp=make_contact_law(radius_1=radius, mass_1=mass, radius_2=radius, mass_2=mass, **common),
+        pw=make_contact_law(radius_1=radius, mass_1=mass, **common),
+        gravity=jnp.asarray(gravity, dtype=jnp.float64),
+        geometry=geometry,
+        motion=motion,
+    )
+
+
+def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DEMParams:
+    """DEMParams of an experiment config (balls, material, gravity, jar patches, motion)."""
+    from sgn_jax.motion import motion_from_config
+
+    if geometry is None:
+        geometry = geometry_from_config(cfg)[0]
+    if motion is None:
+        motion = motion_from_config(cfg.motion)
+    m = cfg.material
+    return make_params(
+        radius=cfg.balls.radius, density=cfg.balls.density, young=m.young, poisson=m.poisson,
+        restitution=m.restitution, friction=m.friction, rolling_friction=m.rolling_friction,
+        gravity=tuple(cfg.dem.gravity), geometry=geometry, motion=motion,
+    )
+
+
+def geometry_from_config(cfg: Any) -> tuple[Any, WallFn, int, Callable[[Any, Any], Any]]:
+    """(geometry pytree, wall_fn, n_patches, jar_sdf_fn) for the jar of a config.
+
+    The parametric jar gives one contact per wall patch (floor, lid, side[, post]); an STL jar
+    is one patch sampled on an SDF grid (a ball in a concave edge of an STL jar then feels only
+    the nearer wall; documented limitation, SPEC 3). ``jar_sdf_fn(geometry, x_jar) -> phi`` is
+    the combined SDF used for placement and the "outside the jar" check.
+    """
+    from sgn_jax import geometry as geo
+
+    if cfg.jar.kind == "emax":
+        params = geo.jar_params_from_config(cfg.jar)
+        n_patches = len(geo.patch_names(params))
+
+        def wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+            return geo.jar_patch_sdf_and_normal(g, x_jar)
+
+        def sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
+            return geo.jar_sdf(g, x_jar)
+
+        return params, wall_fn, n_patches, sdf_fn
+
+    grid = geo.sdf_grid_from_config(cfg)
+    zero = None
+
+    def wall_fn_grid(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        phi, normal = geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
+        return phi[..., None], normal[..., None, :]
+
+    def sdf_fn_grid(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
+        return geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))[0]
+
+    del zero
+    return grid, wall_fn_grid, 1, sdf_fn_grid
+
+
+@flax.struct.dataclass
+class EnergyLedger:
+    """Cumulative energy bookkeeping (float64, J).
+
+    Attributes:
+        diss_pp: (5,) dissipated in ball-ball contacts, by kind ``DISSIPATION_KINDS``.
+        diss_pw: (5,) the same for ball-wall contacts.
+        work_wall: work done by the moving wall on the balls, sum F_wall_on_ball . d offset.
+        spring_pp: tangential spring energy stored in ball-ball contacts now.
+        spring_pw: the same in ball-wall contacts.
+    """
+
+    diss_pp: jnp.ndarray
+    diss_pw: jnp.ndarray
+    work_wall: jnp.ndarray
+    spring_pp: jnp.ndarray
+    spring_pw: jnp.ndarray
+
+
+@flax.struct.dataclass
+class PairList:
+    """Ball-ball contact slots; each slot carries one tangential history.
+
+    Attributes:
+        i, j: (K,) int32 ball indices (i < j for a valid slot; i = j for an empty slot).
+        valid: (K,) bool.
+        ref_pos: (N,3) positions at the last rebuild (neighbour mode).
+        overflow: () bool, sticky: a ball had more candidates than ``neighbour_capacity``.
+        rebuilds: () int32, number of rebuilds so far.
+    """
+
+    i: jnp.ndarray
+    j: jnp.ndarray
+    valid: jnp.ndarray
+    ref_pos: jnp.ndarray
+    overflow: jnp.ndarray
+    rebuilds: jnp.ndarray
+
+
+@flax.struct.dataclass
+class DEMState:
+    """Dynamic state of one DEM system.
+
+    Attributes:
+        pos, vel, omega: (N,3) m, m/s, rad/s (lab frame).
+        pp_history: (K,3) m tangential displacement per ball-ball slot.
+        pw_history: (N,P,3) m tangential displacement per (ball, wall patch).
+        offset: (3,) m, jar offset at the current step (float64).
+        step: () int64, DEM steps since the start of motion (negative while settling).
+        pairs: the ball-ball slots.
+        ledger: the energy ledger.
+    """
+
+    pos: jnp.ndarray
+    vel: jnp.ndarray
+    omega: jnp.ndarray
+    pp_history: jnp.ndarray
+    pw_history: jnp.ndarray
+    offset: jnp.ndarray
+    step: jnp.ndarray
+    pairs: PairList
+    ledger: EnergyLedger
+
+
+def zero_ledger() -> EnergyLedger:
+    z = jnp.zeros((), jnp.float64)
+    return EnergyLedger(diss_pp=jnp.zeros(5, jnp.float64), diss_pw=jnp.zeros(5, jnp.float64),
+                        work_wall=z, spring_pp=z, spring_pw=z)
+
+
+def reset_ledger_totals(state: DEMState) -> DEMState:
+    """Zero the cumulative dissipation and wall work (keeps the stored spring energies)."""
+    led = state.ledger
+    return state.replace(ledger=led.replace(diss_pp=jnp.zeros_like(led.diss_pp),
+                                            diss_pw=jnp.zeros_like(led.diss_pw),
+                                            work_wall=jnp.zeros_like(led.work_wall)))
+
+
+def dense_pair_indices(n_balls: int) -> tuple[np.ndarray, np.ndarray]:
+    """Static (i, j) index lists of all pairs i < j, each (N(N-1)/2,) int32."""
+    i, j = np.triu_indices(n_balls, k=1)
+    return i.astype(np.int32), j.astype(np.int32)
+
+
+# --------------------------------------------------------------------------------------------
+# Neighbour table (fixed capacity, overflow flag)
+
+
+def _build_neighbour_table(spec: DEMSpec, radius: Any, pos: jnp.ndarray
+                           ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Candidate partners j > i with surface gap < skin: (j (N,C) int32, valid (N,C), overflow)."""
+    n = spec.n_balls
+    cap = min(spec.neighbour_capacity, max(n - 1, 1))
+    diff = pos[None, :, :] - pos[:, None, :]
+    dist = jnp.sqrt(jnp.sum(diff * diff, axis=-1))
+    upper = jnp.arange(n)[None, :] > jnp.arange(n)[:, None]
+    cand = upper & (dist < 2 * radius + spec.neighbour_skin)
+    score = jnp.where(cand, -dist, -jnp.inf)
+    top, idx = jax.lax.top_k(score, cap)
+    valid = jnp.isfinite(top)
+    j = jnp.where(valid, idx, jnp.arange(n)[:, None]).astype(jnp.int32)
+    overflow = jnp.any(jnp.sum(cand, axis=1) > cap)
+    return j, valid, overflow
+
+
+def _rebuild_pairs(spec: DEMSpec, params: DEMParams, state: DEMState) -> DEMState:
+    """Rebuild the neighbour table and carry each pair's history to its new slot."""
+    n = spec.n_balls
+    cap = spec.n_pair_slots // n
+    new_j, new_valid, overflow = _build_neighbour_table(spec, params.radius, state.pos)
+    old_j = state.pairs.j.reshape(n, cap)
+    old_valid = state.pairs.valid.reshape(n, cap)
+    old_hist = state.pp_history.reshape(n, cap, 3)
+    match = ((new_j[:, :, None] == old_j[:, None, :]) & old_valid[:, None, :]
+             & new_valid[:, :, None]).astype(old_hist.dtype)
+    hist = jnp.einsum("icd,idk->ick", match, old_hist).reshape(n * cap, 3)
+    pairs = state.pairs.replace(
+        j=new_j.reshape(-1), valid=new_valid.reshape(-1), ref_pos=state.pos,
+        overflow=state.pairs.overflow | overflow, rebuilds=state.pairs.rebuilds + 1)
+    return state.replace(pairs=pairs, pp_history=hist)
+
+
+def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray) -> PairList:
+    """The initial pair list (dense: all pairs; neighbour: built from ``pos``)."""
+    n = spec.n_balls
+    if spec.resolved_pair_mode == "dense":
+        i, j = dense_pair_indices(n)
+        return PairList(i=jnp.asarray(i), j=jnp.asarray(j), valid=jnp.ones(len(i), bool),
+                        ref_pos=pos, overflow=jnp.zeros((), bool),
+                        rebuilds=jnp.zeros((), jnp.int32))
+    j, valid, overflow = _build_neighbour_table(spec, params.radius, pos)
+    cap = j.shape[1]
+    i = jnp.repeat(jnp.arange(n, dtype=jnp.int32), cap)
+    return PairList(i=i, j=j.reshape(-1), valid=valid.reshape(-1), ref_pos=pos,
+                    overflow=overflow, rebuilds=jnp.zeros((), jnp.int32))
+
+
+def init_state(
+    spec: DEMSpec,
+    params: DEMParams,
+    pos: Any,
+    vel: Any = None,
+    omega: Any = None,
+    step: int = 0,
+    offset_fn: MotionFn | None = None,
+) -> DEMState:
+    """A fresh state (no contact histories) at DEM step ``step`` (negative: settling)."""
+    if offset_fn is None:
+        from sgn_jax.motion import offset as offset_fn
+    dtype = spec.jnp_dtype
+    pos = jnp.asarray(pos, dtype=dtype)
+    if pos.shape != (spec.n_balls, 3):
+        raise DEMError(f"pos must have shape ({spec.n_balls}, 3), got {pos.shape}")
+    vel = jnp.zeros_like(pos) if vel is None else jnp.asarray(vel, dtype=dtype)
+    omega = jnp.zeros_like(pos) if omega is None else jnp.asarray(omega, dtype=dtype)
+    pairs = init_pairs(spec, params, pos)
+    t = max(step, 0) * spec.dt_dem
+    offset = jnp.asarray(offset_fn(params.motion, jnp.asarray(t, jnp.float64)), jnp.float64)
+    return DEMState(
+        pos=pos, vel=vel, omega=omega,
+        pp_history=jnp.zeros((spec.n_pair_slots, 3), dtype),
+        pw_history=jnp.zeros((spec.n_balls, spec.n_patches, 3), dtype),
+        offset=offset,
+        step=jnp.asarray(step, jnp.int64),
+        pairs=pairs,
+        ledger=zero_ledger(),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Contact geometry
+
+
+class _PairGeometry(NamedTuple):
+    overlap: jnp.ndarray  # (K,)
+    normal: jnp.ndarray  # (K,3) from i to j
+    arm: jnp.ndarray  # (K,)
+
+
+def _pair_geometry(radius: Any, xi: jnp.ndarray, xj: jnp.ndarray, valid: Any) -> _PairGeometry:
+    r = xj - xi
+    dist_sq = jnp.sum(r * r, axis=-1)
+    ok = dist_sq > 0
+    dist = jnp.sqrt(jnp.where(ok, dist_sq, 1.0))
+    normal = r / dist[:, None]
+    overlap = jnp.where(ok & valid, 2 * radius - dist, -1.0)
+    arm = radius - 0.5 * jnp.maximum(overlap, 0.0)
+    return _PairGeometry(overlap=overlap, normal=normal, arm=arm)
+
+
+def _wall_geometry(wall_fn: WallFn, geometry: Any, radius: Any, pos: jnp.ndarray,
+                   offset: jnp.ndarray) -> _PairGeometry:
+    x_jar = pos - offset.astype(pos.dtype)
+    phi, normal = wall_fn(geometry, x_jar)
+    overlap = radius + phi.astype(pos.dtype)
+    arm = radius - 0.5 * jnp.maximum(overlap, 0.0)
+    return _PairGeometry(overlap=overlap, normal=normal.astype(pos.dtype), arm=arm)
+
+
+def _default_motion_fns(offset_fn: MotionFn | None, velocity_fn: MotionFn | None
+                        ) -> tuple[MotionFn, MotionFn]:
+    from sgn_jax import motion as motion_mod
+
+    return (offset_fn or motion_mod.offset), (velocity_fn or motion_mod.velocity)
+
+
+# --------------------------------------------------------------------------------------------
+# The step
+
+
+def make_dem_step(
+    spec: DEMSpec,
+    wall_fn: WallFn,
+    offset_fn: MotionFn | None = None,
+    velocity_fn: MotionFn | None = None,
+    scatter: str = "auto",
+) -> Callable[[DEMParams, DEMState], DEMState]:
+    """Build the jittable DEM step ``step(params, state) -> state`` (one dt_dem).
+
+    Args:
+        spec: static settings.
+        wall_fn: ``wall_fn(params.geometry, x_jar (N,3)) -> (phi (N,P), normal (N,P,3))``, each
+            patch its own SDF (negative inside the cavity) and unit normal towards the wall.
+        offset_fn, velocity_fn: ``f(params.motion, t) -> (3,)``; default sgn_jax.motion.
+        scatter: how ball-ball forces are summed per ball: "matmul" (static incidence matrix,
+            dense mode only), "segment" (scatter-add) or "auto" (matmul when dense).
+    """
+    offset_fn, velocity_fn = _default_motion_fns(offset_fn, velocity_fn)
+    n = spec.n_balls
+    dt = spec.dt_dem
+    dtype = spec.jnp_dtype
+    dense = spec.resolved_pair_mode == "dense"
+    if scatter == "auto":
+        scatter = "matmul" if dense else "segment"
+    if scatter == "matmul" and not dense:
+        raise DEMError("scatter='matmul' needs the dense pair mode")
+    if dense:
+        pi_np, pj_np = dense_pair_indices(n)
+        inc = np.zeros((n, len(pi_np)))
+        inc[pi_np, np.arange(len(pi_np))] = 1.0
+        inc[pj_np, np.arange(len(pi_np))] = -1.0
+        incidence = jnp.asarray(inc, dtype)  # +1 on i, -1 on j
+        incidence_abs = jnp.asarray(np.abs(inc), dtype)
+
+    def jar_kinematics(params: DEMParams, step: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """Jar offset at step+1 and jar velocity at step (zero while settling)."""
+        t_now = jnp.maximum(step, 0).astype(jnp.float64) * dt
+        t_next = jnp.maximum(step + 1, 0).astype(jnp.float64) * dt
+        offset_next = offset_fn(params.motion, t_next).astype(jnp.float64)
+        vel_now = jnp.where(step >= 0, velocity_fn(params.motion, t_now), 0.0)
+        return offset_next, vel_now.astype(dtype)
+
+    def sum_pairs(values: jnp.ndarray, pairs: PairList, sign_j: float) -> jnp.ndarray:
+        """Per-ball sum of per-pair vectors: +values on i, sign_j * values on j."""
+        if scatter == "matmul":
+            mat = incidence if sign_j < 0 else incidence_abs
+            return mat @ values
+        out = jnp.zeros((n, 3), values.dtype).at[pairs.i].add(values)
+        return out.at[pairs.j].add(sign_j * values)
+
+    def step(params: DEMParams, state: DEMState) -> DEMState:
+        if not dense:
+            moved = jnp.max(jnp.sum((state.pos - state.pairs.ref_pos) ** 2, axis=-1))
+            state = jax.lax.cond(moved > (0.5 * spec.neighbour_skin) ** 2,
+                                 lambda s: _rebuild_pairs(spec, params, s), lambda s: s, state)
+        pos, vel, omega = state.pos, state.vel, state.omega
+        radius = jnp.asarray(params.radius, dtype)
+        pairs = state.pairs
+        offset_next, v_wall = jar_kinematics(params, state.step)
+
+        # Ball-ball contacts.
+        if dense:
+            pi, pj = jnp.asarray(pi_np), jnp.asarray(pj_np)
+        else:
+            pi, pj = pairs.i, pairs.j
+        pp = _pair_geometry(radius, pos[pi], pos[pj], pairs.valid)
+        arm_vec = pp.arm[:, None] * pp.normal
+        omega_sum = omega[pi] + omega[pj]
+        v_rel = vel[pi] - vel[pj] + jnp.cross(omega_sum, arm_vec)
+        omega_rel = omega[pi] - omega[pj]
+        f_pp = contact_forces(params.pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
+                              state.pp_history, dt, spec.clip_attractive)
+
+        # Ball-wall contacts, one per (ball, patch).
+        pw = _wall_geometry(wall_fn, params.geometry, radius, pos, state.offset)
+        arm_w = pw.arm[..., None] * pw.normal
+        v_rel_w = vel[:, None, :] + jnp.cross(omega[:, None, :], arm_w) - v_wall
+        omega_rel_w = jnp.broadcast_to(omega[:, None, :], arm_w.shape)
+        f_pw = contact_forces(params.pw, pw.overlap, pw.normal, pw.arm, v_rel_w, omega_rel_w,
+                              state.pw_history, dt, spec.clip_attractive)
+
+        force = sum_pairs(f_pp.force, pairs, -1.0) + jnp.sum(f_pw.force, axis=1)
+        torque = (sum_pairs(f_pp.torque_tangential, pairs, 1.0)
+                  + sum_pairs(f_pp.torque_rolling, pairs, -1.0)
+                  + jnp.sum(f_pw.torque_tangential + f_pw.torque_rolling, axis=1))
+
+        gravity = jnp.asarray(params.gravity, dtype)
+        mass = jnp.asarray(params.mass, dtype)
+        inertia = jnp.asarray(params.inertia, dtype)
+        vel_new = vel + dt * (force / mass + gravity)
+        omega_new = omega + dt * (torque / inertia)
+        pos_new = pos + dt * vel_new
+
+        # Energy ledger, with the mean velocities of the step (see module docstring).
+        vel_mid = 0.5 * (vel + vel_new)
+        omega_mid = 0.5 * (omega + omega_new)
+        d_offset = offset_next - state.offset
+        v_wall_mid = (d_offset / dt).astype(dtype)
+        v_rel_mid = (vel_mid[pi] - vel_mid[pj]
+                     + jnp.cross(omega_mid[pi] + omega_mid[pj], arm_vec))
+        omega_rel_mid = omega_mid[pi] - omega_mid[pj]
+        d_pp = contact_dissipation(f_pp, pp.normal, v_rel_mid, omega_rel_mid, dt)
+        v_rel_w_mid = vel_mid[:, None, :] + jnp.cross(omega_mid[:, None, :], arm_w) - v_wall_mid
+        omega_rel_w_mid = jnp.broadcast_to(omega_mid[:, None, :], arm_w.shape)
+        d_pw = contact_dissipation(f_pw, pw.normal, v_rel_w_mid, omega_rel_w_mid, dt)
+
+        led = state.ledger
+        f64 = jnp.float64
+        spring_pp_old_now = jnp.sum(f_pp.spring_energy_old_now, dtype=f64)
+        spring_pw_old_now = jnp.sum(f_pw.spring_energy_old_now, dtype=f64)
+        inc_pp = jnp.stack([jnp.sum(d_pp.normal, dtype=f64), jnp.sum(d_pp.tangential, dtype=f64),
+                            jnp.sum(d_pp.slip, dtype=f64), jnp.sum(d_pp.rolling, dtype=f64),
+                            led.spring_pp - spring_pp_old_now])
+        inc_pw = jnp.stack([jnp.sum(d_pw.normal, dtype=f64), jnp.sum(d_pw.tangential, dtype=f64),
+                            jnp.sum(d_pw.slip, dtype=f64), jnp.sum(d_pw.rolling, dtype=f64),
+                            led.spring_pw - spring_pw_old_now])
+        wall_force = jnp.sum(f_pw.force, axis=(0, 1)).astype(f64)
+        ledger = EnergyLedger(
+            diss_pp=led.diss_pp + inc_pp,
+            diss_pw=led.diss_pw + inc_pw,
+            work_wall=led.work_wall + jnp.dot(wall_force, d_offset),
+            spring_pp=jnp.sum(f_pp.spring_energy, dtype=f64),
+            spring_pw=jnp.sum(f_pw.spring_energy, dtype=f64),
+        )
+        return state.replace(
+            pos=pos_new, vel=vel_new, omega=omega_new,
+            pp_history=f_pp.history, pw_history=f_pw.history,
+            offset=offset_next, step=state.step + 1, ledger=ledger,
+        )
+
+    return step
+
+
+# --------------------------------------------------------------------------------------------
+# Observables
+
+
+class Contacts(NamedTuple):
+    pp_overlap: jnp.ndarray  # (K,)
+    pw_overlap: jnp.ndarray  # (N,P)
+
+
+def contact_overlaps(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
+                     ) -> Contacts:
+    """Overlaps (m, > 0 in contact) of every ball-ball slot and every (ball, patch) now."""
+    radius = jnp.asarray(params.radius, spec.jnp_dtype)
+    pairs = state.pairs
+    pp = _pair_geometry(radius, state.pos[pairs.i], state.pos[pairs.j], pairs.valid)
+    pw = _wall_geometry(wall_fn, params.geometry, radius, state.pos, state.offset)
+    return Contacts(pp_overlap=pp.overlap, pw_overlap=pw.overlap)
+
+
+def energies(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
+             ) -> dict[str, jnp.ndarray]:
+    """Energies of the state (J, float64): ke_trans, ke_rot, pe_grav, e_elastic.
+
+    ``pe_grav = -sum m g . x`` (= m |g| y for g along -y); ``e_elastic`` is the Hertz energy of
+    every overlap now plus the tangential spring energy stored in the ledger.
+    """
+    f64 = jnp.float64
+    vel = state.vel.astype(f64)
+    omega = state.omega.astype(f64)
+    pos = state.pos.astype(f64)
+    ke_trans = 0.5 * params.mass * jnp.sum(vel * vel)
+    ke_rot = 0.5 * params.inertia * jnp.sum(omega * omega)
+    pe = -params.mass * jnp.sum(pos @ jnp.asarray(params.gravity, f64))
+    ov = contact_overlaps(spec, wall_fn, params, state)
+    e_el = (jnp.sum(hertz_energy(params.pp, ov.pp_overlap.astype(f64)))
+            + jnp.sum(hertz_energy(params.pw, ov.pw_overlap.astype(f64)))
+            + state.ledger.spring_pp + state.ledger.spring_pw)
+    return {"ke_trans": ke_trans, "ke_rot": ke_rot, "pe_grav": pe, "e_elastic": e_el}
+
+
+def ledger_balance(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
+                   ) -> jnp.ndarray:
+    """KE + PE + E_elastic + cumulative dissipation - cumulative wall work (J).
+
+    Constant up to the integration error; its change over a run is the ledger residual.
+    """
+    e = energies(spec, wall_fn, params, state)
+    led = state.ledger
+    return (e["ke_trans"] + e["ke_rot"] + e["pe_grav"] + e["e_elastic"]
+            + jnp.sum(led.diss_pp) + jnp.sum(led.diss_pw) - led.work_wall)
+
+
+def observe(
+    spec: DEMSpec,
+    wall_fn: WallFn,
+    params: DEMParams,
+    state: DEMState,
+    pp_capacity: int,
+    velocity_fn: MotionFn | None = None,
+) -> dict[str, jnp.ndarray]:
+    """One sample of the dataset (SPEC 4) from a state; cumulative ledger values.
+
+    Returns pos, vel, omega (N,3); offset, offset_vel (3,); energies; the cumulative
+    ``diss_pp`` / ``diss_pw`` (5,) and ``work_wall``; ``pp_pairs`` (pp_capacity, 2) int32
+    padded with -1; ``pw_contact`` (N,) bool; ``n_pp_contacts`` () and ``pp_overflow`` ().
+    """
+    _, velocity_fn = _default_motion_fns(None, velocity_fn)
+    ov = contact_overlaps(spec, wall_fn, params, state)
+    touching = ov.pp_overlap > 0
+    n_pp = jnp.sum(touching)
+    (slots,) = jnp.nonzero(touching, size=pp_capacity, fill_value=-1)
+    have = slots >= 0
+    pp_pairs = jnp.where(have[:, None],
+                         jnp.stack([state.pairs.i[slots], state.pairs.j[slots]], axis=-1), -1)
+    t = jnp.maximum(state.step, 0).astype(jnp.float64) * spec.dt_dem
+    offset_vel = jnp.where(state.step >= 0, velocity_fn(params.motion, t), 0.0)
+    out = {
+        "pos": state.pos.astype(jnp.float64),
+        "vel": state.vel.astype(jnp.float64),
+        "omega": state.omega.astype(jnp.float64),
+        "offset": state.offset,
+        "offset_vel": offset_vel.astype(jnp.float64),
+        "diss_pp": state.ledger.diss_pp,
+        "diss_pw": state.ledger.diss_pw,
+        "work_wall": state.ledger.work_wall,
+        "pp_pairs": pp_pairs.astype(jnp.int32),
+        "pw_contact": jnp.any(ov.pw_overlap > 0, axis=-1),
+        "n_pp_contacts": n_pp.astype(jnp.int32),
+        "pp_overflow": (n_pp > pp_capacity) | state.pairs.overflow,
+    }
+    out.update(energies(spec, wall_fn, params, state))
+    return out
+
+
+def make_sampler(
+    spec: DEMSpec,
+    wall_fn: WallFn,
+    substeps: int,
+    pp_capacity: int,
+    offset_fn: MotionFn | None = None,
+    velocity_fn: MotionFn | None = None,
+    scatter: str = "auto",
+) -> Callable[[DEMParams, DEMState, int], tuple[DEMState, dict[str, jnp.ndarray]]]:
+    """``run(params, state, n_samples) -> (state, samples)``: n_samples x substeps DEM steps.
+
+    A nested ``lax.scan`` (inner: ``substeps`` steps, outer: samples), jitted with
+    ``n_samples`` static; ``samples`` holds :func:`observe` of the state after each inner loop
+    (leading axis n_samples). No host synchronisation inside.
+    """
+    step = make_dem_step(spec, wall_fn, offset_fn, velocity_fn, scatter)
+
+    def advance(params: DEMParams, state: DEMState, n_steps: int) -> DEMState:
+        def body(s: DEMState, _: Any) -> tuple[DEMState, None]:
+            return step(params, s), None
+
+        return jax.lax.scan(body, state, None, length=n_steps)[0]
+
+    def run(params: DEMParams, state: DEMState, n_samples: int
+            ) -> tuple[DEMState, dict[str, jnp.ndarray]]:
+        def outer(s: DEMState, _: Any) -> tuple[DEMState, dict[str, jnp.ndarray]]:
+            s = advance(params, s, substeps)
+            return s, observe(spec, wall_fn, params, s, pp_capacity, velocity_fn)
+
+        return jax.lax.scan(outer, state, None, length=n_samples)
+
+    return jax.jit(run, static_argnums=2)
+
+
+def make_advance(
+    spec: DEMSpec,
+    wall_fn: WallFn,
+    offset_fn: MotionFn | None = None,
+    velocity_fn: MotionFn | None = None,
+    scatter: str = "auto",
+    unroll: int = 1,
+) -> Callable[[DEMParams, DEMState, int], DEMState]:
+    """``advance(params, state, n_steps) -> state``: a jitted ``lax.scan`` of n_steps steps."""
+    step = make_dem_step(spec, wall_fn, offset_fn, velocity_fn, scatter)
+
+    def advance(params: DEMParams, state: DEMState, n_steps: int) -> DEMState:
+        def body(s: DEMState, _: Any) -> tuple[DEMState, None]:
+            return step(params, s), None
+
+        return jax.lax.scan(body, state, None, length=n_steps, unroll=unroll)[0]
+
+    return jax.jit(advance, static_argnums=2)
