@@ -131,7 +131,7 @@ class ContactForces(NamedTuple):
         tangential: (K,3) N, applied tangential force on body i (spring + damping, Coulomb-limited).
         tangential_damping: (K,3) N, the applied damping part of ``tangential``.
         history: (K,3) m, new tangential displacement (0 where the contact is open).
-        slip_energy: (K,) J, spring energy removed by the Coulomb scaling this step.
+        sliding: (K,) bool, the Coulomb limit was hit this step.
         spring_energy: (K,) J, tangential spring energy 1/2 S_t |history|^2 after the step.
         spring_energy_old_now: (K,) J, the energy of the old history at the current stiffness:
             its difference with the old stored energy is the energy released (or taken up) by
@@ -147,7 +147,7 @@ class ContactForces(NamedTuple):
     tangential: jnp.ndarray
     tangential_damping: jnp.ndarray
     history: jnp.ndarray
-    slip_energy: jnp.ndarray
+    sliding: jnp.ndarray
     spring_energy: jnp.ndarray
     spring_energy_old_now: jnp.ndarray
     in_contact: jnp.ndarray
@@ -193,8 +193,8 @@ def contact_forces(
     4. Coulomb, applied to the *whole* tangential force (spring + damping): if
        |F_t| > mu |F_n| both parts are scaled by s = mu |F_n| / |F_t|, so that |F_t| = mu |F_n|
        exactly, and the stored displacement is s d_trial (the spring stays at the Coulomb
-       limit while sliding). The removed spring energy 1/2 S_t (1 - s^2) |d_trial|^2 is the slip
-       loss; both damping and slip losses are then >= 0.
+       limit while sliding). The damping loss stays >= 0; the slip loss is formed in
+       :func:`contact_dissipation`.
     5. Rolling friction tau_r = -mu_r |F_n| R_c w/|w| (zero for w = 0).
     Open contacts (d <= 0) give zero force and a zero history (reset when a contact ends).
     """
@@ -233,8 +233,6 @@ def contact_forces(
     history_new = jnp.where(in_contact[..., None], scale[..., None] * trial, 0.0)
     tangential = jnp.where(in_contact[..., None], scale[..., None] * total_trial, 0.0)
     tangential_damping = jnp.where(in_contact[..., None], scale[..., None] * damping_trial, 0.0)
-    trial_energy_sq = _dot(trial, trial)
-    slip_energy = jnp.where(in_contact, 0.5 * stiff_t * (1.0 - scale**2) * trial_energy_sq, 0.0)
     spring_energy = 0.5 * stiff_t * _dot(history_new, history_new)
     spring_energy_old_now = jnp.where(in_contact, 0.5 * stiff_t * old_sq, 0.0)
 
@@ -256,7 +254,7 @@ def contact_forces(
         tangential=tangential,
         tangential_damping=tangential_damping,
         history=history_new,
-        slip_energy=slip_energy,
+        sliding=sliding & in_contact,
         spring_energy=spring_energy,
         spring_energy_old_now=spring_energy_old_now,
         in_contact=in_contact,
@@ -288,7 +286,14 @@ def contact_dissipation(
 
     - normal: (F_n - F_s) v_n,mid dt, the work of the applied normal damping (Eq. 17);
     - tangential: -F_t,damping . v_mid dt (Eq. 18);
-    - slip: spring energy removed by the Coulomb scaling;
+    - slip (only on steps where the Coulomb limit is hit): the energy the tangential spring
+      cannot store, E_old + W_spring - E_new, where W_spring = -F_t,spring . v_mid dt is the
+      work done on the spring and E = 1/2 S_t |d_t|^2 (both at the current stiffness). It is
+      the friction work F_t,spring . v_slip dt of steady sliding. (A closed-form "energy removed
+      by the scaling", 1/2 S_t (1 - s^2) |d_trial|^2, would also count the 1/2 S_t |v_t dt|^2
+      that the explicit update of d_t adds each step without any work being done: with
+      mu = 0 that is pure bookkeeping error.) On sticking steps the spring's own O(dt^2)
+      integration error is left in the ledger residual, where it averages out;
     - rolling: -tau_r . w_rel,mid dt.
 
     The fifth ledger term, the energy released by the tangential spring because S_t changes with
@@ -299,10 +304,17 @@ def contact_dissipation(
     v_n_mid = _dot(v_rel_mid, normal)
     diss_normal = (forces.normal_total - forces.normal_spring) * v_n_mid * dt
     diss_tangential = -_dot(forces.tangential_damping, v_rel_mid) * dt
+    spring_force = forces.tangential - forces.tangential_damping
+    spring_work = -_dot(spring_force, v_rel_mid) * dt
+    diss_slip = jnp.where(
+        forces.sliding,
+        forces.spring_energy_old_now + spring_work - forces.spring_energy,
+        0.0,
+    )
     diss_rolling = -_dot(forces.torque_rolling, omega_rel_mid) * dt
     return ContactDissipation(
         normal=diss_normal,
         tangential=diss_tangential,
-        slip=forces.slip_energy,
+        slip=diss_slip,
         rolling=diss_rolling,
     )

@@ -184,7 +184,7 @@ def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DE
     from sgn_jax.motion import motion_from_config
 
     if geometry is None:
-        geometry = geometry_from_config(cfg)[0]
+        geometry = geometry_from_config(cfg).geometry
     if motion is None:
         motion = motion_from_config(cfg.motion)
     m = cfg.material
@@ -195,40 +195,71 @@ def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DE
     )
 
 
-def geometry_from_config(cfg: Any) -> tuple[Any, WallFn, int, Callable[[Any, Any], Any]]:
-    """(geometry pytree, wall_fn, n_patches, jar_sdf_fn) for the jar of a config.
+class JarGeometry(NamedTuple):
+    """The jar of a config as the DEM sees it.
 
-    The parametric jar gives one contact per wall patch (floor, lid, side[, post]); an STL jar
-    is one patch sampled on an SDF grid (a ball in a concave edge of an STL jar then feels only
-    the nearer wall; documented limitation, SPEC 3). ``jar_sdf_fn(geometry, x_jar) -> phi`` is
-    the combined SDF used for placement and the "outside the jar" check.
+    Attributes:
+        geometry: pytree given to ``wall_fn`` / ``sdf_fn`` (JarParams or SDFGrid).
+        wall_fn: ``wall_fn(geometry, x_jar) -> (phi (N,P), normal (N,P,3))``.
+        sdf_fn: ``sdf_fn(geometry, x_jar) -> phi (N,)``, the combined SDF (placement, escapes).
+        patch_names: names of the P patches.
+        lower, upper: (3,) float64 corners of the cavity's bounding box, jar frame (m).
+    """
+
+    geometry: Any
+    wall_fn: WallFn
+    sdf_fn: Callable[[Any, jnp.ndarray], jnp.ndarray]
+    patch_names: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+
+
+def _emax_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    from sgn_jax.geometry import jar_patch_sdf_and_normal
+
+    return jar_patch_sdf_and_normal(g, x_jar)
+
+
+def _emax_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
+    from sgn_jax.geometry import jar_sdf
+
+    return jar_sdf(g, x_jar)
+
+
+def _grid_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    from sgn_jax.geometry import query_sdf_grid
+
+    phi, normal = query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
+    return phi[..., None].astype(x_jar.dtype), normal[..., None, :].astype(x_jar.dtype)
+
+
+def _grid_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
+    from sgn_jax.geometry import grid_sdf
+
+    return grid_sdf(g, x_jar)
+
+
+def geometry_from_config(cfg: Any) -> JarGeometry:
+    """The jar of a config for the DEM.
+
+    The parametric jar gives one contact per wall patch (floor, lid, side[, post]), each its own
+    analytic SDF. An STL jar is a single patch read from an SDF grid (float64, ``[sdf]``
+    spacing): a ball in a concave edge of an STL jar then feels only the nearer wall, and the
+    wall is only as smooth as the trilinear grid (documented limitation, SPEC 3).
     """
     from sgn_jax import geometry as geo
 
     if cfg.jar.kind == "emax":
         params = geo.jar_params_from_config(cfg.jar)
-        n_patches = len(geo.patch_names(params))
-
-        def wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-            return geo.jar_patch_sdf_and_normal(g, x_jar)
-
-        def sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
-            return geo.jar_sdf(g, x_jar)
-
-        return params, wall_fn, n_patches, sdf_fn
-
-    grid = geo.sdf_grid_from_config(cfg)
-    zero = None
-
-    def wall_fn_grid(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-        phi, normal = geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
-        return phi[..., None], normal[..., None, :]
-
-    def sdf_fn_grid(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
-        return geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))[0]
-
-    del zero
-    return grid, wall_fn_grid, 1, sdf_fn_grid
+        params = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params)
+        lower, upper = geo.jar_bounds(params)
+        return JarGeometry(params, _emax_wall_fn, _emax_sdf_fn, geo.patch_names(params),
+                           lower, upper)
+    grid = geo.sdf_grid_from_config(cfg, dtype=jnp.float64)
+    margin = float(cfg.sdf.margin)
+    lower = np.asarray(grid.origin, np.float64) + margin
+    upper = np.asarray(grid.upper, np.float64) - margin
+    return JarGeometry(grid, _grid_wall_fn, _grid_sdf_fn, ("mesh",), lower, upper)
 
 
 @flax.struct.dataclass
