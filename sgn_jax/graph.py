@@ -1,0 +1,420 @@
+"""The SGN graph featurizer: a window of states -> a padded ``jraph.GraphsTuple`` (SPEC 5).
+
+One function, :func:`build_graph`, is used for training (vmapped over windows of a DEM
+trajectory) and for the rollout (inside ``lax.scan``): same rules, same features, static shapes.
+
+Time indexing (``dt`` = sampling step = surrogate step, samples ``x_k = x(t_k)``)
+------------------------------------------------------------------------------------
+A window *ending at sample n* has W slots ``j = n-W+1 .. n`` and needs the W + 1 positions
+``x_{n-W} .. x_n`` because velocities are backward differences, consistent with the
+semi-implicit Euler integrator of the rollout::
+
+    v_j = (x_j - x_{j-1}) / dt                        (velocity feature of slot j)
+    a_n = (x_{n+1} - 2 x_n + x_{n-1}) / dt^2          (acceleration target of the window)
+    dE_n = diss(t_n, t_{n+1}]                         (dissipation target of the window)
+
+The rollout step ``v_{n+1} = v_n + a_n dt``, ``x_{n+1} = x_n + v_{n+1} dt``,
+``E_{n+1} = E_n + dE_n`` then reproduces ``x_{n+1}`` and the cumulative dissipation
+``E(t_{n+1})`` exactly (to rounding) when fed the true targets. In the dataset format (SPEC 4)
+``diss_*[k]`` is the dissipation over ``(t_{k-1}, t_k]``, so ``dE_n`` is the sum of the normal and
+tangential, ball-ball and ball-wall entries at index ``n + 1``.
+
+Graph layout of one window (jraph "padded with graphs" convention, n_graph = 2)
+-------------------------------------------------------------------------------
+nodes ``N + 2``: ``0 .. N-1`` balls, ``N`` the wall node, ``N + 1`` the padding node;
+``n_node = [N + 1, 1]``. Edges ``E = pp_capacity + 2 N`` slots: first the kept ball-ball edges
+(both directions of each pair, adjacent), then the ball-wall edges (wall->ball and ball->wall,
+adjacent), then padding edges from and to the padding node; ``n_edge = [n_real, E - n_real]``.
+
+``graph.nodes`` is a dict: ``features`` (N+2, 7W) float32, ``particle`` and ``wall`` (N+2,) bool.
+Particle features per slot k (0 = oldest): columns ``7k .. 7k+6`` = [v (3), phi, n (3)] with the
+SDF and its unit normal ``n = grad phi / |grad phi|`` at ``x_j`` relative to the jar at ``t_j``.
+Wall features per slot: [offset (3), offset velocity (3), rotational frequency].
+``graph.edges`` is a dict: ``features`` (E, 3) float32, ``pp`` and ``pw`` (E,) bool. An edge
+``sender s -> receiver r`` carries ``x_s - x_r`` (ball-ball, paper Eq. 20 with i = receiver)
+or ``phi_b n_b`` of its ball b (ball-wall, Eq. 21, same feature in both directions).
+Edges use the newest slot: ball-ball where ``|x_j - x_i| <= 2 R + pp_skin``, ball-wall where
+``phi >= phi_pw``. The features are computed in float64 and cast to float32.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import jraph
+import numpy as np
+
+# One slot's particle columns: velocity (0..2), phi (3), unit normal (4..6).
+SLOT_DIM = 7
+VELOCITY_COLUMNS_IN_SLOT = (0, 1, 2)
+
+SDFQuery = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+"""``query(sdf, points_lab (..., 3), offset (3,)) -> (phi (...), unit normal (..., 3))``."""
+
+
+class GraphError(ValueError):
+    """Inputs to the featurizer are inconsistent (shapes, capacities, trajectory too short)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GraphSpec:
+    """Static description of the graphs (hashable: pass it by closure or as a static argument).
+
+    Attributes:
+        n_particles: N, balls per graph.
+        window: W, slots per window (a window holds W + 1 positions).
+        ball_radius: R (m).
+        dt: sampling step (s), used for the finite-difference velocities.
+        pp_skin: surface-gap skin s_pp (m): ball-ball edge if ``|x_j - x_i| <= 2 R + s_pp``.
+        phi_pw: ball-wall edge if ``phi >= phi_pw`` (m).
+        pp_pair_capacity: unordered ball pairs kept per graph (2 directed edges each).
+    """
+
+    n_particles: int
+    window: int
+    ball_radius: float
+    dt: float
+    pp_skin: float = 1.5e-3
+    phi_pw: float = -0.0052
+    pp_pair_capacity: int = 96
+
+    def __post_init__(self) -> None:
+        if self.n_particles < 1 or self.window < 1 or self.pp_pair_capacity < 1:
+            raise GraphError(
+                "GraphSpec needs n_particles >= 1, window >= 1 and pp_pair_capacity >= 1, got "
+                f"{self.n_particles}, {self.window}, {self.pp_pair_capacity}"
+            )
+        if self.dt <= 0 or self.ball_radius <= 0:
+            raise GraphError(f"GraphSpec needs dt > 0 and ball_radius > 0, got {self.dt}, "
+                             f"{self.ball_radius}")
+
+    @property
+    def pp_capacity(self) -> int:
+        """Directed ball-ball edge slots per graph."""
+        return 2 * self.pp_pair_capacity
+
+    @property
+    def pw_capacity(self) -> int:
+        """Directed ball-wall edge slots per graph (2 N: never overflows)."""
+        return 2 * self.n_particles
+
+    @property
+    def edge_capacity(self) -> int:
+        return self.pp_capacity + self.pw_capacity
+
+    @property
+    def n_node(self) -> int:
+        """Node rows of one graph: N balls, the wall node, one padding node."""
+        return self.n_particles + 2
+
+    @property
+    def feature_dim(self) -> int:
+        """Columns of the particle and of the wall features: 7 W."""
+        return SLOT_DIM * self.window
+
+    @property
+    def pp_cutoff(self) -> float:
+        """Centre distance (m) up to which two balls are joined by an edge."""
+        return 2.0 * self.ball_radius + self.pp_skin
+
+
+def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpec:
+    """The GraphSpec of a :class:`sgn_jax.config.Config` (balls, dem.dt and the [graph] section).
+
+    The ball-ball capacity is ``graph.pp_edges_per_particle * N`` directed edges.
+    """
+    n = cfg.balls.count if n_particles is None else int(n_particles)
+    return GraphSpec(
+        n_particles=n,
+        window=cfg.graph.window,
+        ball_radius=cfg.balls.radius,
+        dt=cfg.dem.dt,
+        pp_skin=cfg.graph.pp_skin,
+        phi_pw=cfg.graph.phi_pw,
+        pp_pair_capacity=max(1, (cfg.graph.pp_edges_per_particle * n) // 2),
+    )
+
+
+def velocity_columns(window: int) -> np.ndarray:
+    """Indices of the velocity columns among the 7 W particle feature columns."""
+    return np.array([SLOT_DIM * k + c for k in range(window) for c in VELOCITY_COLUMNS_IN_SLOT])
+
+
+@flax.struct.dataclass
+class Window:
+    """The state a graph is built from: W + 1 positions and W jar states (lab frame, SI).
+
+    Attributes:
+        positions: (W+1, N, 3) float64 m, ``x_{n-W} .. x_n`` (oldest first).
+        offsets: (W, 3) m, jar offset at the slot times ``t_{n-W+1} .. t_n``.
+        offset_velocities: (W, 3) m/s, jar velocity at the slot times.
+        frequency_hz: () Hz, the motion's rotational frequency (``motion.frequency_hz``).
+
+    Batched windows carry a leading axis on every field (``jax.vmap(build_graph, ...)``).
+    """
+
+    positions: jax.Array
+    offsets: jax.Array
+    offset_velocities: jax.Array
+    frequency_hz: jax.Array
+
+
+def slide_window(window: Window, new_position: jax.Array, new_offset: jax.Array,
+                 new_offset_velocity: jax.Array) -> Window:
+    """Drop the oldest slot and append the state at the next sample (for the rollout).
+
+    ``new_position`` (N, 3) is ``x_{n+1}``; ``new_offset`` and ``new_offset_velocity`` (3,) are
+    the jar state at ``t_{n+1}``.
+    """
+    pos = jnp.concatenate([window.positions[1:], new_position[None].astype(window.positions.dtype)])
+    off = jnp.concatenate([window.offsets[1:], new_offset[None].astype(window.offsets.dtype)])
+    vel = jnp.concatenate([window.offset_velocities[1:],
+                           new_offset_velocity[None].astype(window.offset_velocities.dtype)])
+    return window.replace(positions=pos, offsets=off, offset_velocities=vel)
+
+
+class EdgeCounts(NamedTuple):
+    """What the edge rules found in one graph (int32 scalars; batched when vmapped).
+
+    ``pp_dropped > 0`` is a capacity overflow: that many directed ball-ball edges were not put
+    in the graph (raise ``[graph] pp_edges_per_particle``). Ball-wall edges cannot overflow.
+    """
+
+    n_pp: jax.Array
+    n_pw: jax.Array
+    pp_dropped: jax.Array
+
+
+def _default_query() -> SDFQuery:
+    from sgn_jax.geometry import query_sdf_grid
+
+    return query_sdf_grid
+
+
+def _check_window(window: Window, spec: GraphSpec) -> None:
+    w, n = spec.window, spec.n_particles
+    expected = {"positions": (w + 1, n, 3), "offsets": (w, 3), "offset_velocities": (w, 3),
+                "frequency_hz": ()}
+    for name, shape in expected.items():
+        got = tuple(jnp.shape(getattr(window, name)))
+        if got != shape:
+            raise GraphError(
+                f"Window.{name} has shape {got}, expected {shape} for window={w}, "
+                f"n_particles={n} (a window of W slots holds W + 1 positions); "
+                "vmap build_graph over batched windows"
+            )
+
+
+def particle_slot_features(window: Window, sdf: Any, spec: GraphSpec,
+                           query: SDFQuery | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Per-slot ball quantities in float64: velocity (W, N, 3), phi (W, N), normal (W, N, 3)."""
+    query = _default_query() if query is None else query
+    pos = jnp.asarray(window.positions, jnp.float64)
+    vel = (pos[1:] - pos[:-1]) / spec.dt
+    offsets = jnp.asarray(window.offsets, jnp.float64)
+    phi, normal = jax.vmap(lambda p, o: query(sdf, p, o))(pos[1:], offsets)
+    return vel, jnp.asarray(phi, jnp.float64), jnp.asarray(normal, jnp.float64)
+
+
+def build_graph(window: Window, sdf: Any, spec: GraphSpec,
+                query: SDFQuery | None = None) -> tuple[jraph.GraphsTuple, EdgeCounts]:
+    """Featurize one window (static shapes, jittable, differentiable in positions and offsets).
+
+    Args:
+        window: one :class:`Window` (no batch axis; vmap for many).
+        sdf: the jar SDF handed to ``query``, by default an ``sgn_jax.geometry.SDFGrid``.
+        spec: static :class:`GraphSpec`.
+        query: ``query(sdf, points_lab, offset) -> (phi, unit normal)``; default
+            ``sgn_jax.geometry.query_sdf_grid``.
+
+    Returns:
+        ``(graph, counts)``: the padded graph (layout in the module docstring; raw, un-normalised
+        float32 features) and the :class:`EdgeCounts` with the overflow.
+    """
+    _check_window(window, spec)
+    n, w = spec.n_particles, spec.window
+    wall, pad = n, n + 1
+    vel, phi, normal = particle_slot_features(window, sdf, spec, query)
+
+    # Nodes: (N, W, 7) -> (N, 7W), slot-major columns.
+    particle = jnp.concatenate([vel, phi[..., None], normal], axis=-1)  # (W, N, 7)
+    particle = jnp.transpose(particle, (1, 0, 2)).reshape(n, SLOT_DIM * w)
+    freq = jnp.broadcast_to(jnp.asarray(window.frequency_hz, jnp.float64), (w, 1))
+    wall_feat = jnp.concatenate([jnp.asarray(window.offsets, jnp.float64),
+                                 jnp.asarray(window.offset_velocities, jnp.float64), freq], -1)
+    node_features = jnp.concatenate(
+        [particle, wall_feat.reshape(1, SLOT_DIM * w), jnp.zeros((1, SLOT_DIM * w))], axis=0)
+    node_ids = jnp.arange(n + 2)
+    is_particle = node_ids < n
+    is_wall = node_ids == wall
+
+    x = jnp.asarray(window.positions[-1], jnp.float64)  # newest positions (N, 3)
+    phi_now, normal_now = phi[-1], normal[-1]
+
+    # Ball-ball: unordered pairs i < j; both directions of a kept pair are kept together.
+    pi, pj = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(n, k=1))
+    rij = x[pj] - x[pi]
+    pair_ok = jnp.sum(rij * rij, axis=-1) <= spec.pp_cutoff ** 2
+    n_pairs = jnp.sum(pair_ok, dtype=jnp.int32)
+    pair_rank = jnp.cumsum(pair_ok, dtype=jnp.int32) - 1
+    cap_pairs = spec.pp_pair_capacity
+    kept_pairs = jnp.minimum(n_pairs, cap_pairs)
+    n_pp_kept = 2 * kept_pairs
+    # Slot 2r: j -> i (feature x_j - x_i); slot 2r + 1: i -> j. Out-of-capacity pairs go to an
+    # out-of-range slot and are dropped by the scatter (and counted in pp_dropped).
+    slot = jnp.where(pair_ok & (pair_rank < cap_pairs), 2 * pair_rank, spec.edge_capacity)
+    e_cap = spec.edge_capacity
+    senders = jnp.full((e_cap,), pad, jnp.int32)
+    receivers = jnp.full((e_cap,), pad, jnp.int32)
+    efeat = jnp.zeros((e_cap, 3), jnp.float64)
+    senders = senders.at[slot].set(pj, mode="drop").at[slot + 1].set(pi, mode="drop")
+    receivers = receivers.at[slot].set(pi, mode="drop").at[slot + 1].set(pj, mode="drop")
+    efeat = efeat.at[slot].set(rij, mode="drop").at[slot + 1].set(-rij, mode="drop")
+
+    # Ball-wall: wall -> b and b -> wall, both with phi_b n_b, placed after the kept pp edges.
+    ball_ok = phi_now >= spec.phi_pw
+    n_walled = jnp.sum(ball_ok, dtype=jnp.int32)
+    ball_rank = jnp.cumsum(ball_ok, dtype=jnp.int32) - 1
+    bslot = jnp.where(ball_ok, n_pp_kept + 2 * ball_rank, e_cap)
+    balls = jnp.arange(n, dtype=jnp.int32)
+    pw_feat = phi_now[:, None] * normal_now
+    senders = senders.at[bslot].set(wall, mode="drop").at[bslot + 1].set(balls, mode="drop")
+    receivers = receivers.at[bslot].set(balls, mode="drop").at[bslot + 1].set(wall, mode="drop")
+    efeat = efeat.at[bslot].set(pw_feat, mode="drop").at[bslot + 1].set(pw_feat, mode="drop")
+
+    n_real = n_pp_kept + 2 * n_walled
+    edge_ids = jnp.arange(e_cap)
+    is_pp = edge_ids < n_pp_kept
+    is_pw = (edge_ids >= n_pp_kept) & (edge_ids < n_real)
+
+    graph = jraph.GraphsTuple(
+        nodes={"features": node_features.astype(jnp.float32), "particle": is_particle,
+               "wall": is_wall},
+        edges={"features": efeat.astype(jnp.float32), "pp": is_pp, "pw": is_pw},
+        senders=senders,
+        receivers=receivers,
+        n_node=jnp.array([n + 1, 1], jnp.int32),
+        n_edge=jnp.stack([n_real, e_cap - n_real]).astype(jnp.int32),
+        globals=None,
+    )
+    counts = EdgeCounts(n_pp=2 * n_pairs, n_pw=2 * n_walled,
+                        pp_dropped=2 * (n_pairs - kept_pairs))
+    return graph, counts
+
+
+def make_graph_builder(sdf_query: SDFQuery | None, spec: GraphSpec):
+    """A jitted ``build(windows, sdf) -> (graphs, counts)`` vmapped over a batch of windows."""
+
+    def one(window: Window, sdf: Any):
+        return build_graph(window, sdf, spec, sdf_query)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None)))
+
+
+# --------------------------------------------------------------------------------------------
+# Windows and targets from a trajectory
+
+
+DISSIPATION_TARGET_FIELDS = ("diss_pp_normal", "diss_pp_tangential", "diss_pw_normal",
+                             "diss_pw_tangential")
+
+
+def dissipation_per_interval(traj: Any) -> np.ndarray:
+    """(T,) J: normal + tangential damping, ball-ball + ball-wall, over ``(t_{k-1}, t_k]``."""
+    missing = [f for f in DISSIPATION_TARGET_FIELDS if getattr(traj, f, None) is None]
+    if missing:
+        raise GraphError(f"trajectory lacks dissipation array(s) {missing} (SPEC section 4)")
+    return np.sum([np.asarray(getattr(traj, f), np.float64) for f in DISSIPATION_TARGET_FIELDS],
+                  axis=0)
+
+
+def valid_window_ends(n_samples: int, window: int) -> np.ndarray:
+    """Sample indices n that can end a training window: W <= n <= T - 2 (needs x_{n+1})."""
+    if n_samples < window + 2:
+        raise GraphError(
+            f"a trajectory of {n_samples} samples is too short for window {window}: "
+            f"need at least window + 2 = {window + 2} samples"
+        )
+    return np.arange(window, n_samples - 1)
+
+
+def trajectory_frequency_hz(traj: Any, default: float | None = None) -> float:
+    """The rotational frequency (Hz) of a trajectory's motion: ``default`` if given, else from
+    the motion config stored in ``meta['config']``."""
+    if default is not None:
+        return float(default)
+    meta = getattr(traj, "meta", None) or {}
+    cfg = meta.get("config") if isinstance(meta, dict) else None
+    if cfg is not None:
+        from sgn_jax.config import MotionConfig, config_from_dict
+        from sgn_jax.motion import frequency_hz, motion_from_config
+
+        motion_cfg = cfg if isinstance(cfg, MotionConfig) else None
+        if motion_cfg is None:
+            section = cfg.get("motion") if isinstance(cfg, dict) else getattr(cfg, "motion", None)
+            if isinstance(section, dict):
+                motion_cfg = config_from_dict(section, MotionConfig)
+            elif isinstance(section, MotionConfig):
+                motion_cfg = section
+        if motion_cfg is not None:
+            return float(frequency_hz(motion_from_config(motion_cfg)))
+    raise GraphError("trajectory meta has no motion config; pass frequency_hz explicitly")
+
+
+def windows_from_arrays(pos: np.ndarray, offset: np.ndarray, offset_vel: np.ndarray,
+                        frequency_hz: float, ends: np.ndarray, window: int) -> Window:
+    """Batched :class:`Window` (leading axis S) ending at samples ``ends`` (S,), numpy float64."""
+    ends = np.asarray(ends, np.int64)
+    if ends.size and (ends.min() < window or ends.max() > len(pos) - 1):
+        raise GraphError(f"window ends must lie in [{window}, {len(pos) - 1}]")
+    pos_idx = ends[:, None] + np.arange(-window, 1)[None]  # (S, W+1)
+    slot_idx = pos_idx[:, 1:]
+    return Window(
+        positions=np.asarray(pos, np.float64)[pos_idx],
+        offsets=np.asarray(offset, np.float64)[slot_idx],
+        offset_velocities=np.asarray(offset_vel, np.float64)[slot_idx],
+        frequency_hz=np.full(len(ends), float(frequency_hz), np.float64),
+    )
+
+
+def targets_from_arrays(pos: np.ndarray, diss_per_interval: np.ndarray, ends: np.ndarray,
+                        dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Targets of windows ending at ``ends``: ``a_n`` (S, N, 3) m/s^2 and ``dE_n`` (S,) J.
+
+    ``a_n = (x_{n+1} - 2 x_n + x_{n-1}) / dt^2`` and ``dE_n = diss_per_interval[n + 1]``, the
+    dissipation over the step (t_n, t_{n+1}] that the surrogate takes from this window.
+    """
+    pos = np.asarray(pos, np.float64)
+    ends = np.asarray(ends, np.int64)
+    accel = (pos[ends + 1] - 2.0 * pos[ends] + pos[ends - 1]) / dt**2
+    return accel, np.asarray(diss_per_interval, np.float64)[ends + 1]
+
+
+def windows_from_trajectory(traj: Any, window: int, dt: float | None = None,
+                            frequency_hz: float | None = None, ends: np.ndarray | None = None
+                            ) -> tuple[Window, np.ndarray, np.ndarray]:
+    """Training windows and targets of a trajectory (``sgn_jax.dataset.Trajectory``-like).
+
+    ``traj`` needs ``pos`` (T, N, 3), ``offset`` and ``offset_vel`` (T, 3), the four
+    ``diss_{pp,pw}_{normal,tangential}`` (T,) arrays and ``meta`` (with ``dt`` and ``config``
+    unless ``dt`` / ``frequency_hz`` are passed). ``ends`` defaults to every valid window end.
+
+    Returns ``(windows, accel (S, N, 3), dE (S,))`` as float64 numpy arrays.
+    """
+    pos = np.asarray(traj.pos, np.float64)
+    meta = getattr(traj, "meta", None) or {}
+    if dt is None:
+        if "dt" not in meta:
+            raise GraphError("trajectory meta has no 'dt'; pass dt explicitly")
+        dt = float(meta["dt"])
+    freq = trajectory_frequency_hz(traj, frequency_hz)
+    if ends is None:
+        ends = valid_window_ends(len(pos), window)
+    wins = windows_from_arrays(pos, traj.offset, traj.offset_vel, freq, ends, window)
+    accel, de = targets_from_arrays(pos, dissipation_per_interval(traj), ends, dt)
+    return wins, accel, de

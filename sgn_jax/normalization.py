@@ -1,0 +1,170 @@
+"""Normalisation statistics of the SGN inputs and targets (SPEC section 5).
+
+Mean and standard deviation per feature column, from the training split only, kept separately
+for the ball nodes, the wall node, ball-ball edges, ball-wall edges, the acceleration targets and
+the dissipation target. ``x_norm = (x - mean) / std``.
+
+Constant columns: a column whose spread is below ``CONSTANT_RTOL * |mean|`` (or exactly zero)
+gets ``std = 1``, so it normalises to (nearly) zero and is never amplified. The wall node's
+rotational frequency and the out-of-plane jar axis are such columns for a single circular
+motion: they carry no information then, by construction. A group with no rows at all (e.g. no
+ball-ball edge in the training data) gets mean 0 and std 1.
+
+:class:`NormStats` is a ``flax.struct`` pytree of float64 arrays, saved with every checkpoint.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import jraph
+import numpy as np
+
+CONSTANT_RTOL = 1e-6
+"""A column with std <= CONSTANT_RTOL * |mean| (or std == 0) counts as constant (std := 1)."""
+
+
+class NormalizationError(ValueError):
+    """Statistics cannot be computed or applied (wrong shapes, non-finite data)."""
+
+
+@flax.struct.dataclass
+class Moments:
+    """Per-column ``mean`` and ``std`` (both (D,) float64; ``std > 0``)."""
+
+    mean: jax.Array
+    std: jax.Array
+
+
+@flax.struct.dataclass
+class NormStats:
+    """All normalisation statistics of an SGN (fields are :class:`Moments`).
+
+    ``particle`` and ``wall`` have 7 W columns, ``pp_edge``, ``pw_edge`` and ``accel`` 3,
+    ``dissipation`` 1.
+    """
+
+    particle: Moments
+    wall: Moments
+    pp_edge: Moments
+    pw_edge: Moments
+    accel: Moments
+    dissipation: Moments
+
+
+NORM_GROUPS = ("particle", "wall", "pp_edge", "pw_edge", "accel", "dissipation")
+
+
+def moments(rows: np.ndarray, n_columns: int | None = None, name: str = "features") -> Moments:
+    """Column mean and (population) std of ``rows`` (M, D) in float64, constant columns guarded.
+
+    ``n_columns`` is needed when ``rows`` may be empty (then mean 0, std 1).
+    """
+    rows = np.asarray(rows, np.float64)
+    if rows.ndim == 1:
+        rows = rows[:, None]
+    if rows.ndim != 2:
+        raise NormalizationError(f"{name}: expected rows of shape (M, D), got {rows.shape}")
+    d = rows.shape[1] if n_columns is None else n_columns
+    if rows.shape[1] != d:
+        raise NormalizationError(f"{name}: expected {d} columns, got {rows.shape[1]}")
+    if rows.shape[0] == 0:
+        return Moments(mean=np.zeros(d), std=np.ones(d))
+    if not np.all(np.isfinite(rows)):
+        raise NormalizationError(f"{name}: non-finite values in the training data")
+    mean = rows.mean(axis=0)
+    std = rows.std(axis=0)
+    constant = (std == 0) | (std <= CONSTANT_RTOL * np.abs(mean))
+    std = np.where(constant, 1.0, std)
+    return Moments(mean=mean, std=std)
+
+
+def compute_norm_stats(particle: np.ndarray, wall: np.ndarray, pp_edge: np.ndarray,
+                       pw_edge: np.ndarray, accel: np.ndarray, dissipation: np.ndarray
+                       ) -> NormStats:
+    """Statistics from rows of raw training data.
+
+    Args:
+        particle: (M_p, 7W) ball-node features; wall: (M_w, 7W) wall-node features.
+        pp_edge, pw_edge: (M, 3) features of real ball-ball / ball-wall edges.
+        accel: (M_p, 3) acceleration targets (m/s^2); dissipation: (S,) dE targets (J).
+    """
+    f = np.asarray(particle).shape[-1]
+    return NormStats(
+        particle=moments(particle, f, "particle"),
+        wall=moments(wall, f, "wall"),
+        pp_edge=moments(np.reshape(pp_edge, (-1, 3)), 3, "pp_edge"),
+        pw_edge=moments(np.reshape(pw_edge, (-1, 3)), 3, "pw_edge"),
+        accel=moments(np.reshape(accel, (-1, 3)), 3, "accel"),
+        dissipation=moments(np.reshape(dissipation, (-1, 1)), 1, "dissipation"),
+    )
+
+
+def _norm(x: jax.Array, m: Moments, dtype: Any) -> jax.Array:
+    return ((x - jnp.asarray(m.mean, dtype)) / jnp.asarray(m.std, dtype)).astype(dtype)
+
+
+def _denorm(x: jax.Array, m: Moments, dtype: Any) -> jax.Array:
+    return (x * jnp.asarray(m.std, dtype) + jnp.asarray(m.mean, dtype)).astype(dtype)
+
+
+def normalize_graph(graph: jraph.GraphsTuple, stats: NormStats,
+                    dtype: Any = jnp.float32) -> jraph.GraphsTuple:
+    """Normalise node and edge features by row type; padding rows become exactly zero."""
+    nodes, edges = graph.nodes, graph.edges
+    x = jnp.asarray(nodes["features"], dtype)
+    part, wall = nodes["particle"][:, None], nodes["wall"][:, None]
+    x = jnp.where(part, _norm(x, stats.particle, dtype),
+                  jnp.where(wall, _norm(x, stats.wall, dtype), jnp.zeros_like(x)))
+    e = jnp.asarray(edges["features"], dtype)
+    pp, pw = edges["pp"][:, None], edges["pw"][:, None]
+    e = jnp.where(pp, _norm(e, stats.pp_edge, dtype),
+                  jnp.where(pw, _norm(e, stats.pw_edge, dtype), jnp.zeros_like(e)))
+    return graph._replace(nodes={**nodes, "features": x}, edges={**edges, "features": e})
+
+
+def normalize_accel(accel: jax.Array, stats: NormStats, dtype: Any = jnp.float32) -> jax.Array:
+    """(..., 3) m/s^2 -> normalised."""
+    return _norm(jnp.asarray(accel, dtype), stats.accel, dtype)
+
+
+def denormalize_accel(accel_norm: jax.Array, stats: NormStats,
+                      dtype: Any = jnp.float32) -> jax.Array:
+    """Normalised (..., 3) -> m/s^2."""
+    return _denorm(jnp.asarray(accel_norm, dtype), stats.accel, dtype)
+
+
+def normalize_dissipation(de: jax.Array, stats: NormStats, dtype: Any = jnp.float32) -> jax.Array:
+    """(...,) J -> normalised."""
+    return _norm(jnp.asarray(de, dtype)[..., None], stats.dissipation, dtype)[..., 0]
+
+
+def denormalize_dissipation(de_norm: jax.Array, stats: NormStats,
+                            dtype: Any = jnp.float32) -> jax.Array:
+    """Normalised (...,) -> J."""
+    return _denorm(jnp.asarray(de_norm, dtype)[..., None], stats.dissipation, dtype)[..., 0]
+
+
+def stats_to_arrays(stats: NormStats) -> dict[str, dict[str, np.ndarray]]:
+    """Plain nested dict of float64 numpy arrays (for checkpoints and JSON)."""
+    return {g: {"mean": np.asarray(getattr(stats, g).mean, np.float64),
+                "std": np.asarray(getattr(stats, g).std, np.float64)} for g in NORM_GROUPS}
+
+
+def stats_from_arrays(data: dict[str, Any]) -> NormStats:
+    """Inverse of :func:`stats_to_arrays`; checks that every group is present and std > 0."""
+    missing = [g for g in NORM_GROUPS if g not in data]
+    if missing:
+        raise NormalizationError(f"normalisation statistics lack group(s) {missing}")
+    groups = {}
+    for g in NORM_GROUPS:
+        mean = np.asarray(data[g]["mean"], np.float64)
+        std = np.asarray(data[g]["std"], np.float64)
+        if mean.shape != std.shape or not np.all(np.isfinite(mean)) or not np.all(std > 0):
+            raise NormalizationError(f"normalisation statistics of {g!r} are invalid "
+                                     "(shape mismatch, non-finite mean or std <= 0)")
+        groups[g] = Moments(mean=mean, std=std)
+    return NormStats(**groups)
