@@ -51,6 +51,157 @@ def _cmd_jar(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# dem
+
+
+def _add_dem(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "dem",
+        help="run the DEM of a config and write a SPEC-4 trajectory (.npz)",
+        description="Place the balls from SEED, settle them with the jar at rest, run DURATION "
+        "seconds of motion and write the trajectory. Checkpoints after every chunk go to "
+        "OUT.partial/; rerunning the same command resumes from there. Prints one JSON line: "
+        "wall time, steps/s, dissipation by kind, ledger residual, balls outside the jar.",
+    )
+    p.add_argument("--config", required=True, help="experiment config (TOML)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds of motion (default: [dem] duration)")
+    p.add_argument("--out", required=True, help="output trajectory (.npz)")
+    p.add_argument("--seed", type=int, default=None, help="placement seed (default: [dem] seed)")
+    p.add_argument("--dt-dem", type=float, default=None,
+                   help="largest DEM step (s); the step used is dt/k <= this (default: "
+                   "[dem] dt_dem_max)")
+    p.add_argument("--dtype", choices=("float64", "float32"), default=None,
+                   help="DEM precision (default: [dem] dtype)")
+    p.add_argument("--no-resume", action="store_true",
+                   help="ignore (and delete) an existing OUT.partial/ checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_dem)
+
+
+def _cmd_dem(args: argparse.Namespace) -> int:
+    from sgn_jax.config import load_config
+    from sgn_jax.dem.driver import run_dem
+    from sgn_jax.dem.engine import DEMError
+    from sgn_jax.dem.placement import PlacementError
+
+    cfg = load_config(args.config)
+    try:
+        result = run_dem(cfg, duration=args.duration, out_path=args.out, seed=args.seed,
+                         dt_dem=args.dt_dem, dtype=args.dtype, resume=not args.no_resume,
+                         progress=not args.no_progress)
+    except (DEMError, PlacementError) as exc:
+        raise UserError(str(exc)) from exc
+    print(json.dumps(result.summary, sort_keys=True))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+# evaluate
+
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="compare rollout predictions with DEM references (SPEC 6/7 metrics and plots)",
+        description="Compare each rollout prediction with its DEM reference trajectory: position "
+        "MSE_t, cumulative-energy error and Pearson r, balls outside, overflow, regime "
+        "indicators. One pair writes OUT/metrics.json and the plots; several pairs write "
+        "OUT/run_XX/ for each and OUT/ensemble.json + ensemble.png (SPEC 7). Prints one JSON "
+        "line with the headline numbers.",
+    )
+    p.add_argument("--prediction", required=True, nargs="+", metavar="FILE",
+                   help="prediction .npz file(s) written by the rollout")
+    p.add_argument("--reference", required=True, nargs="+", metavar="DATASET",
+                   help="DEM trajectory .npz file(s), one per prediction, same order")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--classify-by", choices=("contacts", "power"), default="contacts",
+                   help="ensemble state classification (default: contacts)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="state threshold: ball pairs within the skin per ball (contacts, "
+                   "default 0.75) or W (power, required)")
+    p.set_defaults(handler=_cmd_evaluate)
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import warnings
+
+    from sgn_jax.dataset import load_trajectory
+    from sgn_jax.io_utils import write_json
+    from sgn_jax.metrics import (
+        BED_PAIRS_PER_BALL,
+        MetricsError,
+        MetricsWarning,
+        compare,
+        ensemble_summary,
+    )
+    from sgn_jax.plots import plot_ensemble, plot_run
+    from sgn_jax.prediction import PredictionError, load_prediction
+
+    if len(args.prediction) != len(args.reference):
+        raise UserError(f"got {len(args.prediction)} --prediction file(s) but "
+                        f"{len(args.reference)} --reference file(s); give one reference per "
+                        "prediction, in the same order")
+    if args.classify_by == "power" and args.threshold is None:
+        raise UserError("--classify-by power needs --threshold W")
+    threshold = args.threshold if args.threshold is not None else BED_PAIRS_PER_BALL
+    out = Path(args.out)
+    several = len(args.prediction) > 1
+    summaries, headline = [], []
+    for i, (pred_path, ref_path) in enumerate(zip(args.prediction, args.reference, strict=True)):
+        run_dir = out / f"run_{i:02d}" if several else out
+        try:
+            prediction, reference = load_prediction(pred_path), load_trajectory(ref_path)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", MetricsWarning)
+                comparison = compare(prediction, reference,
+                                     bed_pairs_per_ball=threshold
+                                     if args.classify_by == "contacts" else BED_PAIRS_PER_BALL)
+        except (PredictionError, MetricsError) as exc:
+            raise UserError(str(exc)) from exc
+        for warning in caught:
+            print(f"sgn-jax evaluate: warning: {warning.message}", file=sys.stderr)
+        summary = comparison.summary
+        summary["warnings"] = [str(w.message) for w in caught]
+        summary["plots"] = plot_run(comparison, prediction, reference, run_dir)
+        write_json(run_dir / "metrics.json", summary)
+        summaries.append(summary)
+        headline.append({
+            "metrics": str(run_dir / "metrics.json"),
+            "mse_plateau_m2": (summary["position"] or {}).get("mse_plateau_m2"),
+            "energy_relative_error_final": summary["energy"]["relative_error_final"],
+            "pearson_r": summary["energy"]["pearson_r"],
+            "balls_outside_total": summary["outside"]["total_ball_steps"],
+            "overflow_total": summary["overflow"]["total_edges"],
+            "state_pred": summary["regime"]["state_pred"],
+            "state_ref": summary["regime"]["state_ref"],
+            "reference_covers_prediction": summary["overlap"]["complete"],
+        })
+    if not several:
+        print(json.dumps(headline[0]))
+        return 0
+    try:
+        ensemble = ensemble_summary(summaries, classify_by=args.classify_by,
+                                    threshold=args.threshold,
+                                    labels=[str(p) for p in args.prediction])
+    except MetricsError as exc:
+        raise UserError(str(exc)) from exc
+    ensemble["plot"] = str(plot_ensemble(ensemble, out / "ensemble.png"))
+    write_json(out / "ensemble.json", ensemble)
+    print(json.dumps({
+        "ensemble": str(out / "ensemble.json"),
+        "n_runs": ensemble["n_runs"],
+        "power_pred_W": ensemble["power"]["pred_W"]["mean"],
+        "power_ref_W": ensemble["power"]["ref_W"]["mean"],
+        "power_relative_error_of_means": ensemble["power"]["relative_error_of_means"],
+        "agitated_pred": ensemble["states"]["pred"]["agitated"]["count"],
+        "agitated_ref": ensemble["states"]["ref"]["agitated"]["count"],
+        "runs": headline,
+    }))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 
 
 def build_parser() -> argparse.ArgumentParser:

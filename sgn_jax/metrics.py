@@ -1,0 +1,646 @@
+"""Rollout metrics (SPEC sections 6 and 7): a surrogate prediction against a DEM reference.
+
+Pure numpy. The pieces (each usable alone):
+
+- :func:`align` matches prediction steps and frames to reference samples by time (tolerance
+  dt / 10); where the reference does not cover the prediction, the comparison uses the overlap,
+  reports it and warns (:class:`CoverageWarning`).
+- :func:`position_mse` (paper Eq. 33, balls matched by index) and :func:`mse_plateau` (median of
+  MSE_t over the last half of the compared frames).
+- :func:`relative_error`, :func:`pearson_r`: the cumulative-energy comparison. The reference
+  E_ref(t) is the DEM's normal + tangential damping (ball-ball + ball-wall, the surrogate's dE
+  target), summed over the samples after the rollout's start ``t_start``, so E_ref(t_start) = 0
+  like the prediction's ``energy_cum``. If the reference starts after ``t_start``, both curves
+  are re-based to zero at the first compared step (reported as ``energy.baseline``).
+- regime indicators: :func:`pp_contact_counts` (the DEM's contact list),
+  :func:`pairs_within` (pairs with centre distance <= 2 R + skin, the graph's own edge rule, so
+  the DEM count computed this way is the apples-to-apples number for the surrogate's
+  ``n_pp_edges / 2``), :func:`kinetic_energy_fd` (from finite-difference velocities) and the
+  mean dissipation power.
+- :func:`compare` -> :class:`Comparison` (full-length curves for plots and the summary),
+  :func:`evaluate` -> JSON-able dict, :func:`ensemble_summary` over runs (SPEC 7).
+
+State classification (SPEC 7, "bed" vs "agitated"): by default a run is a "bed" when its mean
+number of ball pairs within the edge skin per ball is >= :data:`BED_PAIRS_PER_BALL` = 0.75
+(mean coordination number 1.5), else "agitated". Why 0.75: 24 balls of 10 mm cover about 80 %
+of the Emax floor as one layer, so a compact bed is a 2-D cluster with 3-4 neighbours per ball
+(1.5-2 pairs per ball), while in the agitated state contacts are brief collisions (well under
+0.5 pairs per ball even with the 1.5 mm skin); 0.75 sits between. It is a heuristic to be
+re-checked on DEM ensembles; the per-run values are reported so runs can be re-classified, and
+``classify_by="power"`` with an explicit threshold (W) classifies by dissipation power instead.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+BED_PAIRS_PER_BALL = 0.75
+"""Default "bed" threshold: mean pairs within the edge skin per ball (see module docstring)."""
+
+_ALIGN_TOL_FRACTION = 0.1  # match times within dt / 10
+_OFFSET_WARN_M = 1e-5  # jar offsets of matched frames differ by more: wrong reference or motion
+_PAIR_CHUNK = 4096  # samples per chunk in pairs_within (N^2 distances each)
+
+
+class MetricsError(ValueError):
+    """The prediction and reference cannot be compared; the message says why and what to do."""
+
+
+class MetricsWarning(UserWarning):
+    """Something in the comparison deserves attention (the metrics are still computed)."""
+
+
+class CoverageWarning(MetricsWarning):
+    """The reference covers only part of the prediction; metrics use the overlap."""
+
+
+# --------------------------------------------------------------------------------------------
+# Small pure functions
+
+
+def position_mse(pred_pos: np.ndarray, ref_pos: np.ndarray) -> np.ndarray:
+    """MSE_t = mean over balls of |x_pred - x_ref|^2 (paper Eq. 33), m^2.
+
+    Args:
+        pred_pos, ref_pos: (P, N, 3) positions (m), balls matched by index.
+    Returns:
+        (P,) float64.
+    """
+    pred_pos = np.asarray(pred_pos, dtype=np.float64)
+    ref_pos = np.asarray(ref_pos, dtype=np.float64)
+    if pred_pos.shape != ref_pos.shape or pred_pos.ndim != 3 or pred_pos.shape[-1] != 3:
+        raise MetricsError(f"position_mse needs two (P, N, 3) arrays of the same shape, got "
+                           f"{pred_pos.shape} and {ref_pos.shape}")
+    return np.mean(np.sum((pred_pos - ref_pos) ** 2, axis=-1), axis=-1)
+
+
+def mse_plateau(mse: np.ndarray) -> float:
+    """Median of MSE_t over the last half of the frames (NaNs ignored); NaN if there are none."""
+    mse = np.asarray(mse, dtype=np.float64)
+    mse = mse[np.isfinite(mse)]
+    if mse.size == 0:
+        return math.nan
+    return float(np.median(mse[mse.size // 2:]))
+
+
+def relative_error(e_pred: np.ndarray, e_ref: np.ndarray) -> np.ndarray:
+    """|E_pred - E_ref| / E_ref where E_ref > 0, NaN elsewhere; same shape as the inputs."""
+    e_pred = np.asarray(e_pred, dtype=np.float64)
+    e_ref = np.asarray(e_ref, dtype=np.float64)
+    positive = np.isfinite(e_ref) & (e_ref > 0)
+    safe = np.where(positive, e_ref, 1.0)
+    return np.where(positive, np.abs(e_pred - e_ref) / safe, np.nan)
+
+
+def pearson_r(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two equal-length curves (pairs with a NaN are skipped).
+
+    NaN when fewer than two pairs remain or either curve is constant.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        raise MetricsError(f"pearson_r needs curves of equal shape, got {a.shape} and {b.shape}")
+    keep = np.isfinite(a) & np.isfinite(b)
+    a, b = a[keep], b[keep]
+    if a.size < 2:
+        return math.nan
+    da, db = a - a.mean(), b - b.mean()
+    denominator = math.sqrt(float(np.dot(da, da)) * float(np.dot(db, db)))
+    if denominator == 0.0:
+        return math.nan
+    return float(np.clip(np.dot(da, db) / denominator, -1.0, 1.0))
+
+
+def pp_contact_counts(pp_pairs: np.ndarray) -> np.ndarray:
+    """Ball-ball contacts per sample from a DEM contact list (T, K, 2) padded with -1 -> (T,)."""
+    pp_pairs = np.asarray(pp_pairs)
+    return np.sum(np.all(pp_pairs >= 0, axis=-1), axis=-1).astype(np.int64)
+
+
+def pairs_within(pos: np.ndarray, cutoff: float) -> np.ndarray:
+    """Ball pairs i < j with centre distance <= ``cutoff`` (m), per frame: (T, N, 3) -> (T,).
+
+    With ``cutoff = 2 R + pp_skin`` this is the graph builder's ball-ball edge rule (directed
+    edges = 2 x pairs).
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    if pos.ndim != 3 or pos.shape[-1] != 3:
+        raise MetricsError(f"pairs_within needs (T, N, 3) positions, got {pos.shape}")
+    n_balls = pos.shape[1]
+    upper = np.triu(np.ones((n_balls, n_balls), dtype=bool), k=1)
+    counts = np.zeros(pos.shape[0], dtype=np.int64)
+    for start in range(0, pos.shape[0], _PAIR_CHUNK):
+        chunk = pos[start:start + _PAIR_CHUNK]
+        d2 = np.sum((chunk[:, :, None, :] - chunk[:, None, :, :]) ** 2, axis=-1)
+        counts[start:start + chunk.shape[0]] = np.sum((d2 <= cutoff * cutoff) & upper,
+                                                      axis=(1, 2))
+    return counts
+
+
+def kinetic_energy_fd(t: np.ndarray, pos: np.ndarray, ball_mass: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Translational kinetic energy from finite-difference velocities between frames.
+
+    v = (x_{k+1} - x_k) / (t_{k+1} - t_k) (the SPEC 5 velocity when frames are dt apart; an
+    interval average, hence an underestimate, for coarser frames).
+
+    Args:
+        t: (P,) frame times (s), strictly increasing; pos: (P, N, 3) m; ball_mass: kg.
+    Returns:
+        (t_mid (P-1,) s, ke (P-1,) J) at the interval midpoints.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    pos = np.asarray(pos, dtype=np.float64)
+    if t.size < 2:
+        return np.zeros(0), np.zeros(0)
+    velocity = np.diff(pos, axis=0) / np.diff(t)[:, None, None]
+    ke = 0.5 * ball_mass * np.sum(velocity**2, axis=(1, 2))
+    return 0.5 * (t[1:] + t[:-1]), ke
+
+
+def classify_state(value: float, threshold: float, classify_by: str = "contacts") -> str:
+    """SPEC 7 state of a run: "bed" or "agitated".
+
+    ``classify_by="contacts"``: ``value`` = mean pairs within the skin per ball; bed when
+    >= threshold. ``classify_by="power"``: ``value`` = mean dissipation power (W); agitated when
+    >= threshold (the agitated state dissipates 2-3x more). NaN -> "unknown".
+    """
+    if value is None or not math.isfinite(value):
+        return "unknown"
+    if classify_by == "contacts":
+        return "bed" if value >= threshold else "agitated"
+    if classify_by == "power":
+        return "agitated" if value >= threshold else "bed"
+    raise MetricsError(f"classify_by must be 'contacts' or 'power', got {classify_by!r}")
+
+
+def _num(value: Any) -> float | None:
+    """A JSON-able float: NaN/inf -> None."""
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _mean(values: np.ndarray) -> float | None:
+    values = np.asarray(values, dtype=np.float64)
+    return _num(values.mean()) if values.size else None
+
+
+# --------------------------------------------------------------------------------------------
+# Alignment
+
+
+class Alignment(NamedTuple):
+    """Which prediction steps/frames have a reference sample at the same time (within tol).
+
+    step_index (S',), step_ref_index (S',): compared steps and their reference samples;
+    frame_index (P',), frame_ref_index (P',): the same for the saved frames;
+    start_ref_index: the reference sample at the rollout's start ``t_start``, or -1 if the
+    reference does not reach back to it; overlap: a JSON-able report.
+    """
+
+    step_index: np.ndarray
+    step_ref_index: np.ndarray
+    frame_index: np.ndarray
+    frame_ref_index: np.ndarray
+    start_ref_index: int
+    overlap: dict[str, Any]
+
+
+def _match(t_query: np.ndarray, t_ref: np.ndarray, dt_ref: float, tol: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (into t_query, into t_ref) of query times with a reference time within tol."""
+    t_query = np.asarray(t_query, dtype=np.float64)
+    nearest = np.rint((t_query - t_ref[0]) / dt_ref).astype(np.int64)
+    inside = (nearest >= 0) & (nearest < t_ref.size)
+    clipped = np.clip(nearest, 0, t_ref.size - 1)
+    ok = inside & (np.abs(t_ref[clipped] - t_query) <= tol)
+    query_index = np.flatnonzero(ok)
+    return query_index, clipped[query_index]
+
+
+def _load(prediction: Any, reference: Any) -> tuple[Any, Any]:
+    from sgn_jax.dataset import load_trajectory
+    from sgn_jax.prediction import load_prediction
+
+    if isinstance(prediction, (str, Path)):
+        prediction = load_prediction(prediction)
+    if isinstance(reference, (str, Path)):
+        reference = load_trajectory(reference)
+    return prediction, reference
+
+
+def align(prediction: Any, reference: Any) -> Alignment:
+    """Match the prediction's steps and frames to reference samples by time.
+
+    Args:
+        prediction: a ``sgn_jax.prediction.Prediction`` (or its path).
+        reference: a ``sgn_jax.dataset.Trajectory`` (or its path), the DEM ground truth.
+    Returns:
+        :class:`Alignment`. Times match within min(dt_pred, dt_ref) / 10. If some steps or
+        frames have no reference sample, a :class:`CoverageWarning` says which time range is
+        compared, and ``overlap['complete']`` is False.
+    Raises:
+        MetricsError if the ball counts differ or no step at all overlaps the reference.
+    """
+    prediction, reference = _load(prediction, reference)
+    if prediction.n_balls != reference.n_balls:
+        raise MetricsError(f"the prediction has {prediction.n_balls} balls but the reference "
+                           f"has {reference.n_balls}; compare with the DEM run of the same case")
+    t_ref = np.asarray(reference.t, dtype=np.float64)
+    dt_ref = reference.dt
+    tol = _ALIGN_TOL_FRACTION * min(prediction.dt, dt_ref)
+    t_step = np.asarray(prediction.t_step, dtype=np.float64)
+    t_pos = np.asarray(prediction.t_pos, dtype=np.float64)
+    step_index, step_ref_index = _match(t_step, t_ref, dt_ref, tol)
+    frame_index, frame_ref_index = _match(t_pos, t_ref, dt_ref, tol)
+    start_index, start_ref = _match(np.array([prediction.t_start]), t_ref, dt_ref, tol)
+
+    described = (f"prediction steps end at t in [{t_step[0]:.6g}, {t_step[-1]:.6g}] s "
+                 f"(dt {prediction.dt:g} s), reference samples cover [{t_ref[0]:.6g}, "
+                 f"{t_ref[-1]:.6g}] s (dt {dt_ref:g} s)")
+    if step_index.size == 0:
+        raise MetricsError(f"no prediction step has a reference sample at the same time: "
+                           f"{described}; pass the DEM trajectory that the rollout started from "
+                           "(same time axis: s since the start of motion)")
+    complete = step_index.size == t_step.size and frame_index.size == t_pos.size
+    overlap = {
+        "complete": bool(complete),
+        "t_first_s": float(t_step[step_index[0]]),
+        "t_last_s": float(t_step[step_index[-1]]),
+        "n_steps_compared": int(step_index.size),
+        "n_steps": int(t_step.size),
+        "n_frames_compared": int(frame_index.size),
+        "n_frames": int(t_pos.size),
+        "reference_covers_start": bool(start_index.size == 1),
+        "tolerance_s": tol,
+    }
+    if not complete:
+        overlap["message"] = (
+            f"the reference covers only part of the prediction ({described}); comparing "
+            f"{step_index.size}/{t_step.size} steps and {frame_index.size}/{t_pos.size} frames "
+            f"on t in [{overlap['t_first_s']:.6g}, {overlap['t_last_s']:.6g}] s")
+        warnings.warn(overlap["message"], CoverageWarning, stacklevel=2)
+    return Alignment(step_index=step_index, step_ref_index=step_ref_index,
+                     frame_index=frame_index, frame_ref_index=frame_ref_index,
+                     start_ref_index=int(start_ref[0]) if start_ref.size else -1,
+                     overlap=overlap)
+
+
+# --------------------------------------------------------------------------------------------
+# Comparison of one run
+
+
+class Comparison(NamedTuple):
+    """Curves of one prediction against its reference, full length (NaN where not compared),
+    plus the JSON-able ``summary`` (what :func:`evaluate` returns).
+
+    t_step (S,) s; energy_pred (S,) J (re-based like energy_ref); energy_ref (S,) J, NaN
+    outside the overlap; energy_rel_error (S,), NaN where E_ref <= 0 or not compared;
+    t_pos (P,) s; mse (P,) m^2, NaN for frames without a reference sample.
+    """
+
+    t_step: np.ndarray
+    energy_pred: np.ndarray
+    energy_ref: np.ndarray
+    energy_rel_error: np.ndarray
+    t_pos: np.ndarray
+    mse: np.ndarray
+    alignment: Alignment
+    summary: dict[str, Any]
+
+
+def _count_stats(counts: np.ndarray, t_step: np.ndarray, unit: str) -> dict[str, Any]:
+    counts = np.asarray(counts, dtype=np.int64)
+    hit = np.flatnonzero(counts > 0)
+    return {
+        f"total_{unit}": int(counts.sum()),
+        "max": int(counts.max()) if counts.size else 0,
+        "steps_with_any": int(hit.size),
+        "first_time_s": float(t_step[hit[0]]) if hit.size else None,
+    }
+
+
+def compare(prediction: Any, reference: Any, *, bed_pairs_per_ball: float = BED_PAIRS_PER_BALL
+            ) -> Comparison:
+    """Align a prediction with its DEM reference and compute every SPEC 6/7 metric.
+
+    Args:
+        prediction: ``Prediction`` or path; reference: ``Trajectory`` or path.
+        bed_pairs_per_ball: state threshold, see :func:`classify_state`.
+    Returns:
+        :class:`Comparison`; its ``summary`` keys: prediction, reference, overlap, position,
+        energy, outside, overflow, snapped, regime, offset_max_abs_diff_m, spec_checks.
+    """
+    prediction, reference = _load(prediction, reference)
+    al = align(prediction, reference)
+    n_steps, n_frames = prediction.n_steps, prediction.n_frames
+    t_step = np.asarray(prediction.t_step, dtype=np.float64)
+    t_pos = np.asarray(prediction.t_pos, dtype=np.float64)
+    ball_radius = float(reference.meta["ball_radius"])
+    ball_mass = float(reference.meta["ball_mass"])
+    pp_skin = float(prediction.config.graph.pp_skin)
+    cutoff = 2.0 * ball_radius + pp_skin
+
+    # ---- cumulative energy (SPEC 6)
+    cum_ref = np.asarray(reference.cumulative_dissipation("normal+tangential", "pp+pw"))
+    energy_cum = np.asarray(prediction.energy_cum, dtype=np.float64)
+    s_idx, r_idx = al.step_index, al.step_ref_index
+    if al.start_ref_index >= 0:
+        baseline = "rollout start"
+        ref_zero, pred_zero = cum_ref[al.start_ref_index], 0.0
+    else:
+        baseline = "first compared step (the reference starts after the rollout's start)"
+        ref_zero, pred_zero = cum_ref[r_idx[0]], energy_cum[s_idx[0]]
+    energy_pred = energy_cum - pred_zero
+    energy_ref = np.full(n_steps, np.nan)
+    energy_ref[s_idx] = cum_ref[r_idx] - ref_zero
+    rel = relative_error(energy_pred, energy_ref)
+    rel_compared = rel[s_idx]
+    last_half = rel_compared[rel_compared.size // 2:]
+    last_half = last_half[np.isfinite(last_half)]
+    duration = t_step[s_idx[-1]] - (prediction.t_start if al.start_ref_index >= 0
+                                     else t_step[s_idx[0]])
+    energy = {
+        "baseline": baseline,
+        "E_pred_final_J": _num(energy_pred[s_idx[-1]]),
+        "E_ref_final_J": _num(energy_ref[s_idx[-1]]),
+        "relative_error_final": _num(rel_compared[-1]),
+        "relative_error_median_last_half": _num(np.median(last_half)) if last_half.size else None,
+        "relative_error_max_last_half": _num(last_half.max()) if last_half.size else None,
+        "pearson_r": _num(pearson_r(energy_pred[s_idx], energy_ref[s_idx])),
+        "E_pred_full_J": _num(energy_cum[-1]),
+    }
+
+    # ---- positions (SPEC 6, Eq. 33)
+    mse = np.full(n_frames, np.nan)
+    f_idx, fr_idx = al.frame_index, al.frame_ref_index
+    pred_pos = np.asarray(prediction.pos)
+    if f_idx.size:
+        mse[f_idx] = position_mse(pred_pos[f_idx], reference.pos[fr_idx])
+        mse_compared = mse[f_idx]
+        position = {
+            "mse_final_m2": _num(mse_compared[-1]),
+            "mse_plateau_m2": _num(mse_plateau(mse_compared)),
+            "mse_max_m2": _num(mse_compared.max()),
+            "mse_mean_m2": _num(mse_compared.mean()),
+            "n_frames": int(f_idx.size),
+        }
+        offset_diff = _num(np.abs(np.asarray(prediction.offset)[f_idx]
+                                  - reference.offset[fr_idx]).max())
+        if offset_diff is not None and offset_diff > _OFFSET_WARN_M:
+            warnings.warn(f"the jar offsets of the prediction and the reference differ by up to "
+                          f"{offset_diff:.3g} m at the same times: the reference is probably not "
+                          "the DEM run of this rollout's motion", MetricsWarning, stacklevel=2)
+    else:
+        position = None
+        offset_diff = None
+
+    # ---- regime indicators (SPEC 7), on the compared interval
+    pred_pairs = np.asarray(prediction.n_pp_edges, dtype=np.float64) / 2.0
+    ref_pos_steps = reference.pos[r_idx]
+    ref_within = pairs_within(ref_pos_steps, cutoff)
+    n_balls = prediction.n_balls
+    # Both curves are zero at the baseline, so their last compared values are the increments.
+    power_pred = energy_pred[s_idx[-1]] / duration if duration > 0 else math.nan
+    power_ref = energy_ref[s_idx[-1]] / duration if duration > 0 else math.nan
+    regime: dict[str, Any] = {
+        "pp_skin_m": pp_skin,
+        "pp_cutoff_m": cutoff,
+        "pp_contacts_pred_mean": _mean(pred_pairs[s_idx]),
+        "pp_contacts_pred_mean_full": _mean(pred_pairs),
+        "pp_contacts_ref_dem_mean": _mean(pp_contact_counts(reference.pp_pairs[r_idx])),
+        "pp_pairs_within_skin_ref_mean": _mean(ref_within),
+        "power_pred_W": _num(power_pred),
+        "power_ref_W": _num(power_ref),
+        "power_pred_full_W": _num(energy_cum[-1] / (n_steps * prediction.dt)),
+        "ke_trans_ref_mean_J": _mean(reference.ke_trans[r_idx]),
+        "duration_compared_s": float(duration),
+    }
+    if f_idx.size:
+        regime["pp_pairs_within_skin_pred_frames_mean"] = _mean(
+            pairs_within(pred_pos[f_idx], cutoff))
+        regime["pp_pairs_within_skin_ref_frames_mean"] = _mean(
+            pairs_within(reference.pos[fr_idx], cutoff))
+    _, ke_pred = kinetic_energy_fd(t_pos[f_idx], pred_pos[f_idx], ball_mass)
+    _, ke_ref = kinetic_energy_fd(t_pos[f_idx], reference.pos[fr_idx], ball_mass)
+    regime["ke_fd_pred_mean_J"] = _mean(ke_pred)
+    regime["ke_fd_ref_mean_J"] = _mean(ke_ref)
+    regime["ke_fd_interval_s"] = _num(np.median(np.diff(t_pos[f_idx]))) if f_idx.size > 1 \
+        else None
+    pred_per_ball = (regime["pp_contacts_pred_mean"] or math.nan) / n_balls
+    ref_per_ball = (regime["pp_pairs_within_skin_ref_mean"] or math.nan) / n_balls
+    regime["state_threshold_pairs_per_ball"] = bed_pairs_per_ball
+    regime["state_pred"] = classify_state(pred_per_ball, bed_pairs_per_ball)
+    regime["state_ref"] = classify_state(ref_per_ball, bed_pairs_per_ball)
+
+    outside = _count_stats(prediction.n_outside, t_step, "ball_steps")
+    overflow = _count_stats(prediction.overflow, t_step, "edges")
+    snapped = _count_stats(prediction.n_snapped, t_step, "ball_steps")
+    summary = {
+        "prediction": {
+            "path": prediction.path,
+            "n_steps": n_steps, "n_frames": n_frames, "n_balls": n_balls,
+            "dt_s": prediction.dt, "t_start_s": prediction.t_start, "t_end_s": float(t_step[-1]),
+            "init_index": prediction.meta.get("init_index"),
+            "checkpoint": prediction.meta.get("checkpoint"),
+        },
+        "reference": {
+            "path": reference.path, "n_samples": reference.n_samples, "dt_s": reference.dt,
+            "t_first_s": float(reference.t[0]), "t_last_s": float(reference.t[-1]),
+            "seed": reference.meta.get("seed"),
+        },
+        "overlap": al.overlap,
+        "position": position,
+        "energy": energy,
+        "outside": outside,
+        "overflow": overflow,
+        "snapped": snapped,
+        "regime": regime,
+        "offset_max_abs_diff_m": offset_diff,
+        "spec_checks": {
+            "no_balls_outside": outside["total_ball_steps"] == 0,
+            "no_edge_overflow": overflow["total_edges"] == 0,
+            "reference_covers_prediction": al.overlap["complete"],
+        },
+    }
+    return Comparison(t_step=t_step, energy_pred=energy_pred, energy_ref=energy_ref,
+                      energy_rel_error=rel, t_pos=t_pos, mse=mse, alignment=al, summary=summary)
+
+
+def evaluate(prediction: Any, reference: Any, *,
+             bed_pairs_per_ball: float = BED_PAIRS_PER_BALL) -> dict[str, Any]:
+    """JSON-able summary of every SPEC 6/7 metric of one run (see :func:`compare`)."""
+    return compare(prediction, reference, bed_pairs_per_ball=bed_pairs_per_ball).summary
+
+
+# --------------------------------------------------------------------------------------------
+# Ensembles (SPEC 7)
+
+
+def _spread(values: Sequence[float | None]) -> dict[str, Any]:
+    array = np.asarray([np.nan if v is None else v for v in values], dtype=np.float64)
+    array = array[np.isfinite(array)]
+    if array.size == 0:
+        return {"mean": None, "std": None, "min": None, "max": None, "n": 0}
+    return {
+        "mean": float(array.mean()),
+        # sample standard deviation: the spread of the states a new packing may fall into
+        "std": float(array.std(ddof=1)) if array.size > 1 else 0.0,
+        "min": float(array.min()),
+        "max": float(array.max()),
+        "n": int(array.size),
+    }
+
+
+MIN_ENSEMBLE_RUNS = 8  # SPEC 7: at least 8 initial packings per case
+
+
+def ensemble_summary(runs: Sequence[Any], references: Sequence[Any] | None = None, *,
+                     classify_by: str = "contacts",
+                     threshold: float | None = None,
+                     labels: Sequence[str] | None = None) -> dict[str, Any]:
+    """Ensemble statistics over runs (SPEC 7): power spread, states, contact counts.
+
+    Args:
+        runs: per-run summaries (dicts from :func:`evaluate`), or predictions (objects or
+            paths) when ``references`` is given.
+        references: the DEM reference of each prediction, same length as ``runs``.
+        classify_by: "contacts" (pairs within the skin per ball, default threshold
+            :data:`BED_PAIRS_PER_BALL`) or "power" (mean dissipation power in W; ``threshold``
+            required, e.g. the midpoint between the two states' powers).
+        threshold: the classification threshold in the unit of ``classify_by``.
+        labels: a name per run (default: the prediction path or the run's index).
+    Returns:
+        JSON-able dict: n_runs, meets_spec_minimum, power (pred/ref spread, relative error of the
+        ensemble means), states (threshold, counts, mean power per state), contacts (ensemble
+        means), energy and position (single-trajectory errors over runs), runs (per-run rows).
+    """
+    if classify_by not in ("contacts", "power"):
+        raise MetricsError(f"classify_by must be 'contacts' or 'power', got {classify_by!r}")
+    if classify_by == "power" and threshold is None:
+        raise MetricsError("classify_by='power' needs an explicit threshold in W (e.g. the "
+                           "midpoint between the bed and agitated dissipation powers)")
+    if threshold is None:
+        threshold = BED_PAIRS_PER_BALL
+    if len(runs) == 0:
+        raise MetricsError("ensemble_summary needs at least one run")
+    if references is not None:
+        if len(references) != len(runs):
+            raise MetricsError(f"got {len(runs)} predictions but {len(references)} references; "
+                               "give one reference per prediction")
+        from tqdm.auto import tqdm
+
+        summaries = [evaluate(p, r) for p, r in tqdm(list(zip(runs, references, strict=True)),
+                                                      desc="evaluate runs", unit="run")]
+    else:
+        summaries = list(runs)
+        for i, summary in enumerate(summaries):
+            if not isinstance(summary, Mapping) or "regime" not in summary:
+                raise MetricsError(f"run {i} is not a summary from sgn_jax.metrics.evaluate; pass "
+                                   "summaries, or predictions together with references=")
+    if labels is not None and len(labels) != len(summaries):
+        raise MetricsError(f"got {len(labels)} labels for {len(summaries)} runs")
+
+    rows = []
+    for i, summary in enumerate(summaries):
+        regime = summary["regime"]
+        n_balls = summary["prediction"]["n_balls"]
+        contacts_pred = regime["pp_contacts_pred_mean"]
+        contacts_ref = regime["pp_pairs_within_skin_ref_mean"]
+        if classify_by == "contacts":
+            value_pred = math.nan if contacts_pred is None else contacts_pred / n_balls
+            value_ref = math.nan if contacts_ref is None else contacts_ref / n_balls
+        else:
+            value_pred = math.nan if regime["power_pred_W"] is None else regime["power_pred_W"]
+            value_ref = math.nan if regime["power_ref_W"] is None else regime["power_ref_W"]
+        label = (labels[i] if labels is not None
+                 else summary["prediction"].get("path") or f"run {i}")
+        rows.append({
+            "label": label,
+            "n_balls": n_balls,
+            "power_pred_W": regime["power_pred_W"],
+            "power_ref_W": regime["power_ref_W"],
+            "pp_contacts_pred_mean": contacts_pred,
+            "pp_pairs_within_skin_ref_mean": contacts_ref,
+            "pp_contacts_ref_dem_mean": regime["pp_contacts_ref_dem_mean"],
+            "state_pred": classify_state(value_pred, threshold, classify_by),
+            "state_ref": classify_state(value_ref, threshold, classify_by),
+            "energy_relative_error_final": summary["energy"]["relative_error_final"],
+            "pearson_r": summary["energy"]["pearson_r"],
+            "mse_plateau_m2": (summary["position"] or {}).get("mse_plateau_m2"),
+            "balls_outside_total": summary["outside"]["total_ball_steps"],
+            "overflow_total": summary["overflow"]["total_edges"],
+        })
+
+    power_pred = _spread([r["power_pred_W"] for r in rows])
+    power_ref = _spread([r["power_ref_W"] for r in rows])
+    rel_means = (abs(power_pred["mean"] - power_ref["mean"]) / power_ref["mean"]
+                 if power_pred["mean"] is not None and power_ref["mean"] else None)
+
+    def states(key: str, power_key: str) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for state in ("bed", "agitated", "unknown"):
+            chosen = [r for r in rows if r[key] == state]
+            out[state] = {"count": len(chosen),
+                          "power_W": _spread([r[power_key] for r in chosen])}
+        out["fraction_agitated"] = out["agitated"]["count"] / len(rows)
+        return out
+
+    return {
+        "n_runs": len(rows),
+        "meets_spec_minimum": len(rows) >= MIN_ENSEMBLE_RUNS,
+        "power": {"pred_W": power_pred, "ref_W": power_ref,
+                  "relative_error_of_means": _num(rel_means)},
+        "states": {
+            "classify_by": classify_by,
+            "threshold": threshold,
+            "threshold_unit": ("ball pairs within the edge skin per ball (bed if >=)"
+                               if classify_by == "contacts" else "W (agitated if >=)"),
+            "pred": states("state_pred", "power_pred_W"),
+            "ref": states("state_ref", "power_ref_W"),
+            "agreement": sum(r["state_pred"] == r["state_ref"] for r in rows) / len(rows),
+        },
+        "contacts": {
+            "pred_mean": _spread([r["pp_contacts_pred_mean"] for r in rows])["mean"],
+            "ref_within_skin_mean": _spread([r["pp_pairs_within_skin_ref_mean"]
+                                             for r in rows])["mean"],
+            "ref_dem_mean": _spread([r["pp_contacts_ref_dem_mean"] for r in rows])["mean"],
+        },
+        "energy": {"relative_error_final": _spread([r["energy_relative_error_final"]
+                                                    for r in rows]),
+                   "pearson_r": _spread([r["pearson_r"] for r in rows])},
+        "position": {"mse_plateau_m2": _spread([r["mse_plateau_m2"] for r in rows])},
+        "runs": rows,
+    }
+
+
+__all__ = [
+    "BED_PAIRS_PER_BALL",
+    "MIN_ENSEMBLE_RUNS",
+    "Alignment",
+    "Comparison",
+    "CoverageWarning",
+    "MetricsError",
+    "MetricsWarning",
+    "align",
+    "classify_state",
+    "compare",
+    "ensemble_summary",
+    "evaluate",
+    "kinetic_energy_fd",
+    "mse_plateau",
+    "pairs_within",
+    "pearson_r",
+    "position_mse",
+    "pp_contact_counts",
+    "relative_error",
+]

@@ -1,0 +1,369 @@
+"""Tests of sgn_jax.metrics (SPEC 6/7) and the `sgn-jax evaluate` CLI, on synthetic data with
+known answers: a perfect prediction, a 1 mm shift, dissipation scaled by 1.1, offset starts,
+references that cover only part of the rollout, and small ensembles."""
+
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from sgn_jax import cli, metrics
+from sgn_jax.config import builtin_config_path, load_config, replace_section
+from sgn_jax.dataset import build_meta, load_trajectory, save_trajectory
+from sgn_jax.metrics import (
+    CoverageWarning,
+    MetricsError,
+    align,
+    classify_state,
+    compare,
+    ensemble_summary,
+    evaluate,
+    kinetic_energy_fd,
+    mse_plateau,
+    pairs_within,
+    pearson_r,
+    position_mse,
+    pp_contact_counts,
+    relative_error,
+)
+from sgn_jax.prediction import (
+    PredictionError,
+    load_prediction,
+    prediction_from_trajectory,
+    save_prediction,
+)
+
+N_BALLS, N_SAMPLES, DT = 4, 301, 1e-4
+RADIUS = 0.005
+# Jar-frame ball centres: balls 0-1 are 11 mm apart (1 mm gap: inside the 1.5 mm edge skin),
+# balls 2-3 12 mm apart (2 mm gap: outside); every other pair is farther. The balls translate
+# rigidly, so exactly one pair is within the skin at every sample.
+BASE = np.array([[-0.0155, 0.005, 0.0], [-0.0045, 0.005, 0.0],
+                 [0.006, 0.005, 0.010], [0.018, 0.005, 0.010]])
+DISS = [f"diss_{w}_{k}" for w in ("pp", "pw") for k in ("normal", "tangential", "slip", "rolling")]
+
+
+def make_reference(path, n_samples=N_SAMPLES):
+    """A valid SPEC 4 trajectory: balls moving rigidly with the circular jar motion plus a
+    vertical bounce; DEM contact (0, 1) listed at even samples only; smooth dissipation."""
+    t = np.arange(n_samples) * DT
+    omega = 2 * np.pi * 5.0
+    offset = np.stack([0.017 * np.sin(omega * t), 0 * t, 0.017 * np.cos(omega * t)], axis=1)
+    bounce = np.stack([0 * t, 0.002 * np.sin(2 * np.pi * 40 * t), 0 * t], axis=1)
+    pos = BASE[None] + (offset + bounce)[:, None, :]
+    vel = np.gradient(pos, DT, axis=0)
+    pp_pairs = np.full((n_samples, 2, 2), -1, dtype=np.int32)
+    pp_pairs[::2, 0] = [0, 1]
+    arrays = {
+        "t": t, "pos": pos, "vel": vel, "omega": np.zeros_like(pos),
+        "offset": offset, "offset_vel": np.gradient(offset, DT, axis=0),
+        "ke_trans": 0.5 * 4e-3 * np.sum(vel**2, axis=(1, 2)), "ke_rot": 0 * t,
+        "pe_grav": 4e-3 * 9.81 * pos[..., 1].sum(axis=1), "e_elastic": 0 * t,
+        "work_wall": 0 * t, "pp_pairs": pp_pairs,
+        "pw_contact": np.ones((n_samples, N_BALLS), dtype=bool),
+    }
+    for i, name in enumerate(DISS):
+        values = 1e-5 * (1 + i) * (1.5 + np.sin(2 * np.pi * 30 * t + i))
+        values[0] = 0.0
+        arrays[name] = values
+    cfg = replace_section(load_config(builtin_config_path("emax_300rpm")), "balls", count=N_BALLS)
+    save_trajectory(path, arrays, build_meta(cfg, seed=3))
+    return load_trajectory(path)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    return make_reference(tmp_path_factory.mktemp("ref") / "ref.npz")
+
+
+def make_prediction(tmp_path, reference, name="pred.npz", start=50, n_steps=200, save_every=10,
+                    shift=0.0, energy_scale=1.0, **overrides):
+    arrays, meta = prediction_from_trajectory(reference, start, n_steps, save_every=save_every)
+    arrays["pos"] = arrays["pos"] + np.array([shift, 0.0, 0.0])
+    arrays["dE"] = arrays["dE"] * energy_scale
+    arrays["energy_cum"] = np.cumsum(arrays["dE"])
+    arrays.update(overrides)
+    path = tmp_path / name
+    save_prediction(path, arrays, meta)
+    return load_prediction(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Known answers
+
+
+def test_perfect_prediction_gives_zero_error(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # full coverage: no warning expected
+        comparison = compare(pred, reference)
+    s = comparison.summary
+    assert s["overlap"]["complete"] and s["overlap"]["n_steps_compared"] == 200
+    assert np.all(comparison.mse == 0.0)
+    assert s["position"]["mse_plateau_m2"] == 0.0
+    assert s["energy"]["baseline"] == "rollout start"
+    assert s["energy"]["relative_error_final"] == pytest.approx(0.0, abs=1e-13)
+    assert np.nanmax(comparison.energy_rel_error) < 1e-12
+    assert s["energy"]["pearson_r"] == pytest.approx(1.0, abs=1e-12)
+    expected_energy = reference.dissipation()[51:251].sum()
+    assert s["energy"]["E_ref_final_J"] == pytest.approx(expected_energy, rel=1e-12)
+    assert s["offset_max_abs_diff_m"] == 0.0
+    assert s["spec_checks"] == {"no_balls_outside": True, "no_edge_overflow": True,
+                                "reference_covers_prediction": True}
+    regime = s["regime"]
+    # one pair within the skin at every sample, for both the surrogate's edges and the DEM
+    assert regime["pp_contacts_pred_mean"] == 1.0
+    assert regime["pp_pairs_within_skin_ref_mean"] == 1.0
+    assert regime["pp_pairs_within_skin_pred_frames_mean"] == 1.0
+    # DEM contact list: (0, 1) at even samples; compared samples 51..250 hold 100 even ones
+    assert regime["pp_contacts_ref_dem_mean"] == pytest.approx(0.5)
+    assert regime["power_pred_W"] == pytest.approx(expected_energy / (200 * DT), rel=1e-12)
+    assert regime["power_ref_W"] == pytest.approx(regime["power_pred_W"], rel=1e-12)
+    assert regime["ke_fd_pred_mean_J"] == pytest.approx(regime["ke_fd_ref_mean_J"], rel=1e-12)
+    assert regime["ke_fd_interval_s"] == pytest.approx(10 * DT)
+    assert regime["state_pred"] == regime["state_ref"] == "agitated"  # 0.25 pairs per ball
+    json.dumps(s, allow_nan=False)  # JSON-able, no NaN
+
+
+def test_constant_1mm_shift_gives_mse_1e_6(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference, shift=1e-3)
+    comparison = compare(pred, reference)
+    np.testing.assert_allclose(comparison.mse, 1e-6, rtol=1e-9)
+    assert comparison.summary["position"]["mse_plateau_m2"] == pytest.approx(1e-6, rel=1e-9)
+    # energy untouched by the shift
+    assert comparison.summary["energy"]["relative_error_final"] == pytest.approx(0.0, abs=1e-13)
+
+
+def test_energy_scaled_by_1_1_gives_10_percent(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference, energy_scale=1.1)
+    comparison = compare(pred, reference)
+    s = comparison.summary
+    assert s["energy"]["relative_error_final"] == pytest.approx(0.1, rel=1e-10)
+    rel = comparison.energy_rel_error
+    np.testing.assert_allclose(rel[np.isfinite(rel)], 0.1, rtol=1e-10)
+    assert np.isfinite(rel).sum() == 200
+    assert s["energy"]["relative_error_median_last_half"] == pytest.approx(0.1, rel=1e-10)
+    # Pearson r is blind to a uniform scale (paper section 3)
+    assert s["energy"]["pearson_r"] == pytest.approx(1.0, abs=1e-12)
+    assert s["regime"]["power_pred_W"] == pytest.approx(1.1 * s["regime"]["power_ref_W"])
+
+
+def test_small_functions_known_answers():
+    a = np.array([1.0, 2.0, 4.0, 8.0])
+    assert pearson_r(a, 3 * a + 2) == pytest.approx(1.0)
+    assert pearson_r(a, -a) == pytest.approx(-1.0)
+    b = np.array([2.0, 1.0, 5.0, 3.0])
+    assert pearson_r(a, b) == pytest.approx(np.corrcoef(a, b)[0, 1], rel=1e-12)
+    assert math.isnan(pearson_r(a, np.ones(4)))
+    assert math.isnan(pearson_r(a[:1], b[:1]))
+    rel = relative_error(np.array([1.0, 2.0, 3.0]), np.array([0.0, 1.0, 4.0]))
+    assert math.isnan(rel[0]) and rel[1] == 1.0 and rel[2] == 0.25
+    assert mse_plateau(np.array([9.0, 9.0, 1.0, 2.0, 3.0])) == 2.0
+    assert math.isnan(mse_plateau(np.array([])))
+    ref = np.zeros((2, 3, 3))
+    pred = ref.copy()
+    pred[1, 0] = [3.0, 0.0, 4.0]  # |d|^2 = 25 for one of 3 balls
+    np.testing.assert_allclose(position_mse(pred, ref), [0.0, 25.0 / 3.0])
+    with pytest.raises(MetricsError, match="same shape"):
+        position_mse(pred, ref[:, :2])
+    pairs = np.array([[[0, 1], [2, 3], [-1, -1]], [[-1, -1], [-1, -1], [-1, -1]]])
+    np.testing.assert_array_equal(pp_contact_counts(pairs), [2, 0])
+
+
+def test_pairs_within_across_chunks(monkeypatch):
+    pos = np.broadcast_to(BASE, (7, 4, 3)).copy()
+    pos[3:, 3] = pos[3:, 2] + [0.0114, 0.0, 0.0]  # 0.4 mm gap: now within the skin too
+    monkeypatch.setattr(metrics, "_PAIR_CHUNK", 2)
+    np.testing.assert_array_equal(pairs_within(pos, 2 * RADIUS + 1.5e-3), [1, 1, 1, 2, 2, 2, 2])
+    np.testing.assert_array_equal(pairs_within(pos, 0.0105), 0)
+
+
+def test_kinetic_energy_fd_uniform_velocity():
+    t = np.array([0.0, 0.1, 0.3])
+    v = np.array([1.0, -2.0, 2.0])  # |v|^2 = 9
+    pos = t[:, None, None] * v[None, None, :] * np.ones((1, 5, 1))
+    t_mid, ke = kinetic_energy_fd(t, pos, ball_mass=2.0)
+    np.testing.assert_allclose(t_mid, [0.05, 0.2])
+    np.testing.assert_allclose(ke, 0.5 * 2.0 * 5 * 9.0)
+
+
+def test_classify_state():
+    assert classify_state(1.0, 0.75) == "bed"
+    assert classify_state(0.5, 0.75) == "agitated"
+    assert classify_state(0.3, 0.2, "power") == "agitated"
+    assert classify_state(0.1, 0.2, "power") == "bed"
+    assert classify_state(math.nan, 0.75) == "unknown"
+    with pytest.raises(MetricsError, match="classify_by"):
+        classify_state(1.0, 0.75, "kinetic")
+
+
+# ---------------------------------------------------------------------------------------------
+# Alignment
+
+
+def test_alignment_with_offset_start(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference, start=37, n_steps=120, save_every=7)
+    al = align(pred, reference)
+    np.testing.assert_array_equal(al.step_index, np.arange(120))
+    np.testing.assert_array_equal(al.step_ref_index, 38 + np.arange(120))
+    np.testing.assert_array_equal(al.frame_ref_index, 37 + 7 * np.arange(al.frame_index.size))
+    assert al.frame_index.size == 120 // 7 + 1
+    assert al.start_ref_index == 37 and al.overlap["complete"]
+    assert evaluate(pred, reference)["position"]["mse_max_m2"] == 0.0
+
+
+def test_reference_starting_late_rebases_energy(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference, start=50, n_steps=200)
+    late = reference.slice(100, None)  # t from t[100]; the rollout started at t[50]
+    with pytest.warns(CoverageWarning, match="covers only part"):
+        comparison = compare(pred, late)
+    s = comparison.summary
+    assert not s["overlap"]["complete"] and not s["overlap"]["reference_covers_start"]
+    assert s["overlap"]["n_steps_compared"] == 151  # steps ending at samples 100..250
+    assert s["overlap"]["t_first_s"] == pytest.approx(100 * DT)
+    assert s["energy"]["baseline"].startswith("first compared step")
+    assert s["energy"]["E_ref_final_J"] == pytest.approx(reference.dissipation()[101:251].sum(),
+                                                         rel=1e-12)
+    assert s["energy"]["relative_error_final"] == pytest.approx(0.0, abs=1e-12)
+    assert np.isnan(comparison.energy_ref[:49]).all()
+    assert not s["spec_checks"]["reference_covers_prediction"]
+
+
+def test_reference_ending_early_compares_overlap(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference, start=50, n_steps=200, energy_scale=1.1)
+    short = reference.slice(0, 150)
+    with pytest.warns(CoverageWarning, match=r"comparing 99/200 steps"):
+        comparison = compare(pred, short)
+    s = comparison.summary
+    assert s["overlap"]["t_last_s"] == pytest.approx(149 * DT)
+    assert s["energy"]["baseline"] == "rollout start"
+    assert s["energy"]["relative_error_final"] == pytest.approx(0.1, rel=1e-10)
+    assert np.isnan(comparison.energy_ref[99:]).all()
+    assert s["position"]["n_frames"] == 10  # frames at samples 50, 60, ..., 140
+    assert s["energy"]["E_pred_full_J"] == pytest.approx(1.1 * reference.dissipation()[51:251].sum())
+
+
+def test_no_overlap_or_wrong_ball_count_is_refused(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference, start=50, n_steps=20)
+    with pytest.raises(MetricsError, match="no prediction step has a reference sample"):
+        align(pred, reference.slice(0, 40))
+    other = make_reference(tmp_path / "three.npz")
+    arrays = dict(other.arrays)
+    arrays["pos"] = arrays["pos"][:, :3]
+    for name in ("vel", "omega"):
+        arrays[name] = arrays[name][:, :3]
+    arrays["pw_contact"] = arrays["pw_contact"][:, :3]
+    meta = dict(other.meta, n_balls=3)
+    save_trajectory(tmp_path / "three.npz", arrays, meta)
+    with pytest.raises(MetricsError, match="4 balls but the reference has 3"):
+        align(pred, load_trajectory(tmp_path / "three.npz"))
+
+
+def test_prediction_from_trajectory_checks_arguments(reference):
+    with pytest.raises(PredictionError, match="start_index"):
+        prediction_from_trajectory(reference, 290, 20)
+    with pytest.raises(PredictionError, match="save_every"):
+        prediction_from_trajectory(reference, 0, 20, save_every=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ensembles
+
+
+def test_ensemble_summary_known_spread(tmp_path, reference):
+    scales = [1.0, 1.2, 0.9]
+    preds = [make_prediction(tmp_path, reference, name=f"p{i}.npz", energy_scale=s)
+             for i, s in enumerate(scales)]
+    summaries = [evaluate(p, reference) for p in preds]
+    power_ref = summaries[0]["regime"]["power_ref_W"]
+    ens = ensemble_summary(summaries)
+    assert ens["n_runs"] == 3 and not ens["meets_spec_minimum"]
+    expected = power_ref * np.array(scales)
+    assert ens["power"]["pred_W"]["mean"] == pytest.approx(expected.mean(), rel=1e-12)
+    assert ens["power"]["pred_W"]["std"] == pytest.approx(expected.std(ddof=1), rel=1e-10)
+    assert ens["power"]["pred_W"]["min"] == pytest.approx(expected.min(), rel=1e-12)
+    assert ens["power"]["ref_W"]["std"] == pytest.approx(0.0, abs=1e-12 * power_ref)
+    assert ens["power"]["relative_error_of_means"] == pytest.approx(0.1 / 3, rel=1e-10)
+    # 1 pair per 4 balls = 0.25 < 0.75: all agitated; a 0.2 threshold makes them all beds
+    assert ens["states"]["pred"]["agitated"]["count"] == 3
+    assert ens["states"]["ref"]["fraction_agitated"] == 1.0
+    bed = ensemble_summary(summaries, threshold=0.2)
+    assert bed["states"]["pred"]["bed"]["count"] == 3 and bed["states"]["agreement"] == 1.0
+    # by power: the 1.2x run is "agitated" above 1.1 x power_ref, the reference runs are not
+    by_power = ensemble_summary(summaries, classify_by="power", threshold=1.1 * power_ref)
+    assert [r["state_pred"] for r in by_power["runs"]] == ["bed", "agitated", "bed"]
+    assert by_power["states"]["ref"]["bed"]["count"] == 3
+    assert by_power["states"]["agreement"] == pytest.approx(2 / 3)
+    assert ens["contacts"]["pred_mean"] == 1.0 and ens["contacts"]["ref_dem_mean"] == 0.5
+    # the same from predictions and references directly
+    direct = ensemble_summary(preds, [reference] * 3)
+    assert direct["power"]["pred_W"] == ens["power"]["pred_W"]
+    json.dumps(ens, allow_nan=False)
+
+
+def test_ensemble_summary_refuses_bad_input(reference):
+    with pytest.raises(MetricsError, match="at least one run"):
+        ensemble_summary([])
+    with pytest.raises(MetricsError, match="needs an explicit threshold"):
+        ensemble_summary([{"regime": {}}], classify_by="power")
+    with pytest.raises(MetricsError, match="not a summary"):
+        ensemble_summary([{"energy": 1}])
+    with pytest.raises(MetricsError, match="one reference per prediction"):
+        ensemble_summary(["a.npz", "b.npz"], [reference])
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+
+
+def test_cli_evaluate_end_to_end(tmp_path, reference, capsys):
+    make_prediction(tmp_path, reference, name="pred.npz", shift=1e-3, energy_scale=1.1)
+    out = tmp_path / "eval"
+    code = cli.main(["evaluate", "--prediction", str(tmp_path / "pred.npz"),
+                     "--reference", str(reference.path), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    lines = captured.out.strip().splitlines()
+    assert len(lines) == 1
+    headline = json.loads(lines[0])
+    assert headline["mse_plateau_m2"] == pytest.approx(1e-6, rel=1e-9)
+    assert headline["energy_relative_error_final"] == pytest.approx(0.1, rel=1e-10)
+    assert headline["balls_outside_total"] == 0 and headline["reference_covers_prediction"]
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["energy"]["pearson_r"] == pytest.approx(1.0, abs=1e-12)
+    for name in ("position_mse", "cumulative_energy", "trajectory_xz"):
+        png = out / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_cli_evaluate_ensemble_and_errors(tmp_path, reference, capsys):
+    for i, scale in enumerate([1.0, 1.2]):
+        make_prediction(tmp_path, reference, name=f"p{i}.npz", energy_scale=scale)
+    short = tmp_path / "short.npz"
+    sliced = reference.slice(0, 150)
+    save_trajectory(short, sliced.arrays, sliced.meta)
+    out = tmp_path / "ens"
+    code = cli.main(["evaluate", "--prediction", str(tmp_path / "p0.npz"),
+                     str(tmp_path / "p1.npz"), "--reference", str(reference.path), str(short),
+                     "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "covers only part" in captured.err  # the short reference is reported
+    headline = json.loads(captured.out)
+    assert headline["n_runs"] == 2 and len(headline["runs"]) == 2
+    assert (out / "run_00" / "metrics.json").exists() and (out / "run_01" / "cumulative_energy.png").exists()
+    ensemble = json.loads((out / "ensemble.json").read_text())
+    assert ensemble["runs"][1]["energy_relative_error_final"] == pytest.approx(0.2, rel=1e-10)
+    assert (out / "ensemble.png").stat().st_size > 10_000
+
+    code = cli.main(["evaluate", "--prediction", str(tmp_path / "p0.npz"), "--reference",
+                     str(reference.path), str(short), "--out", str(out)])
+    assert code == 2 and "one reference per prediction" in capsys.readouterr().err
+    code = cli.main(["evaluate", "--prediction", str(reference.path), "--reference",
+                     str(reference.path), "--out", str(out)])
+    assert code == 2 and "is a DEM trajectory file" in capsys.readouterr().err
+    code = cli.main(["evaluate", "--prediction", str(tmp_path / "p0.npz"), "--reference",
+                     str(reference.path), "--out", str(out), "--classify-by", "power"])
+    assert code == 2 and "needs --threshold" in capsys.readouterr().err
