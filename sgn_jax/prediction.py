@@ -217,7 +217,7 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
     tol = max(_GRID_TOL, 8.0 * float(np.finfo(np.result_type(t_step.dtype, t_pos.dtype)).eps)
               * t_max / dt)
     if off_grid.max() > tol:
-        worst = int(np.argmax(off_grid))
+        worst = int(np.flatnonzero(off_grid > tol)[0])  # the first step off the grid
         raise PredictionError(
             f"{where}: array 't_step' is not uniformly spaced by meta['dt'] = {dt:g} s: "
             f"t_step[{worst}] = {float(t_step[worst]):.9g} s but expected "
