@@ -320,6 +320,39 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class RolloutConfig:
+    """The surrogate rollout (SPEC 5, paper 2.2.3; docs/rollout.md).
+
+    ``save_every``: steps between saved position frames (10 = every 1 ms at dt = 1e-4 s).
+    ``chunk_steps``: steps per jitted call of the host-level run (progress-bar granularity; a
+    multiple of save_every). ``checkpoint_steps``: steps per ``jax.checkpoint`` chunk, which
+    bounds the memory of a differentiated rollout (a multiple of save_every).
+    ``snap_back``: move balls with phi >= ``[graph] phi_sb`` back to phi_sb along -n.
+    ``snap_velocity``: "keep" (the paper's choice: the velocity is unchanged, the ball's window
+    history is moved with it) or "position" (the finite-difference velocity follows the moved
+    position).
+    """
+
+    save_every: int = 10
+    chunk_steps: int = 2000
+    checkpoint_steps: int = 100
+    snap_back: bool = True
+    snap_velocity: str = "keep"
+
+    def __post_init__(self) -> None:
+        if self.save_every < 1:
+            raise ConfigError(f"[rollout] save_every must be >= 1, got {self.save_every}")
+        for name in ("chunk_steps", "checkpoint_steps"):
+            value = getattr(self, name)
+            if value < 1 or value % self.save_every:
+                raise ConfigError(f"[rollout] {name} must be a positive multiple of save_every "
+                                  f"= {self.save_every}, got {value}")
+        if self.snap_velocity not in ("keep", "position"):
+            raise ConfigError(f"[rollout] snap_velocity must be 'keep' or 'position', got "
+                              f"{self.snap_velocity!r}")
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole experiment config: one attribute per TOML section."""
 
@@ -333,6 +366,7 @@ class Config:
     graph: GraphConfig = field(default_factory=GraphConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    rollout: RolloutConfig = field(default_factory=RolloutConfig)
 
 
 # --------------------------------------------------------------------------------------------
