@@ -51,6 +51,56 @@ def _cmd_jar(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# train
+
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train",
+        help="train the SGN surrogate on DEM trajectories",
+        description="Featurize the trajectories with the config's [graph] rules and SDF grid, "
+        "split them chronologically ([train] train_time, val_time), train the SGN with the "
+        "[model] and [train] settings, and write metrics.jsonl/.csv, loss.png and orbax "
+        "checkpoints (checkpoints/latest, checkpoints/best) to OUT. Prints a JSON summary.",
+    )
+    p.add_argument("--config", required=True, help="experiment config (TOML)")
+    p.add_argument("--data", required=True,
+                   help="trajectory file(s) (.npz, SPEC 4), comma-separated")
+    p.add_argument("--out", required=True, help="run directory")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="total epochs of the run (overrides [train] epochs)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in OUT from its latest checkpoint")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    p.set_defaults(handler=_cmd_train)
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from sgn_jax.checkpoint import CheckpointError
+    from sgn_jax.config import load_config
+    from sgn_jax.dataset import load_trajectory
+    from sgn_jax.graph import GraphError
+    from sgn_jax.train import TrainingError, train
+
+    if args.epochs is not None and args.epochs < 1:
+        raise UserError(f"--epochs must be >= 1, got {args.epochs}")
+    paths = [p.strip() for p in args.data.split(",") if p.strip()]
+    if not paths:
+        raise UserError("--data needs at least one trajectory file")
+    cfg = load_config(args.config)
+    trajectories = [load_trajectory(p) for p in paths]
+    log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
+    try:
+        summary = train(cfg, trajectories, args.out, epochs=args.epochs, resume=args.resume,
+                        names=paths, progress=not args.quiet, log=log)
+    except (TrainingError, GraphError, CheckpointError) as exc:
+        raise UserError(str(exc)) from exc
+    keys = ("epochs", "best_epoch", "best_loss", "n_train", "n_val", "n_params")
+    print(json.dumps({"out": str(Path(args.out)), **{k: summary[k] for k in keys}}))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 # dem
 
 

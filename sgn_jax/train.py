@@ -508,6 +508,13 @@ def check_trajectory_matches(traj: Any, cfg: Any, name: str) -> None:
     if "ball_radius" in meta and not math.isclose(float(meta["ball_radius"]), cfg.balls.radius,
                                                   rel_tol=1e-9):
         problems.append(f"ball radius {meta['ball_radius']}, config {cfg.balls.radius}")
+    saved = meta.get("config") if isinstance(meta, dict) else None
+    if isinstance(saved, dict) and "jar" in saved:
+        from sgn_jax.config import config_to_dict
+
+        if saved["jar"] != config_to_dict(cfg)["jar"]:
+            problems.append(f"jar {saved['jar']}, config [jar] {config_to_dict(cfg)['jar']} "
+                            "(the featurizer would use the wrong SDF)")
     if problems:
         raise TrainingError(f"{name} does not match the config: " + "; ".join(problems))
 
