@@ -1,0 +1,408 @@
+"""DEM driver: placement, settling, chunked sampling with checkpoints, the SPEC-4 dataset.
+
+``run_dem(cfg, duration, out_path)``:
+
+1. place ``cfg.balls.count`` balls at rest in the jar from ``seed`` (random sequential insertion);
+2. settle for ``cfg.dem.settle_time`` with the jar at rest at ``offset(0)`` (DEM steps
+   -settle_steps .. 0), then zero the dissipation and wall-work totals: t = 0;
+3. run ``duration`` of motion in chunks of ``cfg.dem.chunk_samples`` samples (one jitted nested
+   ``lax.scan`` per chunk, no host sync inside), a sample every ``dt = substeps * dt_dem``;
+4. after settling and after each chunk, write the chunk's samples and the state atomically into
+   ``OUT.partial/`` next to the output, so an interrupted run resumes from its last chunk;
+5. write the dataset with :func:`sgn_jax.dataset.save_trajectory` and remove ``OUT.partial/``.
+
+Sample 0 is the settled state at t = 0. The per-interval dissipation arrays are differences of
+the engine's cumulative ledger (first sample 0). Besides the SPEC-4 arrays the file holds
+``diss_pp_stiffness`` / ``diss_pw_stiffness`` (the tangential-stiffness ledger term, see
+docs/dem.md) and ``n_pp_contacts`` (the regime indicator of SPEC 7).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgn_jax.dem.engine import (
+    DISSIPATION_KINDS,
+    DEMError,
+    DEMParams,
+    DEMSpec,
+    DEMState,
+    JarGeometry,
+    geometry_from_config,
+    init_state,
+    make_sampler,
+    params_from_config,
+    reset_ledger_totals,
+)
+from sgn_jax.dem.placement import place_balls
+from sgn_jax.io_utils import atomic_write
+
+PARTIAL_FORMAT = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class DEMSetup:
+    """Everything a run of a config needs, built once by :func:`setup_from_config`."""
+
+    cfg: Any
+    spec: DEMSpec
+    params: DEMParams
+    jar: JarGeometry
+    substeps: int
+    pp_capacity: int
+
+    @property
+    def dt(self) -> float:
+        return float(self.cfg.dem.dt)
+
+    @property
+    def dt_dem(self) -> float:
+        return self.spec.dt_dem
+
+
+def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None = None,
+                      pair_mode: str = "auto") -> DEMSetup:
+    """Build spec, params and jar of a config.
+
+    ``dt_dem`` (optional) overrides ``[dem] dt_dem_max``: the step used is dt / k with the
+    smallest integer k such that dt / k <= dt_dem, so every sample falls on a step (SPEC 2).
+    """
+    from sgn_jax.config import replace_section
+
+    if dt_dem is not None:
+        if not dt_dem > 0:
+            raise DEMError(f"dt_dem must be > 0, got {dt_dem}")
+        cfg = replace_section(cfg, "dem", dt_dem_max=float(dt_dem))
+    if dtype is not None:
+        cfg = replace_section(cfg, "dem", dtype=dtype)
+    jar = geometry_from_config(cfg)
+    params = params_from_config(cfg, geometry=jar.geometry)
+    n = cfg.balls.count
+    spec = DEMSpec(n_balls=n, n_patches=len(jar.patch_names), dt_dem=cfg.dem.dt_dem,
+                   dtype=cfg.dem.dtype, clip_attractive=cfg.dem.clip_attractive,
+                   pair_mode=pair_mode)
+    capacity = cfg.dem.pp_capacity if cfg.dem.pp_capacity > 0 else 3 * n
+    return DEMSetup(cfg=cfg, spec=spec, params=params, jar=jar, substeps=cfg.dem.substeps,
+                    pp_capacity=capacity)
+
+
+def initial_state(setup: DEMSetup, seed: int, gap: float = 5e-4) -> DEMState:
+    """Balls placed at rest from ``seed``, at DEM step -settle_steps (jar at rest)."""
+    from sgn_jax.motion import offset
+
+    jar = setup.jar
+    x_jar = place_balls(lambda x: jar.sdf_fn(jar.geometry, x), jar.lower, jar.upper,
+                        setup.spec.n_balls, float(setup.params.radius), seed, gap=gap)
+    x_lab = x_jar + np.asarray(offset(setup.params.motion, 0.0))
+    settle_samples = settle_sample_count(setup)
+    return init_state(setup.spec, setup.params, x_lab, step=-settle_samples * setup.substeps)
+
+
+def settle_sample_count(setup: DEMSetup) -> int:
+    return int(round(setup.cfg.dem.settle_time / setup.dt))
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoints
+
+
+def _tree_to_npz(tree: Any) -> dict[str, np.ndarray]:
+    leaves, _ = jax.tree_util.tree_flatten_with_path(tree)
+    out = {f"leaf_{k:03d}": np.asarray(v) for k, (_, v) in enumerate(leaves)}
+    out["leaf_names"] = np.array(json.dumps([jax.tree_util.keystr(p) for p, _ in leaves]))
+    return out
+
+
+def _tree_from_npz(template: Any, data: Any, where: str) -> Any:
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+    names = json.loads(str(data["leaf_names"]))
+    if names != [jax.tree_util.keystr(p) for p, _ in leaves]:
+        raise DEMError(f"{where}: the saved state does not match this version's DEMState; "
+                       "delete the .partial directory to start over")
+    new = []
+    for k, (_, ref) in enumerate(leaves):
+        value = np.asarray(data[f"leaf_{k:03d}"])
+        if value.shape != np.shape(ref):
+            raise DEMError(f"{where}: saved state leaf {names[k]} has shape {value.shape}, "
+                           f"expected {np.shape(ref)}; delete the .partial directory")
+        new.append(jnp.asarray(value, dtype=jnp.asarray(ref).dtype))
+    return jax.tree_util.tree_unflatten(treedef, new)
+
+
+def _fingerprint(setup: DEMSetup, seed: int) -> str:
+    from sgn_jax.config import config_to_dict
+
+    cfg = config_to_dict(setup.cfg)
+    cfg["dem"].pop("duration", None)
+    cfg["dem"].pop("chunk_samples", None)
+    return json.dumps({"config": cfg, "seed": seed, "dt_dem": setup.dt_dem,
+                       "pp_capacity": setup.pp_capacity, "format": PARTIAL_FORMAT},
+                      sort_keys=True)
+
+
+def partial_dir(out_path: str | Path) -> Path:
+    out_path = Path(out_path)
+    return out_path.with_name(out_path.name + ".partial")
+
+
+def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
+    with atomic_write(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+# --------------------------------------------------------------------------------------------
+# Run
+
+
+class DEMRun(NamedTuple):
+    """Result of :func:`run_dem`: the dataset arrays, its meta and a summary dict."""
+
+    arrays: dict[str, np.ndarray]
+    meta: dict[str, Any]
+    summary: dict[str, Any]
+
+
+def _progress(total: float, desc: str, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=round(total, 6), desc=desc, unit="s", disable=not enabled,
+                bar_format="{l_bar}{bar}| {n:.3f}/{total:.3f} s sim [{elapsed}<{remaining}, "
+                "{postfix}]", dynamic_ncols=True)
+
+
+def run_dem(
+    cfg: Any,
+    duration: float | None = None,
+    out_path: str | Path | None = None,
+    seed: int | None = None,
+    dt_dem: float | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    chunk_samples: int | None = None,
+    dtype: str | None = None,
+) -> DEMRun:
+    """Settle and run the DEM of ``cfg``; write the SPEC-4 dataset to ``out_path`` if given.
+
+    Args:
+        cfg: a ``sgn_jax.config.Config``.
+        duration: seconds of motion (default ``cfg.dem.duration``); T = duration / dt + 1.
+        out_path: ``.npz`` destination; checkpoints go to ``out_path + '.partial/'``.
+        seed: placement seed (default ``cfg.dem.seed``).
+        dt_dem: override ``[dem] dt_dem_max`` (see :func:`setup_from_config`).
+        resume: continue from ``OUT.partial/`` if it exists and matches this run.
+        progress: show tqdm bars (simulated time, rate, ETA).
+        chunk_samples: samples per jitted chunk (default ``cfg.dem.chunk_samples``).
+        dtype: override ``[dem] dtype``.
+    """
+    from sgn_jax.dataset import DatasetError, build_meta, save_trajectory
+
+    seed = cfg.dem.seed if seed is None else int(seed)
+    duration = cfg.dem.duration if duration is None else float(duration)
+    if duration < 0:
+        raise DEMError(f"duration must be >= 0, got {duration}")
+    chunk = int(chunk_samples or cfg.dem.chunk_samples)
+    if chunk < 1:
+        raise DEMError(f"chunk_samples must be >= 1, got {chunk}")
+    if out_path is not None and Path(out_path).suffix != ".npz":
+        raise DatasetError(f"output path {str(out_path)!r} must end in '.npz'")
+    setup = setup_from_config(cfg, dt_dem=dt_dem, dtype=dtype)
+    spec, params, k = setup.spec, setup.params, setup.substeps
+    n_motion = int(round(duration / setup.dt))
+    n_settle = settle_sample_count(setup)
+    t_wall0 = time.perf_counter()
+
+    run = make_sampler(spec, setup.jar.wall_fn, k, setup.pp_capacity)
+    compiled: dict[int, Any] = {}
+    compile_time = 0.0
+
+    def ensure_compiled(state: DEMState, n: int) -> None:
+        nonlocal compile_time
+        if n not in compiled:
+            t0 = time.perf_counter()
+            compiled[n] = run.lower(params, state, n).compile()
+            compile_time += time.perf_counter() - t0
+
+    def run_chunk(state: DEMState, n: int) -> tuple[DEMState, dict[str, np.ndarray]]:
+        ensure_compiled(state, n)
+        state, samples = compiled[n](params, state)
+        return state, jax.tree_util.tree_map(np.asarray, samples)
+
+    from sgn_jax.dem.engine import observe
+
+    observe_jit = jax.jit(lambda p, s: observe(spec, setup.jar.wall_fn, p, s, setup.pp_capacity))
+
+    pdir = partial_dir(out_path) if out_path is not None else None
+    fingerprint = _fingerprint(setup, seed)
+    chunks: list[dict[str, np.ndarray]] = []
+    state = None
+    done = 0  # motion samples done after sample 0
+    if pdir is not None and pdir.is_dir():
+        state_file = pdir / "state.npz"
+        ok = resume and state_file.is_file()
+        if ok:
+            with np.load(state_file) as data:
+                ok = str(data["fingerprint"]) == fingerprint
+                if ok:
+                    template = init_state(spec, params, np.zeros((spec.n_balls, 3)))
+                    state = _tree_from_npz(template, data, str(state_file))
+                    n_chunks = int(data["n_chunks"])
+                    done = int(data["samples_done"])
+        if ok:
+            for c in range(n_chunks):
+                with np.load(pdir / f"chunk_{c:05d}.npz") as data:
+                    chunks.append({name: data[name] for name in data.files})
+            if done > n_motion:
+                raise DEMError(f"{pdir} holds {done * setup.dt:g} s of motion, more than the "
+                               f"requested {duration:g} s; delete it or ask for more")
+        else:
+            shutil.rmtree(pdir)
+            state = None
+
+    def checkpoint(state: DEMState) -> None:
+        if pdir is None:
+            return
+        pdir.mkdir(parents=True, exist_ok=True)
+        _save_npz(pdir / f"chunk_{len(chunks) - 1:05d}.npz", chunks[-1])
+        _save_npz(pdir / "state.npz", {**_tree_to_npz(state), "fingerprint": np.array(fingerprint),
+                                       "n_chunks": np.array(len(chunks)),
+                                       "samples_done": np.array(done)})
+
+    steps_run = 0
+    settle_wall = 0.0
+    if state is None:
+        state = initial_state(setup, seed)
+        bar = _progress(n_settle * setup.dt, "settling", progress)
+        t0 = time.perf_counter()
+        left = n_settle
+        while left > 0:
+            n = min(chunk, left)
+            state, _ = run_chunk(state, n)
+            left -= n
+            steps_run += n * k
+            bar.update(round(n * setup.dt, 6))
+        bar.close()
+        settle_wall = time.perf_counter() - t0
+        if int(state.step) != 0:
+            raise DEMError(f"internal: settling ended at step {int(state.step)}, not 0")
+        state = reset_ledger_totals(state)
+        chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
+                                             observe_jit(params, state)))
+        checkpoint(state)
+
+    bar = _progress(n_motion * setup.dt, "DEM", progress)
+    bar.update(round(done * setup.dt, 6))
+    motion_steps = 0
+    motion_wall = 0.0
+    while done < n_motion:
+        n = min(chunk, n_motion - done)
+        ensure_compiled(state, n)
+        t0 = time.perf_counter()
+        state, samples = run_chunk(state, n)
+        if np.any(samples["pp_overflow"]):
+            raise DEMError(
+                f"more than {setup.pp_capacity} ball-ball contacts (or a neighbour-table "
+                f"overflow) at t = {(done + int(np.argmax(samples['pp_overflow'])) + 1) * setup.dt:g}"
+                " s; raise [dem] pp_capacity and rerun"
+            )
+        chunk_wall = time.perf_counter() - t0
+        motion_wall += chunk_wall
+        chunks.append(samples)
+        done += n
+        steps_run += n * k
+        motion_steps += n * k
+        checkpoint(state)
+        bar.set_postfix_str(f"{n * k / chunk_wall:,.0f} steps/s")
+        bar.update(round(n * setup.dt, 6))
+    bar.close()
+
+    arrays = assemble_arrays(setup, chunks)
+    summary = summarize(setup, arrays)
+    summary.update({
+        "seed": seed, "duration_s": n_motion * setup.dt, "dt_dem": setup.dt_dem,
+        "substeps": k, "wall_time_s": time.perf_counter() - t_wall0,
+        "compile_time_s": compile_time, "settle_wall_s": settle_wall,
+        "motion_wall_s": motion_wall, "dem_steps": steps_run,
+        "steps_per_s": motion_steps / motion_wall if motion_wall > 0 and motion_steps else None,
+        "pair_mode": spec.resolved_pair_mode, "dtype": spec.dtype,
+    })
+    meta = build_meta(setup.cfg, seed=seed, extra={
+        "dt_dem": setup.dt_dem, "substeps": k, "settle_time": n_settle * setup.dt,
+        "pp_capacity": setup.pp_capacity, "pair_mode": spec.resolved_pair_mode,
+        "dtype": spec.dtype, "ledger_residual_J": summary["ledger_residual_J"],
+        "extra_arrays": ["diss_pp_stiffness", "diss_pw_stiffness", "n_pp_contacts"],
+    })
+    if out_path is not None:
+        save_trajectory(out_path, arrays, meta)
+        if pdir is not None and pdir.is_dir():
+            shutil.rmtree(pdir)
+        summary["out"] = str(out_path)
+    return DEMRun(arrays=arrays, meta=meta, summary=summary)
+
+
+def assemble_arrays(setup: DEMSetup, chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The SPEC-4 arrays from the cumulative per-sample observations."""
+    cat = {name: np.concatenate([c[name] for c in chunks]) for name in chunks[0]}
+    n_samples = cat["pos"].shape[0]
+    arrays: dict[str, np.ndarray] = {
+        "t": np.arange(n_samples, dtype=np.float64) * setup.dt,
+        "pos": cat["pos"], "vel": cat["vel"], "omega": cat["omega"],
+        "offset": cat["offset"], "offset_vel": cat["offset_vel"],
+    }
+    for which in ("pp", "pw"):
+        cumulative = cat[f"diss_{which}"]
+        interval = np.diff(cumulative, axis=0, prepend=cumulative[:1])
+        for kind_index, kind in enumerate(DISSIPATION_KINDS):
+            arrays[f"diss_{which}_{kind}"] = interval[:, kind_index]
+    for name in ("ke_trans", "ke_rot", "pe_grav", "e_elastic", "work_wall"):
+        arrays[name] = cat[name]
+    pairs = cat["pp_pairs"]
+    small = setup.spec.n_balls < np.iinfo(np.int16).max
+    arrays["pp_pairs"] = pairs.astype(np.int16 if small else np.int32)
+    arrays["pw_contact"] = cat["pw_contact"].astype(bool)
+    arrays["n_pp_contacts"] = cat["n_pp_contacts"].astype(np.int32)
+    return arrays
+
+
+def total_dissipation(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """(T,) cumulative dissipation of all kinds (J), including the stiffness term."""
+    parts = [arrays[f"diss_{w}_{k}"] for w in ("pp", "pw") for k in DISSIPATION_KINDS]
+    return np.cumsum(np.sum(parts, axis=0))
+
+
+def summarize(setup: DEMSetup, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Totals by kind, ledger residual, balls outside the jar, contact statistics."""
+    diss = {f"{w}_{k}": float(np.sum(arrays[f"diss_{w}_{k}"]))
+            for w in ("pp", "pw") for k in DISSIPATION_KINDS}
+    total = total_dissipation(arrays)
+    balance = (arrays["ke_trans"] + arrays["ke_rot"] + arrays["pe_grav"] + arrays["e_elastic"]
+               + total - arrays["work_wall"])
+    residual = float(balance[-1] - balance[0])
+    jar = setup.jar
+    sdf = jax.jit(jax.vmap(lambda x: jar.sdf_fn(jar.geometry, x)))
+    x_jar = arrays["pos"] - arrays["offset"][:, None, :]
+    phi = np.asarray(sdf(jnp.asarray(x_jar)))
+    outside = np.any(phi > 0, axis=0)
+    duration = float(arrays["t"][-1]) if arrays["t"].size else 0.0
+    target = sum(diss[f"{w}_{k}"] for w in ("pp", "pw") for k in ("normal", "tangential"))
+    return {
+        "dissipation_J": diss,
+        "total_dissipation_J": float(total[-1]),
+        "surrogate_target_J": target,
+        "mean_dissipation_power_W": float(total[-1]) / duration if duration > 0 else None,
+        "work_wall_J": float(arrays["work_wall"][-1]),
+        "ledger_residual_J": residual,
+        "ledger_residual_rel": residual / float(total[-1]) if total[-1] > 0 else None,
+        "balls_outside": int(np.sum(outside)),
+        "max_phi_m": float(np.max(phi)),
+        "mean_pp_contacts": float(np.mean(arrays["n_pp_contacts"])),
+        "mean_pw_contacts": float(np.mean(np.sum(arrays["pw_contact"], axis=1))),
+    }
