@@ -28,6 +28,7 @@ from sgn_jax.dem.engine import (
 )
 from sgn_jax.dem.placement import PlacementError, place_balls
 from sgn_jax.motion import CircleMotion
+from sgn_jax.motion import offset as jar_offset
 
 SAMPLE_STEPS = 106  # dt_dem = 1e-4 / 106
 
@@ -151,8 +152,7 @@ def test_ball_in_floor_side_edge_stays_put():
     overlap = (load / (4 / 3 * law.young_eff * np.sqrt(law.radius_eff))) ** (2 / 3)
     r = cfg.jar.radius
     x_jar = np.array([[0.0, 0.005 - overlap, r - 0.005 + overlap]])
-    offset0 = np.asarray(state_offset := init_state(spec, params, x_jar).offset)
-    del state_offset
+    offset0 = np.asarray(jar_offset(params.motion, 0.0))
     state = init_state(spec, params, x_jar + offset0, step=-100_000)  # jar at rest
     final = make_advance(spec, setup.jar.wall_fn)(params, state, 20_000)
     moved = np.linalg.norm(np.asarray(final.pos - state.pos))
