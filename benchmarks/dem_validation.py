@@ -95,6 +95,38 @@ def impacts(kind, e):
     return rows
 
 
+def incline():
+    """(mu, mu_r, theta, a measured, a expected) for the three incline cases."""
+    g = 9.81
+    cases = ((0.3, 0.0, 20.0, True), (0.3, 0.045, 20.0, True), (0.1, 0.0, 30.0, False))
+    spec = DEMSpec(n_balls=1, n_patches=1, dt_dem=DT)
+    step = make_dem_step(spec, plane_wall_fn)
+    rows = []
+    for mu, mur, theta, rolls in cases:
+        th = np.deg2rad(theta)
+        params = make_params(R, 7700.0, young=2.05e9, poisson=0.235, restitution=0.3,
+                             friction=mu, rolling_friction=mur,
+                             gravity=(g * np.sin(th), -g * np.cos(th), 0.0),
+                             geometry=plane_walls([[0, 0, 0]], [[0, -1, 0]]), motion=REST)
+        law = params.pw
+        load = params.mass * g * np.cos(th)
+        overlap = (load / (4 / 3 * law.young_eff * np.sqrt(law.radius_eff))) ** (2 / 3)
+        s0 = init_state(spec, params, jnp.array([[0.0, R - overlap, 0.0]]))
+
+        def body(s, _, p=params):
+            s = step(p, s)
+            return s, s.vel[0, 0]
+
+        _, vx = jax.jit(lambda s, b=body: jax.lax.scan(b, s, None, length=40_000))(s0)
+        t = (np.arange(40_000) + 1) * DT
+        late = t > 0.01
+        accel = np.polyfit(t[late], np.asarray(vx)[late], 1)[0]
+        expected = (5 / 7 * g * (np.sin(th) - mur * np.cos(th)) if rolls
+                    else g * (np.sin(th) - mu * np.cos(th)))
+        rows.append((mu, mur, theta, "rolls" if rolls else "slides", accel, expected))
+    return rows
+
+
 def main() -> None:
     print(f"commit {git_commit()}, dt_dem = {DT:g} s\n")
     print("| contact | e (input) | v (m/s) | e measured | t_c DEM (us) | t_c reference (us) "
@@ -106,6 +138,11 @@ def main() -> None:
                 ref_name = "ODE" if e_ < 1 else "Hertz"
                 print(f"| {kind_} | {e_} | {v} | {e_meas:.4f} | {tc * 1e6:.2f} | "
                       f"{ref * 1e6:.2f} ({ref_name}) | {tc / ref - 1:+.2%} |")
+    print("\n| mu | mu_r | theta (deg) | motion | a measured (m/s2) | a expected (m/s2) | rel. diff |")
+    print("|---|---|---|---|---|---|---|")
+    for mu, mur, theta, kind, accel, expected in incline():
+        print(f"| {mu} | {mur} | {theta} | {kind} | {accel:.4f} | {expected:.4f} | "
+              f"{accel / expected - 1:+.3%} |")
 
 
 if __name__ == "__main__":
