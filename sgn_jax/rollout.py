@@ -1,0 +1,617 @@
+"""The surrogate rollout: one jitted, differentiable ``lax.scan`` over SGN steps (paper 2.2.3).
+
+One step (time indexing as in :mod:`sgn_jax.graph`; the window ends at sample n, time t_n)::
+
+    graph      = build_graph(window_n)                  same featurizer as in training
+    a_n, dE_n  = predictor(params, stats, graph, step)  de-normalised (m/s^2, J)
+    v_n        = (x_n - x_{n-1}) / dt                   from the window
+    v_{n+1}    = v_n + a_n dt                           semi-implicit Euler
+    x_{n+1}    = x_n + v_{n+1} dt
+    offset, offset velocity at t_{n+1} = t0 + (step + 1) dt    (motion module, float64)
+    snap-back: phi(x_{n+1}) >= phi_sb -> x_{n+1} -= (phi - phi_sb) n      (optional)
+    window_{n+1} = slide(window_n, x_{n+1}, jar state at t_{n+1});  E += dE_n
+
+Positions, time and the energy sum are float64; the network runs in float32. Time is an integer
+step count ``step`` (0 at the rollout's start) and ``t = t0 + step * dt`` is formed in float64,
+so the jar phase does not drift over long rollouts.
+
+Snap-back (paper step 7; docs/rollout.md): a ball with ``phi >= phi_sb`` is moved once along
+``-n`` to ``phi = phi_sb`` (exactly for a planar wall; to first order elsewhere). Its velocity
+is left unchanged, as in the paper's code, where velocity is a state variable. Here the velocity
+is the finite difference of the window's positions, so "unchanged" means that the ball's whole
+window history (all W + 1 positions) is translated with it: every velocity feature and the next
+integration step see the same velocities as without the snap, and only the phi/normal features
+move. ``snap_velocity="position"`` moves only the newest position instead, so the
+finite-difference velocity loses the snapped distance / dt (a position-based wall). The snap
+must be switched off to replay a DEM trajectory: DEM balls in contact reach phi >= -0.0049 m
+and would be moved.
+
+Memory of a differentiated rollout: the steps are grouped into frames of ``save_every`` steps
+and the frames into chunks of ``checkpoint_steps``; each chunk is a ``jax.checkpoint``-ed scan,
+so reverse mode stores one carry per chunk plus the residuals of one chunk (O(S / c + c) for S
+steps and chunks of c), not of every step.
+
+Public API:
+
+- :func:`make_rollout` -> ``rollout(params, stats, window0, motion, sdf, t0) -> RolloutResult``
+  (jitted; ``jax.grad`` and ``jax.vmap`` apply to it);
+- :func:`make_rollout_advance` -> ``advance(params, stats, state, motion, sdf, t0)`` continues
+  a :class:`RolloutState` (the host-level chunked run uses it);
+- predictors: :func:`model_predictor` (the SGN), :func:`replay_predictor` (given accelerations
+  and dissipation, the "cheating model"); :func:`analytic_jar_query` (exact jar SDF, e.g. for
+  gradients w.r.t. jar parameters);
+- :func:`run_rollout`: a trained model + a dataset -> prediction file (``sgn-jax rollout``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import functools
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+import jraph
+import numpy as np
+
+from sgn_jax.graph import GraphSpec, SDFQuery, Window, build_graph, slide_window
+from sgn_jax.motion import Motion, frequency_hz, offset, velocity
+
+F64 = jnp.float64
+I32 = jnp.int32
+
+Predictor = Callable[[Any, Any, jraph.GraphsTuple, jax.Array], tuple[jax.Array, jax.Array]]
+"""``predictor(params, stats, raw_graph, step) -> (accel (>= N, 3) m/s^2, dE () J)``.
+
+``step`` is the int32 step index since the rollout's start; rows beyond the N balls of
+``accel`` are ignored."""
+
+
+class RolloutError(ValueError):
+    """Bad rollout input (shapes, step counts, start index) or a diverged rollout."""
+
+
+# --------------------------------------------------------------------------------------------
+# Pytrees
+
+
+@flax.struct.dataclass
+class RolloutState:
+    """The scan carry: the window, the step count and the dissipation sum.
+
+    Attributes:
+        window: :class:`sgn_jax.graph.Window` ending at the current sample (positions f64).
+        step: () int32, steps taken since the rollout's start (time t0 + step * dt).
+        energy: () float64 J, cumulative predicted dissipation since the start.
+    """
+
+    window: Window
+    step: jax.Array
+    energy: jax.Array
+
+
+@flax.struct.dataclass
+class StepRecord:
+    """Per-step outputs (each (S,) once stacked; int32 counts).
+
+    ``n_pp_edges``, ``n_pw_edges`` and ``overflow`` describe the graph the step's prediction was
+    made from (directed edges; overflow = ball-ball edges dropped by the capacity);
+    ``n_outside`` (phi > 0) and ``n_snapped`` the balls after the step.
+    """
+
+    dE: jax.Array
+    energy_cum: jax.Array
+    n_pp_edges: jax.Array
+    n_pw_edges: jax.Array
+    overflow: jax.Array
+    n_outside: jax.Array
+    n_snapped: jax.Array
+
+
+@flax.struct.dataclass
+class RolloutResult:
+    """What a rollout returns (S steps, P frames, N balls; leading batch axis under vmap).
+
+    Attributes:
+        t_step: (S,) f64 s, time at the END of each step.
+        steps: :class:`StepRecord` of (S,) arrays: dE (J), energy_cum (J), edge and ball counts.
+        t_pos: (P,) f64 s, times of the saved frames.
+        positions: (P, N, 3) f64 m, ball positions at t_pos.
+        offsets: (P, 3) f64 m, jar offset at t_pos.
+        final: the :class:`RolloutState` after the last step (to continue the rollout).
+    """
+
+    t_step: jax.Array
+    steps: StepRecord
+    t_pos: jax.Array
+    positions: jax.Array
+    offsets: jax.Array
+    final: RolloutState
+
+    @property
+    def energy(self) -> jax.Array:
+        """Cumulative dissipation after the last step (J)."""
+        return self.steps.energy_cum[..., -1]
+
+    def prediction_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays of :func:`sgn_jax.prediction.save_prediction` (unbatched result)."""
+        s = self.steps
+        return {
+            "t_step": np.asarray(self.t_step, np.float64),
+            "dE": np.asarray(s.dE, np.float64),
+            "energy_cum": np.asarray(s.energy_cum, np.float64),
+            "n_pp_edges": np.asarray(s.n_pp_edges, np.int64),
+            "n_pw_edges": np.asarray(s.n_pw_edges, np.int64),
+            "overflow": np.asarray(s.overflow, np.int64),
+            "n_outside": np.asarray(s.n_outside, np.int64),
+            "n_snapped": np.asarray(s.n_snapped, np.int64),
+            "t_pos": np.asarray(self.t_pos, np.float64),
+            "pos": np.asarray(self.positions, np.float64),
+            "offset": np.asarray(self.offsets, np.float64),
+        }
+
+
+@flax.struct.dataclass
+class ReplayTable:
+    """Parameters of :func:`replay_predictor`: per-step accelerations (S, N, 3) and dE (S,)."""
+
+    accel: jax.Array
+    dE: jax.Array
+
+
+# --------------------------------------------------------------------------------------------
+# Predictors and SDF queries
+
+
+def model_predictor(model_or_predict: Any) -> Predictor:
+    """Predictor of an SGN: a flax ``SGN`` module or a ``predict(params, stats, raw_graph)``
+    from :func:`sgn_jax.model.make_predict`. Returns the N ball rows and dE of graph 0."""
+    if isinstance(model_or_predict, nn.Module):
+        from sgn_jax.model import make_predict
+
+        predict = make_predict(model_or_predict)
+    elif callable(model_or_predict):
+        predict = model_or_predict
+    else:
+        raise TypeError(f"model_predictor needs an SGN module or a predict function, got "
+                        f"{type(model_or_predict).__name__}")
+
+    def predictor(params: Any, stats: Any, graph: jraph.GraphsTuple, step: jax.Array):
+        del step
+        accel, de = predict(params, stats, graph)
+        return accel, de[0]
+
+    return predictor
+
+
+def replay_predictor() -> Predictor:
+    """The "cheating model": ``params`` is a :class:`ReplayTable`; step s returns its row s.
+
+    Fed the finite-difference accelerations ``(x_{n+1} - 2 x_n + x_{n-1}) / dt^2`` and the DEM
+    dissipation of ``(t_n, t_{n+1}]`` (:func:`sgn_jax.graph.targets_from_arrays`) for
+    n = start + s, the rollout reproduces the trajectory to rounding (snap-back off).
+    """
+
+    def predictor(table: ReplayTable, stats: Any, graph: jraph.GraphsTuple, step: jax.Array):
+        del stats, graph
+        return table.accel[step], table.dE[step]
+
+    return predictor
+
+
+def analytic_jar_query(jar: Any, points: jax.Array, jar_offset: jax.Array
+                       ) -> tuple[jax.Array, jax.Array]:
+    """Exact SDF of a :class:`sgn_jax.geometry.JarParams` jar in the ``query`` form of
+    :func:`sgn_jax.graph.build_graph`: ``(phi (...), unit normal (..., 3))`` at lab points
+    ``(..., 3)`` for a jar at ``jar_offset`` (3,). The normal is the autodiff gradient of
+    :func:`sgn_jax.geometry.jar_sdf`; both are differentiable in the points, the offset and the
+    jar parameters (a kink only on the medial surfaces, where two walls are equally near)."""
+    from sgn_jax.geometry import jar_sdf, safe_normalize
+
+    x = jnp.asarray(points) - jnp.asarray(jar_offset)
+    flat = x.reshape(-1, 3)
+    phi, grad = jax.vmap(jax.value_and_grad(lambda p: jar_sdf(jar, p)))(flat)
+    return phi.reshape(x.shape[:-1]), safe_normalize(grad).reshape(x.shape)
+
+
+def _default_query() -> SDFQuery:
+    from sgn_jax.geometry import query_sdf_grid
+
+    return query_sdf_grid
+
+
+# --------------------------------------------------------------------------------------------
+# The step
+
+
+def jar_state_window(window: Window, motion: Motion, t0: jax.Array, dt: float) -> Window:
+    """``window`` with its jar state (offsets, velocities at the slot times
+    ``t0 - (W-1) dt .. t0``, rotational frequency) recomputed from ``motion`` (float64)."""
+    w = jnp.shape(window.offsets)[0]
+    times = jnp.asarray(t0, F64) + dt * jnp.arange(-(w - 1), 1, dtype=F64)
+    return window.replace(
+        positions=jnp.asarray(window.positions, F64),
+        offsets=jnp.asarray(offset(motion, times), F64),
+        offset_velocities=jnp.asarray(velocity(motion, times), F64),
+        frequency_hz=jnp.asarray(frequency_hz(motion), F64),
+    )
+
+
+def init_state(window0: Window, motion: Motion, t0: float | jax.Array, dt: float) -> RolloutState:
+    """The rollout's initial carry: ``window0``'s positions, the jar state of ``motion``."""
+    return RolloutState(window=jar_state_window(window0, motion, t0, dt),
+                        step=jnp.zeros((), I32), energy=jnp.zeros((), F64))
+
+
+@dataclasses.dataclass(frozen=True)
+class SnapBack:
+    """Static snap-back settings (see the module docstring)."""
+
+    enabled: bool = True
+    phi_sb: float = -0.0049
+    keep_velocity: bool = True
+
+
+def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: SnapBack,
+               params: Any, stats: Any, motion: Motion, sdf: Any, t0: jax.Array):
+    n, dt = spec.n_particles, spec.dt
+
+    def step_fn(state: RolloutState, _: Any) -> tuple[RolloutState, StepRecord]:
+        window = state.window
+        graph, counts = build_graph(window, sdf, spec, query)
+        accel, de = predictor(params, stats, graph, state.step)
+        accel = jnp.asarray(accel)[:n].astype(F64)
+        de = jnp.asarray(de).astype(F64).reshape(())
+
+        x_n = window.positions[-1]
+        v_n = (x_n - window.positions[-2]) / dt
+        v_next = v_n + accel * dt
+        x_next = x_n + v_next * dt
+        t_next = t0 + (state.step + 1).astype(F64) * dt
+        jar_offset = jnp.asarray(offset(motion, t_next), F64)
+        jar_velocity = jnp.asarray(velocity(motion, t_next), F64)
+        window = slide_window(window, x_next, jar_offset, jar_velocity)
+
+        if snap.enabled:
+            phi, normal = query(sdf, x_next, jar_offset)
+            phi, normal = jnp.asarray(phi, F64), jnp.asarray(normal, F64)
+            # A zero normal (vanishing gradient) gives no direction: such a ball is not moved.
+            snapped = (phi >= snap.phi_sb) & (jnp.sum(normal * normal, axis=-1) > 0)
+            shift = jnp.where(snapped[:, None], -(phi - snap.phi_sb)[:, None] * normal, 0.0)
+            if snap.keep_velocity:  # translate the whole history: velocities unchanged
+                positions = window.positions + shift[None]
+            else:  # only the newest position: the FD velocity follows the move
+                positions = window.positions.at[-1].add(shift)
+            window = window.replace(positions=positions)
+            n_snapped = jnp.sum(snapped, dtype=I32)
+        else:
+            n_snapped = jnp.zeros((), I32)
+        phi_after, _ = query(sdf, window.positions[-1], jar_offset)
+        energy = state.energy + de
+        record = StepRecord(dE=de, energy_cum=energy, n_pp_edges=counts.n_pp.astype(I32),
+                            n_pw_edges=counts.n_pw.astype(I32),
+                            overflow=counts.pp_dropped.astype(I32),
+                            n_outside=jnp.sum(phi_after > 0, dtype=I32), n_snapped=n_snapped)
+        return RolloutState(window=window, step=state.step + 1, energy=energy), record
+
+    return step_fn
+
+
+# --------------------------------------------------------------------------------------------
+# Factories
+
+
+def _check_counts(n_steps: int, save_every: int, checkpoint_steps: int | None) -> int:
+    for name, value in (("n_steps", n_steps), ("save_every", save_every)):
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise RolloutError(f"{name} must be an integer >= 1, got {value!r}")
+    if n_steps % save_every:
+        raise RolloutError(f"n_steps = {n_steps} must be a multiple of save_every = {save_every} "
+                           "(a position frame is saved after every save_every steps)")
+    checkpoint_steps = checkpoint_steps or min(n_steps, 100 * save_every)
+    if checkpoint_steps < 1 or checkpoint_steps % save_every:
+        raise RolloutError(f"checkpoint_steps = {checkpoint_steps} must be a positive multiple of "
+                           f"save_every = {save_every}")
+    return checkpoint_steps
+
+
+def _as_predictor(predictor: Any) -> Predictor:
+    return model_predictor(predictor) if isinstance(predictor, nn.Module) else predictor
+
+
+def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
+                         checkpoint_steps: int | None = None, snap_back: bool = True,
+                         phi_sb: float = -0.0049, snap_velocity: str = "keep",
+                         query: SDFQuery | None = None, unroll: int = 1, jit: bool = True
+                         ) -> Callable[..., RolloutResult]:
+    """``advance(params, stats, state, motion, sdf, t0) -> RolloutResult`` of ``n_steps`` steps.
+
+    Continues ``state`` (a :class:`RolloutState`, e.g. ``result.final``); frames are saved after
+    every ``save_every`` steps (P = n_steps / save_every, no frame of the initial state). ``t0``
+    is the rollout's start time (step 0), not the time of ``state``. Arguments as in
+    :func:`make_rollout`.
+    """
+    if snap_velocity not in ("keep", "position"):
+        raise RolloutError(f"snap_velocity must be 'keep' or 'position', got {snap_velocity!r}")
+    checkpoint_steps = _check_counts(n_steps, save_every, checkpoint_steps)
+    predictor = _as_predictor(predictor)
+    query = _default_query() if query is None else query
+    snap = SnapBack(bool(snap_back), float(phi_sb), snap_velocity == "keep")
+    n_frames = n_steps // save_every
+    frames_per_chunk = min(checkpoint_steps // save_every, n_frames)
+    n_chunks, rest = divmod(n_frames, frames_per_chunk)
+
+    def advance(params: Any, stats: Any, state: RolloutState, motion: Motion, sdf: Any,
+                t0: Any) -> RolloutResult:
+        t0 = jnp.asarray(t0, F64)
+        step_fn = _make_step(spec, predictor, query, snap, params, stats, motion, sdf, t0)
+
+        def frame(carry: RolloutState, _: Any):
+            carry, records = jax.lax.scan(step_fn, carry, None, length=save_every, unroll=unroll)
+            return carry, (records, carry.window.positions[-1], carry.window.offsets[-1])
+
+        def chunk(carry: RolloutState, length: int):
+            return jax.lax.scan(frame, carry, None, length=length)
+
+        pieces = []
+        carry = state
+        if n_chunks:
+            one_chunk = jax.checkpoint(functools.partial(chunk, length=frames_per_chunk))
+            carry, ys = jax.lax.scan(lambda c, _: one_chunk(c), carry, None, length=n_chunks)
+            pieces.append(jax.tree_util.tree_map(
+                lambda a: a.reshape((n_chunks * frames_per_chunk,) + a.shape[2:]), ys))
+        if rest:
+            carry, ys = jax.checkpoint(functools.partial(chunk, length=rest))(carry)
+            pieces.append(ys)
+        records, positions, offsets = jax.tree_util.tree_map(
+            lambda *a: jnp.concatenate(a) if len(a) > 1 else a[0], *pieces)
+        records = jax.tree_util.tree_map(lambda a: a.reshape((n_steps,) + a.shape[2:]), records)
+        first = state.step.astype(F64)
+        t_step = t0 + (first + jnp.arange(1, n_steps + 1, dtype=F64)) * spec.dt
+        t_pos = t0 + (first + save_every * jnp.arange(1, n_frames + 1, dtype=F64)) * spec.dt
+        return RolloutResult(t_step=t_step, steps=records, t_pos=t_pos, positions=positions,
+                             offsets=offsets, final=carry)
+
+    return jax.jit(advance) if jit else advance
+
+
+def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
+                 checkpoint_steps: int | None = None, snap_back: bool = True,
+                 phi_sb: float = -0.0049, snap_velocity: str = "keep",
+                 query: SDFQuery | None = None, unroll: int = 1, jit: bool = True
+                 ) -> Callable[..., RolloutResult]:
+    """A rollout of ``n_steps`` surrogate steps as one pure (by default jitted) function.
+
+    Args:
+        spec: the static :class:`sgn_jax.graph.GraphSpec` (N, W, R, dt, edge rules, capacity).
+        predictor: a flax ``SGN`` module, or a :data:`Predictor`
+            (:func:`model_predictor`, :func:`replay_predictor`, or your own).
+        n_steps: S, steps per call (a multiple of ``save_every``).
+        save_every: steps between saved position frames.
+        checkpoint_steps: steps per ``jax.checkpoint`` chunk (a multiple of save_every;
+            default min(S, 100 save_every)); only matters under reverse-mode differentiation.
+        snap_back, phi_sb, snap_velocity: the snap-back (module docstring); off for replays.
+        query: ``query(sdf, points, offset) -> (phi, normal)``; default the SDF grid
+            (:func:`sgn_jax.geometry.query_sdf_grid`); :func:`analytic_jar_query` for JarParams.
+        unroll: ``lax.scan`` unroll factor of the inner step loop (speed only).
+        jit: return the ``jax.jit``-ed function (one compilation per argument shapes/types).
+
+    Returns:
+        ``rollout(params, stats, window0, motion, sdf, t0) -> RolloutResult`` where ``window0``
+        is a :class:`sgn_jax.graph.Window` ending at time ``t0`` (its jar state is recomputed
+        from ``motion``, so the result is a function of the motion parameters alone), ``sdf``
+        what ``query`` reads (an ``SDFGrid`` or ``JarParams``), ``t0`` (s since the start of
+        motion) the time of the window's newest sample. P = S / save_every + 1 frames, the first
+        at t0. Differentiable in ``params``, ``window0`` positions, the motion and the SDF.
+    """
+    advance = make_rollout_advance(spec, predictor, n_steps, save_every,
+                                   checkpoint_steps=checkpoint_steps, snap_back=snap_back,
+                                   phi_sb=phi_sb, snap_velocity=snap_velocity, query=query,
+                                   unroll=unroll, jit=False)
+
+    def rollout(params: Any, stats: Any, window0: Window, motion: Motion, sdf: Any,
+                t0: Any) -> RolloutResult:
+        state = init_state(window0, motion, t0, spec.dt)
+        result = advance(params, stats, state, motion, sdf, t0)
+        return result.replace(
+            t_pos=jnp.concatenate([jnp.asarray(t0, F64)[None], result.t_pos]),
+            positions=jnp.concatenate([state.window.positions[-1][None], result.positions]),
+            offsets=jnp.concatenate([state.window.offsets[-1][None], result.offsets]))
+
+    return jax.jit(rollout) if jit else rollout
+
+
+# --------------------------------------------------------------------------------------------
+# Host level: a trained model and a dataset -> prediction file
+
+
+def _effective_config(trained_cfg: Any, override: Any) -> Any:
+    """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``."""
+    if override is None:
+        return trained_cfg
+    for section, fields in (("balls", ("count", "radius")), ("dem", ("dt",))):
+        for name in fields:
+            a, b = getattr(getattr(trained_cfg, section), name), getattr(getattr(override,
+                                                                                 section), name)
+            if a != b:
+                raise RolloutError(
+                    f"the override config has [{section}] {name} = {b} but the model was trained "
+                    f"with {a}; a config override may change only [jar], [motion], [sdf] and "
+                    "[rollout]")
+    return dataclasses.replace(trained_cfg, jar=override.jar, motion=override.motion,
+                               sdf=override.sdf, rollout=override.rollout)
+
+
+def initial_window(traj: Any, start_index: int, window: int, freq: float = 0.0) -> Window:
+    """The :class:`Window` of a trajectory ending at sample ``start_index`` (float64 numpy)."""
+    from sgn_jax.graph import windows_from_arrays
+
+    n_samples = int(np.shape(traj.pos)[0])
+    if not window <= start_index < n_samples:
+        raise RolloutError(
+            f"start index {start_index} is out of range: a window of {window} slots needs "
+            f"{window} earlier samples, so use {window} <= start index <= {n_samples - 1}")
+    wins = windows_from_arrays(traj.pos, traj.offset, traj.offset_vel, freq,
+                               np.array([start_index]), window)
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[0], wins)
+
+
+def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: float,
+                out_path: str | Path | None = None, cfg_override: Any = None, *,
+                save_every: int | None = None, progress: bool = True,
+                checkpoint_path: str | None = None) -> dict[str, Any]:
+    """Roll a trained SGN out from a dataset's window and save a prediction file.
+
+    Args:
+        trained_model: :class:`sgn_jax.checkpoint.TrainedModel` (model, params, stats, config).
+        init_traj: a :class:`sgn_jax.dataset.Trajectory`; the initial window ends at sample
+            ``start_index`` (W <= start_index < T), time ``t0 = traj.t[start_index]``.
+        duration: seconds of rollout; S = round(duration / dt) steps, a multiple of save_every.
+        out_path: prediction ``.npz`` (:func:`sgn_jax.prediction.save_prediction`), or None.
+        cfg_override: a config whose [jar], [motion], [sdf] and [rollout] replace the trained
+            model's (balls and dt must agree).
+        save_every: steps between saved frames (default ``[rollout] save_every``).
+        progress: tqdm bar (steps, rate, ETA).
+        checkpoint_path: recorded in the meta.
+
+    Returns:
+        a summary dict (steps, energy, counts, wall and compile time, ms per step); the arrays
+        and meta under "arrays" and "meta".
+    """
+    from tqdm.auto import tqdm
+
+    import sgn_jax
+    from sgn_jax.config import config_to_dict
+    from sgn_jax.geometry import sdf_grid_from_config
+    from sgn_jax.graph import graph_spec_from_config
+    from sgn_jax.io_utils import git_commit
+    from sgn_jax.motion import motion_from_config
+    from sgn_jax.prediction import save_prediction
+
+    cfg = _effective_config(trained_model.config, cfg_override)
+    rcfg = cfg.rollout
+    k = int(save_every or rcfg.save_every)
+    dt = float(cfg.dem.dt)
+    if not duration > 0:
+        raise RolloutError(f"duration must be > 0 s, got {duration}")
+    n_steps = int(round(duration / dt))
+    if n_steps < k or n_steps % k:
+        raise RolloutError(f"duration {duration:g} s = {n_steps} steps of dt = {dt:g} s must be a "
+                           f"positive multiple of save_every = {k} steps")
+    traj_dt = float(init_traj.meta["dt"]) if "dt" in init_traj.meta else dt
+    if not math.isclose(traj_dt, dt, rel_tol=1e-9):
+        raise RolloutError(f"the initial dataset has dt = {traj_dt:g} s but the model uses "
+                           f"dt = {dt:g} s")
+    radius = init_traj.meta.get("ball_radius", cfg.balls.radius)
+    if not math.isclose(float(radius), cfg.balls.radius, rel_tol=1e-9):
+        raise RolloutError(f"the initial dataset's balls have radius {radius} m, the model's "
+                           f"{cfg.balls.radius} m")
+    spec = graph_spec_from_config(cfg, n_particles=int(np.shape(init_traj.pos)[1]))
+    window0 = initial_window(init_traj, int(start_index), spec.window)
+    t0 = float(init_traj.t[start_index])
+    motion = motion_from_config(cfg.motion)
+    sdf = sdf_grid_from_config(cfg)
+    chunk = min(int(rcfg.chunk_steps) // k * k or k, n_steps)
+    options = dict(checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
+                   snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
+                   snap_velocity=rcfg.snap_velocity)
+    predictor = model_predictor(trained_model.model)
+    params = jax.device_put(trained_model.params)
+    stats = jax.device_put(trained_model.norm_stats)
+
+    state = jax.jit(init_state, static_argnums=3)(window0, motion, t0, spec.dt)
+    compiled: dict[int, Any] = {}
+    compile_time = 0.0
+    parts: list[RolloutResult] = []
+    t_wall = time.perf_counter()
+    run_time = 0.0
+    with tqdm(total=n_steps, desc="rollout", unit="step", disable=not progress,
+              dynamic_ncols=True) as bar:
+        done = 0
+        while done < n_steps:
+            n = min(chunk, n_steps - done)
+            if n not in compiled:
+                t_c = time.perf_counter()
+                advance = make_rollout_advance(spec, predictor, n, k, **options)
+                compiled[n] = advance.lower(params, stats, state, motion, sdf, t0).compile()
+                compile_time += time.perf_counter() - t_c
+            t_r = time.perf_counter()
+            result = jax.device_get(compiled[n](params, stats, state, motion, sdf, t0))
+            run_time += time.perf_counter() - t_r
+            state = result.final
+            if not np.all(np.isfinite(result.positions)):
+                bad = int(np.flatnonzero(~np.isfinite(result.positions).all(axis=(1, 2)))[0])
+                raise RolloutError(
+                    f"the rollout diverged: non-finite positions by t = "
+                    f"{float(result.t_pos[bad]):.6g} s (step {done + (bad + 1) * k}); check the "
+                    "model and the overflow/outside counts")
+            parts.append(result)
+            done += n
+            bar.set_postfix_str(f"{1e3 * run_time / done:.3f} ms/step, "
+                                f"E={float(state.energy):.4g} J")
+            bar.update(n)
+    wall_time = time.perf_counter() - t_wall
+
+    arrays = {name: np.concatenate([p.prediction_arrays()[name] for p in parts])
+              for name in parts[0].prediction_arrays()}
+    w0 = jax.device_get(jar_state_window(window0, motion, t0, spec.dt))
+    arrays["t_pos"] = np.concatenate([[t0], arrays["t_pos"]])
+    arrays["pos"] = np.concatenate([np.asarray(w0.positions[-1])[None], arrays["pos"]])
+    arrays["offset"] = np.concatenate([np.asarray(w0.offsets[-1])[None], arrays["offset"]])
+    summary = {
+        "steps": n_steps,
+        "duration_s": n_steps * dt,
+        "t_start": t0,
+        "energy_J": float(arrays["energy_cum"][-1]),
+        "overflow_total": int(arrays["overflow"].sum()),
+        "outside_ball_steps": int(arrays["n_outside"].sum()),
+        "snapped_ball_steps": int(arrays["n_snapped"].sum()),
+        "mean_pp_pairs": float(arrays["n_pp_edges"].mean() / 2),
+        "wall_time_s": wall_time,
+        "compile_time_s": compile_time,
+        "ms_per_step": 1e3 * run_time / n_steps,
+    }
+    meta = {
+        "dt": dt, "save_every": k, "init_index": int(start_index),
+        "config": config_to_dict(cfg),
+        "checkpoint": checkpoint_path,
+        "init_dataset": getattr(init_traj, "path", None),
+        "code_version": f"sgn_jax {sgn_jax.__version__} ({git_commit()})",
+        "created": datetime.datetime.now(datetime.UTC).isoformat(),
+        "surrogate": "SGN",
+        "snap_back": bool(rcfg.snap_back), "snap_velocity": rcfg.snap_velocity,
+        "phi_sb": float(cfg.graph.phi_sb),
+        **{key: summary[key] for key in ("wall_time_s", "compile_time_s", "ms_per_step")},
+    }
+    if out_path is not None:
+        save_prediction(out_path, arrays, meta)
+        summary["out"] = str(out_path)
+    summary["arrays"], summary["meta"] = arrays, meta
+    return summary
+
+
+__all__ = [
+    "Predictor",
+    "ReplayTable",
+    "RolloutError",
+    "RolloutResult",
+    "RolloutState",
+    "SnapBack",
+    "StepRecord",
+    "analytic_jar_query",
+    "init_state",
+    "initial_window",
+    "jar_state_window",
+    "make_rollout",
+    "make_rollout_advance",
+    "model_predictor",
+    "replay_predictor",
+    "run_rollout",
+]
