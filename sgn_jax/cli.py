@@ -147,6 +147,68 @@ def _cmd_dem(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# rollout
+
+
+def _add_rollout(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "rollout",
+        help="roll a trained SGN out from a dataset's window and write a prediction (.npz)",
+        description="Start from the window of DATASET ending at sample START_INDEX, run the "
+        "trained SGN for DURATION seconds (jitted lax.scan, [rollout] settings of the trained "
+        "config) and write the prediction file read by `sgn-jax evaluate`. --config replaces "
+        "the [jar], [motion], [sdf] and [rollout] sections (balls and dt must match). Prints "
+        "one JSON line: energy, counts, wall and compile time, ms per step.",
+    )
+    p.add_argument("--checkpoint", required=True,
+                   help="training run directory (its checkpoints/best) or checkpoint directory")
+    p.add_argument("--init", required=True, metavar="DATASET",
+                   help="trajectory (.npz, SPEC 4) that provides the initial window")
+    p.add_argument("--duration", required=True, type=float, help="seconds of rollout")
+    p.add_argument("--out", required=True, help="output prediction file (.npz)")
+    p.add_argument("--config", default=None,
+                   help="config (TOML) whose [jar], [motion], [sdf], [rollout] override the "
+                   "trained model's")
+    p.add_argument("--start-index", type=int, default=None,
+                   help="dataset sample at the rollout's start (default: the first with a full "
+                   "window, [graph] window)")
+    p.add_argument("--save-every", type=int, default=None,
+                   help="steps between saved frames (default: [rollout] save_every)")
+    p.add_argument("--which", choices=("best", "latest"), default="best",
+                   help="which checkpoint of a training run (default: best)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_rollout)
+
+
+def _cmd_rollout(args: argparse.Namespace) -> int:
+    from sgn_jax.checkpoint import CheckpointError, load_trained_model
+    from sgn_jax.config import load_config
+    from sgn_jax.dataset import load_trajectory
+    from sgn_jax.prediction import PredictionError
+    from sgn_jax.rollout import RolloutError, run_rollout
+
+    if args.save_every is not None and args.save_every < 1:
+        raise UserError(f"--save-every must be >= 1, got {args.save_every}")
+    try:
+        trained = load_trained_model(args.checkpoint, which=args.which)
+    except CheckpointError as exc:
+        raise UserError(str(exc)) from exc
+    override = load_config(args.config) if args.config else None
+    traj = load_trajectory(args.init)
+    start = trained.config.graph.window if args.start_index is None else args.start_index
+    try:
+        summary = run_rollout(trained, traj, start, args.duration, args.out, override,
+                              save_every=args.save_every, progress=not args.no_progress,
+                              checkpoint_path=str(args.checkpoint))
+    except (RolloutError, PredictionError) as exc:
+        raise UserError(str(exc)) from exc
+    summary.pop("arrays")
+    summary.pop("meta")
+    print(json.dumps(summary, sort_keys=True))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 # evaluate
 
 
