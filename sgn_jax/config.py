@@ -197,8 +197,13 @@ class DEMConfig:
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     chunk_samples: int = 1000
     pp_capacity: int = 0
+    # Verlet list of the DEM (sgn_jax.dem): pairs per ball it can hold, and its skin (m).
+    neighbour_capacity: int = 8
+    neighbour_skin: float = 0.001
 
     def __post_init__(self) -> None:
+        if self.neighbour_capacity < 1 or self.neighbour_skin < 0:
+            raise ConfigError("[dem] neighbour_capacity must be >= 1 and neighbour_skin >= 0")
         if self.dtype not in ("float64", "float32"):
             raise ConfigError(f"[dem] dtype must be 'float64' or 'float32', got {self.dtype!r}")
         if self.dt <= 0 or self.dt_dem_max <= 0:

@@ -89,7 +89,8 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
     n = cfg.balls.count
     spec = DEMSpec(n_balls=n, n_patches=len(jar.patch_names), dt_dem=cfg.dem.dt_dem,
                    dtype=cfg.dem.dtype, clip_attractive=cfg.dem.clip_attractive,
-                   pair_mode=pair_mode)
+                   pair_mode=pair_mode, neighbour_capacity=cfg.dem.neighbour_capacity,
+                   neighbour_skin=cfg.dem.neighbour_skin)
     capacity = cfg.dem.pp_capacity if cfg.dem.pp_capacity > 0 else 3 * n
     return DEMSetup(cfg=cfg, spec=spec, params=params, jar=jar, substeps=cfg.dem.substeps,
                     pp_capacity=capacity)
@@ -308,11 +309,17 @@ def run_dem(
         t0 = time.perf_counter()
         state, samples = run_chunk(state, n)
         if np.any(samples["pp_overflow"]):
+            first = int(np.argmax(samples["pp_overflow"]))
+            t_bad = (done + first + 1) * setup.dt
+            if bool(state.pairs.overflow):
+                raise DEMError(
+                    f"the DEM's Verlet list overflowed (more than {spec.n_pair_slots} pairs "
+                    f"within the {spec.neighbour_skin:g} m skin) by t = {t_bad:g} s: raise "
+                    "[dem] neighbour_capacity (pairs per ball) and rerun")
             raise DEMError(
-                f"more than {setup.pp_capacity} ball-ball contacts (or a neighbour-table "
-                f"overflow) at t = {(done + int(np.argmax(samples['pp_overflow'])) + 1) * setup.dt:g}"
-                " s; raise [dem] pp_capacity and rerun"
-            )
+                f"{int(samples['n_pp_contacts'][first])} ball-ball contacts at t = {t_bad:g} s, "
+                f"more than the {setup.pp_capacity} slots of pp_pairs: raise [dem] pp_capacity "
+                "and rerun")
         chunk_wall = time.perf_counter() - t0
         motion_wall += chunk_wall
         chunks.append(samples)
