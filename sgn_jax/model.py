@@ -119,8 +119,14 @@ class SGN(nn.Module):
         edge_mask = is_pp | is_pw
         mlp = lambda out, name: MLP(self.hidden, out, self.mlp_layers, name=name)  # noqa: E731
 
-        h = jnp.where(is_particle[:, None], mlp(self.hidden, "particle_encoder")(x),
-                      mlp(self.hidden, "wall_encoder")(x))
+        # The wall encoder runs only on the wall rows: at most one per graph, so a static-size
+        # gather of n_graph rows instead of all n_node rows; unused slots point past the end
+        # and their results are dropped by the scatter.
+        n_graph, n_rows = graph.n_node.shape[0], x.shape[0]
+        wall_rows = jnp.nonzero(graph.nodes["wall"], size=n_graph, fill_value=n_rows)[0]
+        h = mlp(self.hidden, "particle_encoder")(x)
+        h_wall = mlp(self.hidden, "wall_encoder")(jnp.take(x, wall_rows, axis=0, mode="clip"))
+        h = h.at[wall_rows].set(h_wall, mode="drop")
         e_in = jnp.concatenate([jnp.asarray(graph.edges["features"], DTYPE),
                                 is_pp[:, None].astype(DTYPE), is_pw[:, None].astype(DTYPE)], -1)
         h_edge = mlp(self.hidden, "edge_encoder")(e_in)
