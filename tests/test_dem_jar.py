@@ -50,8 +50,15 @@ def _phi(setup, samples) -> np.ndarray:
     return np.asarray(sdf(jnp.asarray(x_jar)))
 
 
+_SAMPLERS = {}
+
+
 def _run_samples(setup, params, state, n_samples, chunk=1000):
-    run = make_sampler(setup.spec, setup.jar.wall_fn, SAMPLE_STEPS, setup.pp_capacity)
+    key = (setup.spec, setup.pp_capacity)
+    if key not in _SAMPLERS:  # one jitted sampler (one compile) for all tests
+        _SAMPLERS[key] = make_sampler(setup.spec, setup.jar.wall_fn, SAMPLE_STEPS,
+                                      setup.pp_capacity)
+    run = _SAMPLERS[key]
     parts = []
     while n_samples > 0:
         n = min(chunk, n_samples)
