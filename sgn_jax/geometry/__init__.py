@@ -1,0 +1,63 @@
+"""Jar geometry: parameters, analytic SDFs and wall patches, meshes, STL loading, SDF grids.
+
+See docs/geometry.md for the definitions, sign conventions, error analysis and caching.
+"""
+
+from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
+from sgn_jax.geometry.jar import (
+    JarParams,
+    jar_mesh,
+    jar_mesh_from_config,
+    jar_params_from_config,
+    jar_patch_sdf,
+    jar_patch_sdf_and_normal,
+    jar_sdf,
+    jar_volume,
+    mesh_report,
+    patch_names,
+)
+from sgn_jax.geometry.mesh_distance import mesh_signed_distance
+from sgn_jax.geometry.sdf_grid import (
+    SDFGrid,
+    default_cache_dir,
+    grid_layout,
+    grid_node_coordinates,
+    grid_sdf,
+    jar_bounds,
+    query_sdf_grid,
+    sdf_grid_from_config,
+    sdf_grid_from_fn,
+    sdf_grid_from_jar,
+    sdf_grid_from_mesh,
+)
+from sgn_jax.geometry.stl import check_closed_mesh, load_stl
+
+__all__ = [
+    "GeometryError",
+    "JarParams",
+    "SDFGrid",
+    "check_closed_mesh",
+    "default_cache_dir",
+    "grid_layout",
+    "grid_node_coordinates",
+    "grid_sdf",
+    "jar_bounds",
+    "jar_mesh",
+    "jar_mesh_from_config",
+    "jar_params_from_config",
+    "jar_patch_sdf",
+    "jar_patch_sdf_and_normal",
+    "jar_sdf",
+    "jar_volume",
+    "load_stl",
+    "mesh_report",
+    "mesh_signed_distance",
+    "patch_names",
+    "query_sdf_grid",
+    "safe_norm",
+    "safe_normalize",
+    "sdf_grid_from_config",
+    "sdf_grid_from_fn",
+    "sdf_grid_from_jar",
+    "sdf_grid_from_mesh",
+]
