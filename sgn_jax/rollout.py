@@ -308,6 +308,35 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
 # Factories
 
 
+def _jit_canonical(fn: Callable[..., RolloutResult], state_arg: bool) -> Callable[..., RolloutResult]:
+    """``jax.jit(fn)`` behind a wrapper that casts the window (or state) leaves and ``t0`` to
+    float64 arrays first, so that a Python float and a float64 array (weakly and strongly typed
+    to jit) do not compile twice. The wrapper has the jitted function's ``lower``,
+    ``_cache_size`` and ``jitted``."""
+    jitted = jax.jit(fn)
+
+    def canonical(args: tuple) -> tuple:
+        params, stats, window_or_state, motion, sdf, t0 = args
+        if state_arg:
+            window_or_state = window_or_state.replace(window=_as_f64(window_or_state.window))
+        else:
+            window_or_state = _as_f64(window_or_state)
+        return params, stats, window_or_state, motion, sdf, jnp.asarray(t0, F64)
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any) -> RolloutResult:
+        return jitted(*canonical(args))
+
+    wrapper.lower = lambda *args: jitted.lower(*canonical(args))  # type: ignore[attr-defined]
+    wrapper._cache_size = jitted._cache_size  # type: ignore[attr-defined]
+    wrapper.jitted = jitted  # type: ignore[attr-defined]
+    return wrapper
+
+
+def _as_f64(window: Window) -> Window:
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, F64), window)
+
+
 def _check_counts(n_steps: int, save_every: int, checkpoint_steps: int | None) -> int:
     for name, value in (("n_steps", n_steps), ("save_every", save_every)):
         if not isinstance(value, (int, np.integer)) or value < 1:
@@ -379,7 +408,7 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
         return RolloutResult(t_step=t_step, steps=records, t_pos=t_pos, positions=positions,
                              offsets=offsets, final=carry)
 
-    return jax.jit(advance) if jit else advance
+    return _jit_canonical(advance, state_arg=True) if jit else advance
 
 
 def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
@@ -425,7 +454,7 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
             positions=jnp.concatenate([state.window.positions[-1][None], result.positions]),
             offsets=jnp.concatenate([state.window.offsets[-1][None], result.offsets]))
 
-    return jax.jit(rollout) if jit else rollout
+    return _jit_canonical(rollout, state_arg=False) if jit else rollout
 
 
 # --------------------------------------------------------------------------------------------
