@@ -16,7 +16,7 @@ from sgn_jax.geometry.jar import (
     mesh_report,
     patch_names,
 )
-from sgn_jax.geometry.mesh_distance import mesh_signed_distance
+from sgn_jax.geometry.mesh_distance import mesh_signed_distance, signed_distance_grid
 from sgn_jax.geometry.sdf_grid import (
     SDFGrid,
     default_cache_dir,
@@ -52,6 +52,7 @@ __all__ = [
     "load_stl",
     "mesh_report",
     "mesh_signed_distance",
+    "signed_distance_grid",
     "patch_names",
     "query_sdf_grid",
     "safe_norm",

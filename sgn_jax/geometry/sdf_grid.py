@@ -277,7 +277,10 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     in_range = (u >= 0) & (u <= last)  # clamped axes do not vary with x
     grad_inside = jnp.stack([d_dtx, d_dty, d_dtz], axis=-1) / h * in_range
 
-    to_box = x - (origin + u_clamped * h)  # zero inside the box
+    # Vector from the nearest point of the grid box; written as (u - clamp(u)) h so that it is
+    # exactly zero inside the box (x - (origin + u h) leaves rounding noise whose direction
+    # would pollute the gradient).
+    to_box = (u - u_clamped) * h
     phi = phi_inside + safe_norm(to_box)
     grad = grad_inside + safe_normalize(to_box)
     return phi, grad
