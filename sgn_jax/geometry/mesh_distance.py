@@ -41,7 +41,6 @@ _PAIR_BUDGET = 1 << 20
 # Block sizes (nodes per axis) of the grid branch-and-bound, coarse to fine; each divides the
 # previous one and the last is 1 (single nodes).
 GRID_BLOCK_SIZES = (16, 4, 2, 1)
-_PACK_WIDTH = 34
 # Candidate triangles per kernel row in the grid branch-and-bound.
 _SLAB = 16
 

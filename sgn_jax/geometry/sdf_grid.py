@@ -58,7 +58,9 @@ def grid_layout(lower: Any, upper: Any, spacing: float) -> tuple[np.ndarray, tup
     """Origin (3,) float64 and node counts of the grid that covers the box [lower, upper].
 
     Each axis gets an odd number of nodes, 2 ceil(extent / (2 spacing)) + 1, centred on the box,
-    so the grid covers the box and has a node plane through the box's centre.
+    so the grid covers the box and has a node plane through the box's centre. A box that
+    overshoots a whole number of cells by less than 1e-3 cell (rounding in mesh coordinates)
+    does not get an extra pair of nodes.
     """
     lower = np.asarray(lower, dtype=np.float64).reshape(-1)
     upper = np.asarray(upper, dtype=np.float64).reshape(-1)
