@@ -319,3 +319,20 @@ def test_sdf_grid_from_fn_validates_and_evaluates_in_chunks():
         sdf_grid_from_fn(lambda x: jnp.log(x[..., 0]), [-1.0] * 3, [1.0] * 3, 0.5)
     with pytest.raises(GeometryError, match=r"\(n,\)"):
         sdf_grid_from_fn(lambda x: x, [-1.0] * 3, [1.0] * 3, 0.5)
+
+
+@pytest.mark.slow
+def test_mesh_grid_matches_analytic_grid_at_production_spacing(tmp_path):
+    """The production setting (0.5 mm, 1.6 M nodes): same check as above, plus timing."""
+    import time
+
+    for params in (DEFAULT, POST_JAR):
+        mesh = jar_mesh(params, 256)
+        start = time.perf_counter()
+        from_mesh = sdf_grid_from_mesh(mesh, SPACING, dtype=jnp.float64, cache_dir=tmp_path)
+        elapsed = time.perf_counter() - start
+        analytic = sdf_grid_from_jar(params, SPACING, dtype=jnp.float64)
+        diff = np.abs(np.asarray(from_mesh.values) - np.asarray(analytic.values)).max()
+        print(f"0.5 mm mesh grid {from_mesh.shape}: {elapsed:.1f} s, max diff {diff * 1e6:.3f} um")
+        assert diff <= params.radius * (1 - math.cos(math.pi / 256)) + 1e-8
+        assert elapsed < 60
