@@ -89,6 +89,7 @@ def save_checkpoint(directory: str | Path, step: int, *, params: Any, norm_stats
     norm = stats_to_arrays(norm_stats)
     full_meta = dict(meta)
     full_meta.update(format_version=FORMAT_VERSION, step=int(step),
+                     velocity_encoding=norm_stats.velocity_encoding,
                      params_digest=tree_digest(params), norm_digest=tree_digest(norm),
                      has_opt_state=opt_state is not None)
     items = {"params": ocp.args.StandardSave(params), "norm": ocp.args.StandardSave(norm),
@@ -176,7 +177,7 @@ def restore_checkpoint(directory: str | Path, step: int | None = None, *,
             raise CheckpointError(f"checkpoint {directory}/{step} is corrupt: optimiser state "
                                   "digest mismatch")
     try:
-        stats = stats_from_arrays(norm)
+        stats = stats_from_arrays(norm, meta.get("velocity_encoding", "absolute"))
     except ValueError as exc:
         raise CheckpointError(f"checkpoint {directory}/{step}: {exc}") from exc
     return RestoredCheckpoint(step=int(step), params=params, norm_stats=stats, meta=meta,

@@ -273,13 +273,22 @@ class GraphConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The SGN network (paper Table 3): MLPs of ``mlp_layers`` linear layers of width ``hidden``."""
+    """The SGN network (paper Table 3): MLPs of ``mlp_layers`` linear layers of width ``hidden``.
+
+    ``velocity_encoding``: "absolute" (the paper: each slot's velocity, standardised per column)
+    or "differences" (older slots enter as ``v_k - v_{k+1}``; same information, trains much
+    faster; see docs/sgn.md and ``sgn_jax.normalization.encode_velocities``).
+    """
 
     hidden: int = 256
     mlp_layers: int = 4
     interaction_layers: int = 1
+    velocity_encoding: str = "absolute"
 
     def __post_init__(self) -> None:
+        if self.velocity_encoding not in ("absolute", "differences"):
+            raise ConfigError("[model] velocity_encoding must be 'absolute' or 'differences', "
+                              f"got {self.velocity_encoding!r}")
         if self.hidden < 1 or self.mlp_layers < 2 or self.interaction_layers < 1:
             raise ConfigError(
                 "[model] need hidden >= 1, mlp_layers >= 2 and interaction_layers >= 1, got "

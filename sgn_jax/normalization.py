@@ -10,6 +10,10 @@ rotational frequency and the out-of-plane jar axis are such columns for a single
 motion: they carry no information then, by construction. A group with no rows at all (e.g. no
 ball-ball edge in the training data) gets mean 0 and std 1.
 
+Velocity encoding: with ``velocity_encoding = "differences"`` the ball velocity columns are
+re-expressed (:func:`encode_velocities`) before the statistics are taken and before every
+normalisation; the raw graph features are unchanged.
+
 :class:`NormStats` is a ``flax.struct`` pytree of float64 arrays, saved with every checkpoint.
 """
 
@@ -22,6 +26,9 @@ import jax
 import jax.numpy as jnp
 import jraph
 import numpy as np
+
+VELOCITY_ENCODINGS = ("absolute", "differences")
+"""How the ball velocity columns enter the network (see :func:`encode_velocities`)."""
 
 CONSTANT_RTOL = 1e-6
 """A column with std <= CONSTANT_RTOL * |mean| (or std == 0) counts as constant (std := 1)."""
@@ -44,7 +51,8 @@ class NormStats:
     """All normalisation statistics of an SGN (fields are :class:`Moments`).
 
     ``particle`` and ``wall`` have 7 W columns, ``pp_edge``, ``pw_edge`` and ``accel`` 3,
-    ``dissipation`` 1.
+    ``dissipation`` 1. ``velocity_encoding`` (static) says whether the ``particle`` statistics
+    are of the raw columns ("absolute") or of the :func:`encode_velocities` ones.
     """
 
     particle: Moments
@@ -53,6 +61,30 @@ class NormStats:
     pw_edge: Moments
     accel: Moments
     dissipation: Moments
+    velocity_encoding: str = flax.struct.field(pytree_node=False, default="absolute")
+
+
+def encode_velocities(features: Any, encoding: str) -> Any:
+    """Re-express the velocity columns of ball features (..., 7W) (numpy or jax).
+
+    "absolute": unchanged (the paper). "differences": slot k < W-1 holds ``v_k - v_{k+1}``
+    (minus the acceleration of the next slot times dt), the newest slot keeps ``v_{W-1}``. The
+    same information (an invertible linear map), but the acceleration history, which lives in
+    differences of nearly equal velocities (0.01 m/s against 0.5 m/s), becomes a column of its
+    own after standardisation instead of a 1e-2 fraction of one: in our tests the acceleration
+    loss then falls about ten times faster (docs/sgn.md).
+    """
+    if encoding == "absolute":
+        return features
+    if encoding != "differences":
+        raise NormalizationError(f"velocity encoding must be one of {VELOCITY_ENCODINGS}, "
+                                 f"got {encoding!r}")
+    xp = jnp if isinstance(features, jax.Array) else np
+    shape = features.shape
+    slots = features.reshape(shape[:-1] + (shape[-1] // 7, 7))
+    v = slots[..., :3]
+    dv = xp.concatenate([v[..., :-1, :] - v[..., 1:, :], v[..., -1:, :]], axis=-2)
+    return xp.concatenate([dv, slots[..., 3:]], axis=-1).reshape(shape)
 
 
 NORM_GROUPS = ("particle", "wall", "pp_edge", "pw_edge", "accel", "dissipation")
@@ -83,17 +115,21 @@ def moments(rows: np.ndarray, n_columns: int | None = None, name: str = "feature
 
 
 def compute_norm_stats(particle: np.ndarray, wall: np.ndarray, pp_edge: np.ndarray,
-                       pw_edge: np.ndarray, accel: np.ndarray, dissipation: np.ndarray
-                       ) -> NormStats:
+                       pw_edge: np.ndarray, accel: np.ndarray, dissipation: np.ndarray,
+                       velocity_encoding: str = "absolute") -> NormStats:
     """Statistics from rows of raw training data.
 
     Args:
         particle: (M_p, 7W) ball-node features; wall: (M_w, 7W) wall-node features.
         pp_edge, pw_edge: (M, 3) features of real ball-ball / ball-wall edges.
         accel: (M_p, 3) acceleration targets (m/s^2); dissipation: (S,) dE targets (J).
+        velocity_encoding: see :func:`encode_velocities`; the ball statistics are of the
+            encoded columns.
     """
     f = np.asarray(particle).shape[-1]
+    particle = encode_velocities(np.asarray(particle), velocity_encoding)
     return NormStats(
+        velocity_encoding=velocity_encoding,
         particle=moments(particle, f, "particle"),
         wall=moments(wall, f, "wall"),
         pp_edge=moments(np.reshape(pp_edge, (-1, 3)), 3, "pp_edge"),
@@ -117,7 +153,8 @@ def normalize_graph(graph: jraph.GraphsTuple, stats: NormStats,
     nodes, edges = graph.nodes, graph.edges
     x = jnp.asarray(nodes["features"], dtype)
     part, wall = nodes["particle"][:, None], nodes["wall"][:, None]
-    x = jnp.where(part, _norm(x, stats.particle, dtype),
+    x = jnp.where(part, _norm(encode_velocities(x, stats.velocity_encoding), stats.particle,
+                              dtype),
                   jnp.where(wall, _norm(x, stats.wall, dtype), jnp.zeros_like(x)))
     e = jnp.asarray(edges["features"], dtype)
     pp, pw = edges["pp"][:, None], edges["pw"][:, None]
@@ -154,8 +191,12 @@ def stats_to_arrays(stats: NormStats) -> dict[str, dict[str, np.ndarray]]:
                 "std": np.asarray(getattr(stats, g).std, np.float64)} for g in NORM_GROUPS}
 
 
-def stats_from_arrays(data: dict[str, Any]) -> NormStats:
-    """Inverse of :func:`stats_to_arrays`; checks that every group is present and std > 0."""
+def stats_from_arrays(data: dict[str, Any], velocity_encoding: str = "absolute") -> NormStats:
+    """Inverse of :func:`stats_to_arrays` (plus the encoding, kept apart because it is not an
+    array); checks that every group is present and std > 0."""
+    if velocity_encoding not in VELOCITY_ENCODINGS:
+        raise NormalizationError(f"velocity encoding must be one of {VELOCITY_ENCODINGS}, "
+                                 f"got {velocity_encoding!r}")
     missing = [g for g in NORM_GROUPS if g not in data]
     if missing:
         raise NormalizationError(f"normalisation statistics lack group(s) {missing}")
@@ -167,4 +208,4 @@ def stats_from_arrays(data: dict[str, Any]) -> NormStats:
             raise NormalizationError(f"normalisation statistics of {g!r} are invalid "
                                      "(shape mismatch, non-finite mean or std <= 0)")
         groups[g] = Moments(mean=mean, std=std)
-    return NormStats(**groups)
+    return NormStats(**groups, velocity_encoding=velocity_encoding)

@@ -52,7 +52,7 @@ from sgn_jax.graph import (
     velocity_columns,
     windows_from_arrays,
 )
-from sgn_jax.normalization import NormStats, compute_norm_stats
+from sgn_jax.normalization import NormStats, compute_norm_stats, encode_velocities
 
 # --------------------------------------------------------------------------------------------
 # Precomputed graphs
@@ -181,10 +181,11 @@ def split_window_ends(t: np.ndarray, window: int, train_time: float, val_time: f
     return train, val
 
 
-def norm_stats_from_dataset(ds: GraphDataset) -> NormStats:
+def norm_stats_from_dataset(ds: GraphDataset, velocity_encoding: str = "absolute") -> NormStats:
     """Statistics of a (raw, training) dataset, by row type."""
     n = ds.n_particles
     return compute_norm_stats(
+        velocity_encoding=velocity_encoding,
         particle=ds.node_features[:, :n].reshape(-1, ds.node_features.shape[-1]),
         wall=ds.node_features[:, n],
         pp_edge=ds.edge_features[ds.edge_is_pp],
@@ -204,7 +205,8 @@ def normalize_dataset(ds: GraphDataset, stats: NormStats) -> GraphDataset:
     """A copy of ``ds`` with every feature and target normalised (float32)."""
     n = ds.n_particles
     nodes = np.empty(ds.node_features.shape, np.float32)
-    nodes[:, :n] = _norm32(ds.node_features[:, :n], stats.particle)
+    nodes[:, :n] = _norm32(encode_velocities(ds.node_features[:, :n], stats.velocity_encoding),
+                           stats.particle)
     nodes[:, n] = _norm32(ds.node_features[:, n], stats.wall)
     edges = np.where(ds.edge_is_pp[:, None], _norm32(ds.edge_features, stats.pp_edge),
                      _norm32(ds.edge_features, stats.pw_edge)).astype(np.float32)
@@ -612,7 +614,7 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
                     f"(saved {saved_cfg.get(section)}, now {config_to_dict(cfg).get(section)})")
         stats = restored.norm_stats
     else:
-        stats = norm_stats_from_dataset(train_raw)
+        stats = norm_stats_from_dataset(train_raw, cfg.model.velocity_encoding)
     train_ds = normalize_dataset(train_raw, stats)
     val_ds = normalize_dataset(val_raw, stats) if val_raw is not None else None
     del train_raw, val_raw
@@ -643,7 +645,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
 
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
-    write_json(out_dir / "norm_stats.json", stats_to_arrays(stats))
+    write_json(out_dir / "norm_stats.json",
+               {**stats_to_arrays(stats), "velocity_encoding": stats.velocity_encoding})
     info = {
         "n_train": len(train_ds), "n_val": len(val_ds) if val_ds is not None else 0,
         "n_params": count_params(state.params), "max_graphs_per_batch": max_graphs,

@@ -46,7 +46,7 @@ def setup():
                                np.asarray(g.nodes["features"][N:N + 1]),
                                np.asarray(g.edges["features"])[np.asarray(g.edges["pp"])],
                                np.asarray(g.edges["features"])[np.asarray(g.edges["pw"])],
-                               accel.reshape(-1, 3), de)
+                               accel.reshape(-1, 3), de, velocity_encoding="differences")
     model = make_model(cfg.model)
     params = init_params(model, g, 4)
     return cfg, graphs, stats, model, params
@@ -69,6 +69,7 @@ def test_save_restore_gives_bit_identical_predictions(setup, tmp_path):
         np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
         np.testing.assert_array_equal(np.asarray(e1), np.asarray(e2))
     assert restored.meta["epoch"] == 1 and restored.step == 1
+    assert restored.norm_stats.velocity_encoding == "differences"
 
     loaded = load_trained_model(tmp_path / "ck")
     assert loaded.config == cfg

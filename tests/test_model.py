@@ -269,6 +269,27 @@ def test_normalisation_round_trip_and_constant_columns(setup):
         stats_from_arrays(bad)
 
 
+def test_velocity_difference_encoding():
+    from sgn_jax.normalization import encode_velocities
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(5, 7 * W))
+    enc = encode_velocities(x, "differences")
+    v = x.reshape(5, W, 7)[..., :3]
+    e = enc.reshape(5, W, 7)
+    np.testing.assert_allclose(e[:, :-1, :3], v[:, :-1] - v[:, 1:])
+    np.testing.assert_array_equal(e[:, -1, :3], v[:, -1])
+    np.testing.assert_array_equal(e[..., 3:], x.reshape(5, W, 7)[..., 3:])
+    # Invertible: the velocities are the cumulative sums from the newest slot backwards.
+    back = np.cumsum(e[:, ::-1, :3], axis=1)[:, ::-1]
+    np.testing.assert_allclose(back, v, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(encode_velocities(jnp.asarray(x), "differences")), enc,
+                               atol=1e-12)
+    assert encode_velocities(x, "absolute") is x
+    with pytest.raises(ValueError, match="velocity encoding"):
+        encode_velocities(x, "relative")
+
+
 def test_nearly_constant_column_is_not_amplified():
     from sgn_jax.normalization import moments
 

@@ -89,9 +89,12 @@ def test_tight_capacity_closes_batches_early(data):
     assert len(plan) > int(np.ceil(len(ds) / 6))
 
 
-def test_batch_predictions_equal_the_single_window_path(data, grid):
+@pytest.mark.parametrize("encoding", ["absolute", "differences"])
+def test_batch_predictions_equal_the_single_window_path(data, grid, encoding):
     """Training batches (dataset path) and the rollout's build_graph + predict agree."""
-    traj, spec, raw, stats, ds = data
+    traj, spec, raw, _, _ = data
+    stats = norm_stats_from_dataset(raw, encoding)
+    ds = normalize_dataset(raw, stats)
     model = SGN(hidden=24)
     packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
     idx = np.array([3, 40, 17, 60])
