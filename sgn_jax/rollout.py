@@ -259,14 +259,55 @@ class SnapBack:
     keep_velocity: bool = True
 
 
+def check_tiers(spec: GraphSpec, tiers: Any) -> tuple[int, ...]:
+    """Validated ball-pair capacity tiers: increasing, each below ``spec.pp_pair_capacity``."""
+    tiers = tuple(int(t) for t in (tiers or ()))
+    if any(t < 1 for t in tiers) or list(tiers) != sorted(set(tiers)) \
+            or (tiers and tiers[-1] >= spec.pp_pair_capacity):
+        raise RolloutError(f"pp_capacity_tiers must be increasing pair counts in [1, "
+                           f"{spec.pp_pair_capacity}) (the graph's pp_pair_capacity), got {tiers}")
+    return tiers
+
+
+def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predictor,
+                    query: SDFQuery, params: Any, stats: Any, sdf: Any, window: Window,
+                    step: jax.Array):
+    """Build the graph with the smallest capacity tier that holds all ball pairs and predict.
+
+    Padding edges are masked in the network, so every tier gives the same prediction (up to
+    float rounding); a smaller tier only costs fewer edge-MLP rows. The smallest tier's graph
+    is built first (its counts are exact whatever the capacity); ``lax.switch`` runs one branch
+    (under ``vmap`` all branches run: use no tiers there).
+    """
+    specs = [dataclasses.replace(spec, pp_pair_capacity=t) for t in tiers] + [spec]
+    graph0, counts0 = build_graph(window, sdf, specs[0], query)
+    n_pairs = counts0.n_pp // 2
+    dropped = 2 * jnp.maximum(n_pairs - spec.pp_pair_capacity, 0)
+    counts = counts0._replace(pp_dropped=dropped.astype(counts0.pp_dropped.dtype))
+    if not tiers:
+        return predictor(params, stats, graph0, step), counts
+    index = jnp.sum(n_pairs > jnp.asarray(tiers), dtype=I32)
+
+    def branch(k: int):
+        def run(_: Any):
+            graph = graph0 if k == 0 else build_graph(window, sdf, specs[k], query)[0]
+            accel, de = predictor(params, stats, graph, step)
+            n = spec.n_particles
+            return jnp.asarray(accel)[:n].astype(F64), jnp.asarray(de).astype(F64).reshape(())
+        return run
+
+    return jax.lax.switch(index, [branch(k) for k in range(len(specs))], None), counts
+
+
 def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: SnapBack,
-               params: Any, stats: Any, motion: Motion, sdf: Any, t0: jax.Array):
+               params: Any, stats: Any, motion: Motion, sdf: Any, t0: jax.Array,
+               tiers: tuple[int, ...] = ()):
     n, dt = spec.n_particles, spec.dt
 
     def step_fn(state: RolloutState, _: Any) -> tuple[RolloutState, StepRecord]:
         window = state.window
-        graph, counts = build_graph(window, sdf, spec, query)
-        accel, de = predictor(params, stats, graph, state.step)
+        (accel, de), counts = _predict_tiered(spec, tiers, predictor, query, params, stats, sdf,
+                                              window, state.step)
         accel = jnp.asarray(accel)[:n].astype(F64)
         de = jnp.asarray(de).astype(F64).reshape(())
 
@@ -358,7 +399,8 @@ def _as_predictor(predictor: Any) -> Predictor:
 def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
                          checkpoint_steps: int | None = None, snap_back: bool = True,
                          phi_sb: float = -0.0049, snap_velocity: str = "keep",
-                         query: SDFQuery | None = None, unroll: int = 1, jit: bool = True
+                         query: SDFQuery | None = None, unroll: int = 1,
+                         pp_capacity_tiers: Any = (), jit: bool = True
                          ) -> Callable[..., RolloutResult]:
     """``advance(params, stats, state, motion, sdf, t0) -> RolloutResult`` of ``n_steps`` steps.
 
@@ -373,6 +415,7 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
     predictor = _as_predictor(predictor)
     query = _default_query() if query is None else query
     snap = SnapBack(bool(snap_back), float(phi_sb), snap_velocity == "keep")
+    tiers = check_tiers(spec, pp_capacity_tiers)
     n_frames = n_steps // save_every
     frames_per_chunk = min(checkpoint_steps // save_every, n_frames)
     n_chunks, rest = divmod(n_frames, frames_per_chunk)
@@ -380,7 +423,8 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
     def advance(params: Any, stats: Any, state: RolloutState, motion: Motion, sdf: Any,
                 t0: Any) -> RolloutResult:
         t0 = jnp.asarray(t0, F64)
-        step_fn = _make_step(spec, predictor, query, snap, params, stats, motion, sdf, t0)
+        step_fn = _make_step(spec, predictor, query, snap, params, stats, motion, sdf, t0,
+                             tiers)
 
         def frame(carry: RolloutState, _: Any):
             carry, records = jax.lax.scan(step_fn, carry, None, length=save_every, unroll=unroll)
@@ -414,7 +458,8 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
 def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
                  checkpoint_steps: int | None = None, snap_back: bool = True,
                  phi_sb: float = -0.0049, snap_velocity: str = "keep",
-                 query: SDFQuery | None = None, unroll: int = 1, jit: bool = True
+                 query: SDFQuery | None = None, unroll: int = 1,
+                 pp_capacity_tiers: Any = (), jit: bool = True
                  ) -> Callable[..., RolloutResult]:
     """A rollout of ``n_steps`` surrogate steps as one pure (by default jitted) function.
 
@@ -430,6 +475,10 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
         query: ``query(sdf, points, offset) -> (phi, normal)``; default the SDF grid
             (:func:`sgn_jax.geometry.query_sdf_grid`); :func:`analytic_jar_query` for JarParams.
         unroll: ``lax.scan`` unroll factor of the inner step loop (speed only).
+        pp_capacity_tiers: smaller ball-pair capacities (increasing, below
+            ``spec.pp_pair_capacity``); each step runs the network on the smallest tier that
+            holds its pairs (``lax.switch``), the same prediction on fewer padded edge rows.
+            Speed only, for single rollouts: under ``vmap`` every tier runs.
         jit: return the ``jax.jit``-ed function (one compilation per argument shapes/types).
 
     Returns:
@@ -443,7 +492,8 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
     advance = make_rollout_advance(spec, predictor, n_steps, save_every,
                                    checkpoint_steps=checkpoint_steps, snap_back=snap_back,
                                    phi_sb=phi_sb, snap_velocity=snap_velocity, query=query,
-                                   unroll=unroll, jit=False)
+                                   unroll=unroll, pp_capacity_tiers=pp_capacity_tiers,
+                                   jit=False)
 
     def rollout(params: Any, stats: Any, window0: Window, motion: Motion, sdf: Any,
                 t0: Any) -> RolloutResult:
@@ -498,6 +548,9 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
                 checkpoint_path: str | None = None) -> dict[str, Any]:
     """Roll a trained SGN out from a dataset's window and save a prediction file.
 
+    Runs in jitted chunks of ``[rollout] chunk_steps`` with a progress bar, with ball-pair
+    capacity tiers of 1/4 and 1/2 of the graph's capacity (:func:`make_rollout`; speed only).
+
     Args:
         trained_model: :class:`sgn_jax.checkpoint.TrainedModel` (model, params, stats, config).
         init_traj: a :class:`sgn_jax.dataset.Trajectory`; the initial window ends at sample
@@ -548,9 +601,11 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     motion = motion_from_config(cfg.motion)
     sdf = sdf_grid_from_config(cfg)
     chunk = min(int(rcfg.chunk_steps) // k * k or k, n_steps)
+    cap = spec.pp_pair_capacity
     options = dict(checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
                    snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
-                   snap_velocity=rcfg.snap_velocity)
+                   snap_velocity=rcfg.snap_velocity,
+                   pp_capacity_tiers=tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap))
     predictor = model_predictor(trained_model.model)
     params = jax.device_put(trained_model.params)
     stats = jax.device_put(trained_model.norm_stats)

@@ -105,7 +105,7 @@ def test_snap_back_would_move_dem_balls(dem):
     res = jax.device_get(rollout(table, None, window0, motion, grid, traj.t[START]))
 
     new = np.arange(START + 1, START + n_steps + 1)  # sample reached by each step
-    phi = np.asarray(jax.vmap(lambda x, o: query_sdf_grid(grid, x, o)[0])(
+    phi = np.asarray(jax.jit(jax.vmap(lambda x, o: query_sdf_grid(grid, x, o)[0]))(
         traj.pos[new], traj.offset[new]))
     expected = (phi >= -0.0049).sum(axis=1)
     first = int(np.flatnonzero(expected)[0])  # the DEM's contacts do reach phi_sb here
@@ -120,17 +120,23 @@ def test_snap_back_would_move_dem_balls(dem):
 # Snap-back on a planar wall (analytic jar: the floor's phi = -y exactly)
 
 
+def _circle_offset(rpm, amplitude, t):
+    """SPEC 2 circle in numpy: (A sin 2 pi f t, 0, A cos 2 pi f t), f = rpm / 60."""
+    angle = 2 * np.pi * rpm / 60 * t
+    return np.array([amplitude * np.sin(angle), 0.0, amplitude * np.cos(angle)])
+
+
 def _floor_case(snap_velocity, n_steps):
     spec = GraphSpec(n_particles=2, window=3, ball_radius=0.005, dt=1e-4, pp_pair_capacity=1)
     jar = JarParams()
     motion = CircleMotion(rpm=300.0, amplitude=0.017)
     t0 = 0.01
     velocities = np.array([[0.0, -0.2, 0.0], [0.05, 0.0, 0.0]])  # ball 0 falls onto the floor
-    last = np.array([[0.0, 0.00491, 0.0], [0.0, 0.02, 0.0]]) + np.asarray(offset(motion, t0))
+    last = np.array([[0.0, 0.00491, 0.0], [0.0, 0.02, 0.0]]) + _circle_offset(300.0, 0.017, t0)
     positions = last + velocities * spec.dt * np.arange(-spec.window, 1)[:, None, None]
     window0 = Window(positions=positions, offsets=np.zeros((3, 3)),
                      offset_velocities=np.zeros((3, 3)), frequency_hz=np.float64(0.0))
-    table = ReplayTable(accel=jnp.zeros((n_steps, 2, 3)), dE=jnp.zeros(n_steps))
+    table = ReplayTable(accel=np.zeros((n_steps, 2, 3)), dE=np.zeros(n_steps))
     rollout = make_rollout(spec, replay_predictor(), n_steps, 1, phi_sb=-0.0049,
                            snap_velocity=snap_velocity, query=analytic_jar_query)
     res = jax.device_get(rollout(table, None, window0, motion, jar, t0))
@@ -190,6 +196,18 @@ def _random_biases(params, seed, scale=0.3):
         if "bias" in jax.tree_util.keystr(p) else a, params)
 
 
+def _init(model, stats, window0, motion, sdf, t0, spec, query=None, bias_seed=None):
+    """Parameters of ``model`` from the graph of ``window0`` (jitted: eager ops compile one by
+    one), with random biases if ``bias_seed`` is given."""
+
+    def init(window):
+        graph, _ = build_graph(jar_state_window(window, motion, t0, spec.dt), sdf, spec, query)
+        params = init_params(model, normalize_graph(graph, stats), 0)
+        return params if bias_seed is None else _random_biases(params, bias_seed)
+
+    return jax.device_get(jax.jit(init)(window0))
+
+
 def test_gradients_match_finite_differences():
     """d E(100 steps) / d (rpm, amplitude, straight_length) by jax.grad through the rollout vs
     central finite differences (least-squares slope through E at x0 + j h, j = -5..5).
@@ -211,14 +229,12 @@ def test_gradients_match_finite_differences():
     rng = np.random.default_rng(1)
     v0 = rng.normal(0.0, 0.01, (n, 3))
     v0[:2, 1] = 0.0
-    pos = centres + np.asarray(offset(base, t0)) + v0 * 1e-4 * np.arange(-window, 1)[:, None, None]
+    pos = centres + _circle_offset(300.0, 0.017, t0) + v0 * 1e-4 * np.arange(-window, 1)[:, None, None]
     window0 = Window(positions=pos, offsets=np.zeros((window, 3)),
                      offset_velocities=np.zeros((window, 3)), frequency_hz=np.float64(0.0))
     stats = _stats(window)
     model = SGN(hidden=32)
-    graph, _ = build_graph(jar_state_window(window0, base, t0, spec.dt), jar, spec,
-                           analytic_jar_query)
-    params = _random_biases(init_params(model, normalize_graph(graph, stats), 0), 3)
+    params = _init(model, stats, window0, base, jar, t0, spec, analytic_jar_query, bias_seed=3)
     rollout = make_rollout(spec, model, 100, 10, query=analytic_jar_query, jit=False)
 
     def energy(rpm, amplitude, length):
@@ -229,7 +245,7 @@ def test_gradients_match_finite_differences():
     # One compilation serves the gradient and every evaluation.
     value_and_grad = jax.jit(jax.value_and_grad(energy, argnums=(0, 1, 2), has_aux=True))
     x0 = (300.0, 0.017, 0.035)
-    (_, (pp0, pw0)), grads = value_and_grad(*x0)
+    (_, (pp0, pw0)), grads = jax.device_get(value_and_grad(*x0))
     assert np.all(pp0 == 4) and np.all(pw0 == 4)  # two pairs, two balls on the floor, all along
     offsets = np.arange(-5, 6)
     for i, name in enumerate(("rpm", "amplitude", "straight_length")):
@@ -238,7 +254,7 @@ def test_gradients_match_finite_differences():
         for j in offsets:
             x = list(x0)
             x[i] += j * h
-            (e, (pp, pw)), _ = value_and_grad(*x)
+            (e, (pp, pw)), _ = jax.device_get(value_and_grad(*x))
             assert np.all(pp == 4) and np.all(pw == 4), (name, j)  # the energy is smooth here
             values.append(float(e))
         fd = np.polyfit(offsets * h, values, 1)[0]
@@ -253,8 +269,7 @@ def tiny(dem):
     stats = _stats(spec.window)
     model = SGN(hidden=16)
     window0 = initial_window(traj, 100, spec.window)
-    graph, _ = build_graph(jar_state_window(window0, motion, traj.t[100], spec.dt), grid, spec)
-    params = init_params(model, normalize_graph(graph, stats), 0)
+    params = _init(model, stats, window0, motion, grid, traj.t[100], spec)
     traces = []
     inner = model_predictor(model)
 
@@ -279,10 +294,11 @@ def test_vmap_over_motions_matches_separate_calls(tiny):
     t0 = float(t["traj"].t[100])
     motions = _motions(8)
     args = (t["params"], t["stats"], t["window0"])
-    batched = jax.jit(jax.vmap(t["rollout"], in_axes=(None, None, None, 0, None, None)))(
-        *args, stack_motions(motions), t["grid"], t0)
+    batched = jax.device_get(jax.jit(jax.vmap(t["rollout"], in_axes=(None, None, None, 0, None,
+                                                                     None)))(
+        *args, stack_motions(motions), t["grid"], t0))
     for i, motion in enumerate(motions):
-        single = t["rollout"](*args, motion, t["grid"], t0)
+        single = jax.device_get(t["rollout"](*args, motion, t["grid"], t0))
         # Batched float32 matmuls may round differently; over 40 steps that stays ~1e-7 m.
         np.testing.assert_allclose(batched.positions[i], single.positions, rtol=0, atol=1e-9)
         np.testing.assert_allclose(batched.steps.energy_cum[i], single.steps.energy_cum,
@@ -291,7 +307,7 @@ def test_vmap_over_motions_matches_separate_calls(tiny):
         np.testing.assert_array_equal(batched.steps.n_pw_edges[i], single.steps.n_pw_edges)
         np.testing.assert_allclose(batched.offsets[i], single.offsets, rtol=0, atol=1e-15)
     # The motions differ, so the batch is not one result repeated.
-    assert np.ptp(np.asarray(batched.steps.energy_cum[:, -1])) > 0
+    assert np.ptp(batched.steps.energy_cum[:, -1]) > 0
 
 
 def test_no_recompilation_between_calls_with_the_same_shapes(tiny):
@@ -300,12 +316,48 @@ def test_no_recompilation_between_calls_with_the_same_shapes(tiny):
     before = len(t["traces"])
     for i, motion in enumerate(_motions(3)):
         start = 100 + 37 * i
-        params = jax.tree_util.tree_map(lambda a, i=i: a * (1.0 + 0.01 * i), t["params"])
+        params = jax.tree_util.tree_map(lambda a, i=i: a * np.float32(1.0 + 0.01 * i),
+                                        t["params"])
         res = rollout(params, t["stats"], initial_window(traj, start, t["spec"].window), motion,
                       t["grid"], float(traj.t[start]))
         assert np.isfinite(np.asarray(res.positions)).all()
     assert rollout._cache_size() == 1
     assert len(t["traces"]) - before <= 1  # traced at most once (zero if an earlier test did)
+
+
+def test_capacity_tiers_give_the_same_rollout(tiny):
+    t = tiny
+    spec = t["spec"]
+    args = (t["params"], t["stats"], t["window0"], t["motion"], t["grid"], float(t["traj"].t[100]))
+    plain = jax.device_get(t["rollout"](*args))
+    tiers = (20, 22)  # this window holds 19 to 23 pairs: every branch runs
+    tiered = jax.device_get(make_rollout(spec, t["model"], 40, 10, pp_capacity_tiers=tiers)(*args))
+    pairs = plain.steps.n_pp_edges // 2
+    branch = np.searchsorted(np.array(tiers), pairs)  # 0, 1 or 2 (the full capacity)
+    assert set(branch.tolist()) == {0, 1, 2}
+    np.testing.assert_allclose(tiered.positions, plain.positions, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tiered.steps.energy_cum, plain.steps.energy_cum, rtol=1e-12)
+    np.testing.assert_array_equal(tiered.steps.n_pp_edges, plain.steps.n_pp_edges)
+    with pytest.raises(RolloutError, match="pp_capacity_tiers"):
+        make_rollout(spec, t["model"], 40, 10, pp_capacity_tiers=(8, 4))
+
+
+def test_overflow_is_counted_not_hidden(dem):
+    """A capacity below the number of ball pairs: the dropped directed edges are reported each
+    step (the replay's positions do not depend on the graph)."""
+    import dataclasses
+
+    traj, spec, grid, motion = dem
+    small = dataclasses.replace(spec, pp_pair_capacity=4)
+    table, ends, _ = _replay_table(traj, small, 200)
+    for tiers in ((), (2,)):
+        res = jax.device_get(make_rollout(small, replay_predictor(), 200, 10, snap_back=False,
+                                          pp_capacity_tiers=tiers)(
+            table, None, initial_window(traj, START, spec.window), motion, grid, traj.t[START]))
+        pairs = pairs_within(traj.pos[ends], spec.pp_cutoff)
+        assert pairs.max() > 4
+        np.testing.assert_array_equal(res.steps.overflow, 2 * np.maximum(pairs - 4, 0))
+        np.testing.assert_array_equal(res.steps.n_pp_edges, 2 * pairs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -370,7 +422,7 @@ def test_cli_rollout(dem, checkpoint, tmp_path, capsys):
     assert line["steps"] == 20 and line["out"] == str(out)
     pred = load_prediction(out)
     assert pred.n_frames == 5 and pred.config.motion.kind == "harmonic"
-    np.testing.assert_allclose(pred.offset, np.asarray(offset(motion2(), pred.t_pos)),
+    np.testing.assert_allclose(pred.offset, np.asarray(jax.jit(offset)(motion2(), pred.t_pos)),
                                rtol=0, atol=1e-12)
 
     code = main(["rollout", "--checkpoint", str(run_dir), "--init", traj.path, "--duration",
