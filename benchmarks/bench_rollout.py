@@ -149,6 +149,45 @@ def model_gflop_per_step(s: dict, window0, t0: float) -> float:
     return float(analysis.get("flops", float("nan"))) / 1e9
 
 
+def bench_in_loop(hidden: int, steps: int, repeats: int, traj, start: int, cfg,
+                  tiers: tuple[int, ...]) -> dict:
+    """ms per step on realistic states: the network runs every step on the graph of the current
+    window (so its cost is paid), but the balls follow the DEM (its accelerations are used, the
+    network's output is added times 1e-30), so the contact counts are the DEM's. With
+    ``tiers`` the network runs on the smallest ball-pair capacity that holds the pairs."""
+    import jax
+    import jax.numpy as jnp
+
+    from sgn_jax.graph import dissipation_per_interval, targets_from_arrays
+    from sgn_jax.rollout import ReplayTable, initial_window, make_rollout, model_predictor
+
+    window0, t0 = initial_window(traj, start, cfg.graph.window), float(traj.t[start])
+    s = _setup(hidden, window0, t0, cfg)
+    accel, de = targets_from_arrays(traj.pos, dissipation_per_interval(traj),
+                                    start + np.arange(steps), s["spec"].dt)
+    table = ReplayTable(accel=jnp.asarray(accel), dE=jnp.asarray(de))
+    network = model_predictor(s["model"])
+
+    def predictor(params, stats, graph, step):
+        a, d = network(params[0], stats, graph, step)
+        n = s["spec"].n_particles
+        return (params[1].accel[step] + 1e-30 * a[:n].astype(jnp.float64),
+                params[1].dE[step] + 1e-30 * d.astype(jnp.float64))
+
+    rollout = make_rollout(s["spec"], predictor, steps, 10, snap_back=False,
+                           pp_capacity_tiers=tiers)
+    args = ((s["params"], table), s["stats"], window0, s["motion"], s["sdf"], t0)
+    first = _time(lambda: rollout(*args), 1)[0]
+    times = _time(lambda: rollout(*args), repeats)
+    res = jax.device_get(rollout(*args))
+    pairs = res.steps.n_pp_edges / 2
+    return {"kind": "in_loop", "hidden": hidden, "steps": steps, "tiers": list(tiers),
+            "compile_s": first - min(times), "ms_per_step": 1e3 * min(times) / steps,
+            "mean_pairs": float(pairs.mean()), "max_pairs": int(pairs.max()),
+            "mean_pw_edges": float(res.steps.n_pw_edges.mean()),
+            "pair_capacity": s["spec"].pp_pair_capacity}
+
+
 def bench_batch(hidden: int, batch: int, steps: int, repeats: int, window0, t0: float,
                 cfg) -> dict:
     import jax
@@ -275,6 +314,20 @@ def markdown(report: dict) -> str:
         lines.append(f"| hidden {r['hidden']} | {r['batch']} (vmap) | {r['steps']} | "
                      f"{r['compile_s']:.1f} | {r['ms_per_batch_step']:.3f} | "
                      f"{r['ms_per_rollout_step']:.3f} |")
+    if report.get("in_loop"):
+        lines.append("")
+        lines.append("Realistic states (the network runs every step, the balls follow the DEM "
+                     "replay, so the edge counts are the DEM's; mean "
+                     f"{report['in_loop'][0]['mean_pairs']:.1f} ball pairs within the skin, max "
+                     f"{report['in_loop'][0]['max_pairs']}, capacity "
+                     f"{report['in_loop'][0]['pair_capacity']}; "
+                     f"{report['in_loop'][0]['mean_pw_edges']:.1f} directed ball-wall edges):\n")
+        lines.append("| model | pair-capacity tiers | compile (s) | ms per step |")
+        lines.append("|---|---|---|---|")
+        for r in report["in_loop"]:
+            tiers = ", ".join(map(str, r["tiers"])) or "none (full capacity)"
+            lines.append(f"| hidden {r['hidden']} | {tiers} | {r['compile_s']:.1f} | "
+                         f"{r['ms_per_step']:.3f} |")
     dem = report.get("dem")
     if dem:
         lines.append("")
@@ -288,6 +341,11 @@ def markdown(report: dict) -> str:
         for r in report["single"]:
             sgn = r["ms_per_step"] * 1e-3 * 1e4
             lines.append(f"| hidden {r['hidden']}, 1 rollout | {sgn:.2f} | {per_second / sgn:.1f}x |")
+        for r in report.get("in_loop", []):
+            if r["tiers"]:
+                sgn = r["ms_per_step"] * 1e-3 * 1e4
+                lines.append(f"| hidden {r['hidden']}, 1 rollout, pair tiers {r['tiers']} "
+                             f"(realistic states) | {sgn:.2f} | {per_second / sgn:.1f}x |")
         for r in report["batch"]:
             sgn = r["ms_per_rollout_step"] * 1e-3 * 1e4
             lines.append(f"| hidden {r['hidden']}, per rollout in a vmapped batch of {r['batch']} "
@@ -333,9 +391,16 @@ def main() -> None:
         start = len(traj.t) // 2
         window0, t0 = initial_window(traj, start, spec.window), float(traj.t[start])
         print(json.dumps(report["dem"]), file=sys.stderr)
+    report["in_loop"] = []
     for hidden in args.hidden:
         report["single"].append(bench_single(hidden, args.steps, args.repeats, window0, t0, cfg))
         print(json.dumps(report["single"][-1]), file=sys.stderr)
+        if not args.skip_dem:
+            cap = spec.pp_pair_capacity
+            for tiers in ((), (cap // 4, cap // 2)):
+                report["in_loop"].append(bench_in_loop(hidden, args.steps, args.repeats, traj,
+                                                       start, cfg, tiers))
+                print(json.dumps(report["in_loop"][-1]), file=sys.stderr)
         for batch in args.batch:
             report["batch"].append(bench_batch(hidden, batch, args.batch_steps,
                                                max(1, args.repeats - 1), window0, t0, cfg))
