@@ -3,6 +3,13 @@
 The surrogate reads phi and grad(phi) of the jar from an :class:`SDFGrid` (one combined SDF, as
 the paper's model sees it); the DEM uses the analytic wall patches instead (SPEC section 3).
 
+A grid holds either one SDF, values (nx, ny, nz) (an STL jar), or one SDF per wall patch,
+values (P, nx, ny, nz) (the parametric jar, the default of :func:`sdf_grid_from_jar`). The
+cavity is the intersection of the patches' half-spaces, so inside it phi = max_p phi_p exactly;
+each phi_p is smooth there while phi has kinks wherever two walls are equally near (the
+45-degree medial surfaces of the floor/lid-side edges). Interpolating each patch and taking the
+max reproduces those kinks exactly, instead of smearing them over a cell (O(h) errors).
+
 Grid layout: ``values[i, j, k]`` is phi at ``origin + spacing * (i, j, k)`` in the jar frame.
 The node counts are odd and the grid is centred on the sampled box, so for a jar that is
 symmetric about x = 0 and z = 0 (and for the default dimensions at 0.5 mm, also the floor, the
@@ -24,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
-from sgn_jax.geometry.jar import JarParams, jar_params_from_config, jar_sdf
+from sgn_jax.geometry.jar import JarParams, jar_params_from_config, jar_patch_sdf, jar_sdf
 
 # Bump when the way a mesh grid is computed changes, so that old cache files are not reused.
 MESH_GRID_CACHE_VERSION = 1
@@ -35,8 +42,10 @@ _EVAL_CHUNK = 1 << 18  # points per jitted evaluation of an analytic SDF
 class SDFGrid:
     """phi sampled on a regular grid (jar frame, SPEC sign: negative inside the cavity).
 
-    values: (nx, ny, nz) phi at the nodes (m).
-    origin: (3,) jar-frame position of ``values[0, 0, 0]`` (m).
+    values: (nx, ny, nz) phi at the nodes (m), one combined SDF; or (P, nx, ny, nz), one SDF per
+        wall patch, phi = max over the P interpolated patches (see :func:`query_sdf_grid`).
+        Which of the two is decided by ``values.ndim`` (static under jit).
+    origin: (3,) jar-frame position of node (i, j, k) = (0, 0, 0) (m).
     spacing: node spacing (m), the same on all axes (static).
     """
 
@@ -46,12 +55,18 @@ class SDFGrid:
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        return tuple(self.values.shape)
+        """(nx, ny, nz): the node counts (without the patch axis of a patch-stacked grid)."""
+        return tuple(self.values.shape[-3:])
+
+    @property
+    def n_patches(self) -> int:
+        """P for values (P, nx, ny, nz); 1 for a plain (nx, ny, nz) grid."""
+        return int(self.values.shape[0]) if self.values.ndim == 4 else 1
 
     @property
     def upper(self) -> jax.Array:
-        """(3,) jar-frame position of the last node ``values[-1, -1, -1]`` (m)."""
-        return self.origin + self.spacing * (jnp.asarray(self.values.shape, self.origin.dtype) - 1)
+        """(3,) jar-frame position of the last node (nx - 1, ny - 1, nz - 1) (m)."""
+        return self.origin + self.spacing * (jnp.asarray(self.shape, self.origin.dtype) - 1)
 
 
 def grid_layout(lower: Any, upper: Any, spacing: float) -> tuple[np.ndarray, tuple[int, int, int]]:
@@ -99,30 +114,49 @@ def sdf_grid_from_fn(
     upper: Any,
     spacing: float,
     dtype: Any = jnp.float32,
+    *,
+    per_patch: bool = False,
 ) -> SDFGrid:
     """Sample a jax SDF ``fn`` ((..., 3) jar-frame points -> (...,) phi) on the grid of
     :func:`grid_layout` (lower, upper, spacing). ``fn`` is evaluated in float64 in jitted chunks;
-    values are stored in ``dtype``."""
+    values are stored in ``dtype``.
+
+    With ``per_patch=True``, ``fn`` maps (..., 3) points to (..., P) per-patch SDFs (such as
+    :func:`sgn_jax.geometry.jar_patch_sdf`) and the grid is patch-stacked, values (P, nx, ny, nz);
+    queries return the max over the patches.
+    """
     origin, shape = grid_layout(lower, upper, spacing)
     nodes = _node_coordinates(origin, shape, spacing)
     jitted = jax.jit(fn)
     chunk = min(_EVAL_CHUNK, len(nodes))
-    values = np.empty(len(nodes))
+    values: np.ndarray | None = None
     for start in range(0, len(nodes), chunk):
         block = nodes[start : start + chunk]
         n_valid = len(block)
         if n_valid < chunk:  # keep one static shape, one compilation
             block = np.concatenate([block, np.repeat(block[-1:], chunk - n_valid, 0)])
         out = np.asarray(jitted(jnp.asarray(block, dtype=jnp.float64)), dtype=np.float64)
-        if out.shape != (chunk,):
+        if per_patch and (out.ndim != 2 or out.shape[0] != chunk or out.shape[1] < 1):
             raise GeometryError(
-                f"the SDF function must map (n, 3) points to (n,) values, got shape {out.shape}"
+                "with per_patch=True the SDF function must map (n, 3) points to (n, P) per-patch "
+                f"values, got shape {out.shape}"
             )
+        if not per_patch and out.shape != (chunk,):
+            raise GeometryError(
+                f"the SDF function must map (n, 3) points to (n,) values, got shape {out.shape} "
+                "(per-patch SDFs of shape (n, P) need per_patch=True)"
+            )
+        if values is None:
+            values = np.empty((len(nodes),) + out.shape[1:])
         values[start : start + n_valid] = out[:n_valid]
     if not np.all(np.isfinite(values)):
         raise GeometryError("the SDF function returned non-finite values on the grid")
+    if per_patch:  # (n_nodes, P) -> (P, nx, ny, nz)
+        values = np.moveaxis(values, -1, 0).reshape((values.shape[-1],) + shape)
+    else:
+        values = values.reshape(shape)
     return SDFGrid(
-        values=jnp.asarray(values.reshape(shape), dtype=dtype),
+        values=jnp.asarray(values, dtype=dtype),
         origin=jnp.asarray(origin, dtype=dtype),
         spacing=float(spacing),
     )
@@ -135,11 +169,32 @@ def jar_bounds(params: JarParams) -> tuple[np.ndarray, np.ndarray]:
 
 
 def sdf_grid_from_jar(
-    params: JarParams, spacing: float = 5e-4, margin: float = 3e-3, dtype: Any = jnp.float32
+    params: JarParams,
+    spacing: float = 5e-4,
+    margin: float = 3e-3,
+    dtype: Any = jnp.float32,
+    per_patch: bool = True,
 ) -> SDFGrid:
-    """Grid of the analytic :func:`jar_sdf` over the cavity's bounding box grown by ``margin``."""
+    """Grid of the parametric jar over the cavity's bounding box grown by ``margin``.
+
+    ``per_patch=True`` (default): one grid per wall patch (:func:`jar_patch_sdf`, values
+    (P, nx, ny, nz), P = len(patch_names(params))), queried as the max over the patches. Inside
+    the cavity this equals the exact :func:`jar_sdf` up to each patch's own (smooth) interpolation
+    error: planes exactly, cylinders h^2 / (8 rho), including the corners where two walls are
+    equally near. Outside the cavity the max over the patch half-spaces is not the Euclidean
+    distance near convex corners and edges (it is smaller: max(a, b) instead of |(a, b)|), but
+    it has the right sign, so an escaped ball still reads phi > 0.
+
+    ``per_patch=False``: a single grid of the combined :func:`jar_sdf` (exact Euclidean distance
+    at the nodes everywhere, but O(h) interpolation errors where two walls are equally near).
+    """
     lower, upper = jar_bounds(params)
     params64 = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params)
+    if per_patch:
+        return sdf_grid_from_fn(
+            lambda x: jar_patch_sdf(params64, x), lower - margin, upper + margin, spacing, dtype,
+            per_patch=True,
+        )
     return sdf_grid_from_fn(
         lambda x: jar_sdf(params64, x), lower - margin, upper + margin, spacing, dtype
     )
@@ -214,12 +269,13 @@ def sdf_grid_from_mesh(
     )
 
 
-def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32) -> SDFGrid:
-    """The SDF grid of a whole config: ``[jar]`` kind "emax" -> analytic :func:`jar_sdf`,
-    kind "stl" -> the mesh of ``stl_path``; spacing and margin from ``[sdf]``."""
+def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32, per_patch: bool = True) -> SDFGrid:
+    """The SDF grid of a whole config: ``[jar]`` kind "emax" -> :func:`sdf_grid_from_jar`
+    (patch-stacked unless ``per_patch=False``), kind "stl" -> the mesh of ``stl_path`` (a single
+    patch); spacing and margin from ``[sdf]``."""
     if cfg.jar.kind == "emax":
         return sdf_grid_from_jar(
-            jar_params_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype
+            jar_params_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype, per_patch
         )
     from sgn_jax.geometry.jar import jar_mesh_from_config
 
@@ -233,17 +289,24 @@ def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32) -> SDFGrid:
 def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """phi (...,) and its gradient (..., 3) at jar-frame points x (..., 3).
 
-    Trilinear inside the grid box. Outside, the point is clamped to the box and the distance to
-    the box is added, so phi keeps growing (an escaped ball has phi > 0) and is never NaN.
+    Trilinear inside the grid box. For a patch-stacked grid (values (P, nx, ny, nz)) every patch
+    is interpolated with the same weights and phi is the max over the patches; the gradient is
+    that of the maximising patch's interpolant (the gradient of the max wherever the max is
+    unique; ties are a measure-zero set where any choice is a valid subgradient). Outside the
+    grid box, the point is clamped to the box and the distance to the box is added, so phi keeps
+    growing (an escaped ball has phi > 0) and is never NaN.
     """
     values = grid.values
+    if values.ndim not in (3, 4):
+        raise GeometryError(
+            f"SDFGrid.values must have shape (nx, ny, nz) or (P, nx, ny, nz), got {values.shape}"
+        )
     x = jnp.asarray(x)
     dtype = jnp.result_type(values.dtype, x.dtype, grid.origin.dtype)
     x = x.astype(dtype)
-    values = values.astype(dtype)
     origin = grid.origin.astype(dtype)
     h = grid.spacing
-    nx, ny, nz = values.shape
+    nx, ny, nz = values.shape[-3:]
     last = jnp.asarray([nx - 1, ny - 1, nz - 1], dtype)
 
     u = (x - origin) / h
@@ -251,16 +314,20 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     cell = jnp.clip(jnp.floor(u_clamped), 0, last - 1)
     t = u_clamped - cell
     i = cell.astype(jnp.int32)
-    flat = values.reshape(-1)
+    # (n_nodes,) or (P, n_nodes): the corners are gathered along the last axis, so that the
+    # patches of a patch-stacked grid get a leading axis that broadcasts against the weights.
+    flat = values.reshape(values.shape[:-3] + (-1,))
     base = (i[..., 0] * ny + i[..., 1]) * nz + i[..., 2]
     sx, sy = ny * nz, nz
-
-    def corner(di: int, dj: int, dk: int) -> jax.Array:
-        return flat[base + di * sx + dj * sy + dk]
+    # All 8 corners in one gather (measured ~1.5x faster than 8 gathers), then converted:
+    # converting the whole grid first would copy it on every call.
+    corner_offsets = jnp.asarray(
+        [di * sx + dj * sy + dk for di in (0, 1) for dj in (0, 1) for dk in (0, 1)], jnp.int32
+    )
+    corners = flat[..., base[..., None] + corner_offsets].astype(dtype)  # ([P,] ..., 8)
+    c000, c001, c010, c011, c100, c101, c110, c111 = (corners[..., k] for k in range(8))
 
     tx, ty, tz = t[..., 0], t[..., 1], t[..., 2]
-    c000, c100, c010, c110 = corner(0, 0, 0), corner(1, 0, 0), corner(0, 1, 0), corner(1, 1, 0)
-    c001, c101, c011, c111 = corner(0, 0, 1), corner(1, 0, 1), corner(0, 1, 1), corner(1, 1, 1)
     # Interpolate along x, then y, then z.
     c00 = c000 + tx * (c100 - c000)
     c10 = c010 + tx * (c110 - c010)
@@ -279,6 +346,18 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     in_range = (u >= 0) & (u <= last)  # clamped axes do not vary with x
     grad_inside = jnp.stack([d_dtx, d_dty, d_dtz], axis=-1) / h * in_range
 
+    if values.ndim == 4:
+        # phi = max_p phi_p; its gradient is the maximising patch's (the first one on a tie).
+        # Selecting phi and the gradient with the same mask keeps d phi / dx equal to the
+        # returned gradient under autodiff, and a `where` differentiates into the selected patch
+        # only (no NaN, no split). P is small and static: an unrolled elementwise chain.
+        patch_phi, patch_grad = phi_inside, grad_inside
+        phi_inside, grad_inside = patch_phi[0], patch_grad[0]
+        for p in range(1, values.shape[0]):
+            higher = patch_phi[p] > phi_inside
+            phi_inside = jnp.where(higher, patch_phi[p], phi_inside)
+            grad_inside = jnp.where(higher[..., None], patch_grad[p], grad_inside)
+
     # Vector from the nearest point of the grid box; written as (u - clamp(u)) h so that it is
     # exactly zero inside the box (x - (origin + u h) leaves rounding noise whose direction
     # would pollute the gradient).
@@ -289,8 +368,9 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 
 def grid_sdf(grid: SDFGrid, x_jar: jax.Array) -> jax.Array:
-    """phi (...,) at jar-frame points x_jar (..., 3) by trilinear interpolation (see
-    :func:`query_sdf_grid` for the behaviour outside the grid)."""
+    """phi (...,) at jar-frame points x_jar (..., 3) by trilinear interpolation; for a
+    patch-stacked grid the max over the interpolated patches (see :func:`query_sdf_grid` for
+    the behaviour outside the grid)."""
     return _interpolate(grid, x_jar)[0]
 
 
@@ -307,8 +387,10 @@ def query_sdf_grid(
     Returns:
         phi (...,) = grid_sdf(grid, points - offset) and normal (..., 3) = grad phi / |grad phi|
         of the trilinear interpolant, pointing towards the nearest wall (zero where the gradient
-        vanishes). Outside the grid box phi is the value at the nearest box point plus the
-        distance to the box: finite and growing. Jittable, vmappable, differentiable with respect
+        vanishes). For a patch-stacked grid (values (P, nx, ny, nz)) phi is the max over the
+        interpolated patches and the normal that of the maximising patch. Outside the grid
+        box phi is the value at the nearest box point plus the distance to the box: finite and
+        growing. Jittable, vmappable, differentiable with respect
         to points, offset and grid.values. Compute dtype follows the inputs.
     """
     phi, grad = _interpolate(grid, jnp.asarray(points) - jnp.asarray(offset))
