@@ -9,6 +9,10 @@ Records (printed as a Markdown section, optionally written as JSON with --out):
 - interpolation error tables (``sgn_jax.geometry.accuracy.grid_error_report``) at 0.5 and
   0.25 mm for both jars.
 
+All analytic grids here are the single grid of the combined ``jar_sdf`` (``per_patch=False``),
+the one comparable with mesh grids; ``benchmarks/bench_sdf_grid_patches.py`` measures the
+patch-stacked grids that ``sdf_grid_from_jar`` builds by default.
+
 Usage: python benchmarks/bench_sdf_grid.py [--out results.json] [--quick]
 """
 
@@ -51,8 +55,8 @@ def bench_sampling(spacing: float, trimesh_points: int) -> dict:
     import trimesh
 
     res: dict = {}
-    _, res["analytic_first_s"] = timed(sdf_grid_from_jar, DEFAULT, spacing)
-    grid, res["analytic_warm_s"] = timed(sdf_grid_from_jar, DEFAULT, spacing)
+    _, res["analytic_first_s"] = timed(sdf_grid_from_jar, DEFAULT, spacing, per_patch=False)
+    grid, res["analytic_warm_s"] = timed(sdf_grid_from_jar, DEFAULT, spacing, per_patch=False)
     res["grid_shape"] = list(grid.shape)
     res["grid_nodes"] = int(np.prod(grid.shape))
 
@@ -87,7 +91,7 @@ def bench_sampling(spacing: float, trimesh_points: int) -> dict:
 
 def bench_queries(spacing: float) -> dict:
     res: dict = {}
-    grid = sdf_grid_from_jar(DEFAULT, spacing)
+    grid = sdf_grid_from_jar(DEFAULT, spacing, per_patch=False)
     query = jax.jit(query_sdf_grid)
     rng = np.random.default_rng(1)
     offset = jnp.zeros(3, jnp.float32)
@@ -112,7 +116,8 @@ def bench_accuracy(spacings: list[float], n_points: int) -> dict:
     res: dict = {}
     for name, params in [("default", DEFAULT), ("post", POST)]:
         for spacing in spacings:
-            grid = sdf_grid_from_jar(params, spacing)  # float32, as the surrogate uses it
+            # float32, as the surrogate uses it
+            grid = sdf_grid_from_jar(params, spacing, per_patch=False)
             res[f"{name}_h{spacing * 1e3:g}mm"] = grid_error_report(params, grid, n_points, seed=0)
     return res
 
