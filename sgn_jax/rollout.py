@@ -23,8 +23,8 @@ window history (all W + 1 positions) is translated with it: every velocity featu
 integration step see the same velocities as without the snap, and only the phi/normal features
 move. ``snap_velocity="position"`` moves only the newest position instead, so the
 finite-difference velocity loses the snapped distance / dt (a position-based wall). The snap
-must be switched off to replay a DEM trajectory: DEM balls in contact reach phi >= -0.0049 m
-and would be moved.
+must be switched off to replay a DEM trajectory: DEM balls in wall contact have phi > -R and in
+hard impacts reach phi >= -0.0049 m (0.1 mm overlap); they would be moved.
 
 Memory of a differentiated rollout: the steps are grouped into frames of ``save_every`` steps
 and the frames into chunks of ``checkpoint_steps``; each chunk is a ``jax.checkpoint``-ed scan,
