@@ -51,6 +51,54 @@ def _cmd_jar(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# demo
+
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "demo",
+        help="DEM vs the trained surrogate on the standard case: energy, MSE, speed, animation",
+        description="Run the DEM of the case (settling, then DURATION s of motion), roll the "
+        "trained SGN out for DURATION s from the DEM's first full window, print the dissipated "
+        "energy of both and its relative error, the position MSE, the wall-time speed ratio, "
+        "balls outside the jar and edge overflows, and write OUT/summary.json, the comparison "
+        "plots and OUT/animation.gif.",
+    )
+    p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
+    p.add_argument("--checkpoint", default=None,
+                   help="training run directory or checkpoint directory (default: the model "
+                   "shipped with the package)")
+    p.add_argument("--duration", type=float, default=1.0,
+                   help="seconds of motion to compare (default 1.0)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="DEM placement seed (default: the config's [dem] seed)")
+    p.add_argument("--config", default="emax_300rpm",
+                   help="built-in config name or TOML path of the case (default emax_300rpm)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(handler=_cmd_demo)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from sgn_jax.checkpoint import CheckpointError
+    from sgn_jax.dem.engine import DEMError
+    from sgn_jax.dem.placement import PlacementError
+    from sgn_jax.demo import DemoError, format_report, run_demo
+    from sgn_jax.metrics import MetricsError
+    from sgn_jax.prediction import PredictionError
+    from sgn_jax.rollout import RolloutError
+
+    try:
+        summary = run_demo(args.out, checkpoint=args.checkpoint, duration=args.duration,
+                           seed=args.seed, config=args.config, progress=not args.no_progress,
+                           log=lambda msg: print(f"sgn-jax demo: {msg}", file=sys.stderr))
+    except (DemoError, CheckpointError, DEMError, PlacementError, RolloutError,
+            PredictionError, MetricsError) as exc:
+        raise UserError(str(exc)) from exc
+    print(format_report(summary))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 # train
 
 
