@@ -174,11 +174,14 @@ def write_comparison_gif(
     grid = fig.add_gridspec(2, 2, height_ratios=[z_span, y_span], left=0.02, right=0.98,
                             bottom=0.02, top=1.0 - 0.45 / height_in, wspace=0.04, hspace=0.1)
     title = fig.suptitle("", fontsize=9, y=1.0 - 0.06 / height_in, va="top")
-    panels = []  # (axes, which positions, view columns, outline collection, circles)
+    # Per panel: axes, positions, the two drawn coordinates, the depth coordinate (what is
+    # nearer the viewer is drawn on top: larger y seen from above, larger z seen from the
+    # front), outline, its segments, the circles.
+    panels = []
     for column, (label, positions) in enumerate((("DEM", pos_dem), ("SGN", pos_sgn))):
-        for row, (view, coords, segments, lims) in enumerate((
-                ("top view x-z", (0, 2), sections.top, (x_lim, z_lim)),
-                ("side view x-y", (0, 1), sections.side, (x_lim, y_lim)))):
+        for row, (view, coords, depth, segments, lims) in enumerate((
+                ("top view x-z", (0, 2), 1, sections.top, (x_lim, z_lim)),
+                ("side view x-y", (0, 1), 2, sections.side, (x_lim, y_lim)))):
             ax = fig.add_subplot(grid[row, column])
             ax.set_xlim(*lims[0])
             ax.set_ylim(*lims[1])
@@ -186,7 +189,7 @@ def write_comparison_gif(
             ax.set_xticks([])
             ax.set_yticks([])
             ax.set_title(f"{label}, {view}", fontsize=8, pad=2)
-            outline = LineCollection(segments, colors="dimgrey", linewidths=1.2)
+            outline = LineCollection(segments, colors="dimgrey", linewidths=1.2, zorder=3)
             ax.add_collection(outline)
             circles = []
             for b in range(n_balls):
@@ -194,17 +197,19 @@ def write_comparison_gif(
                                 edgecolor="black", linewidth=0.4, alpha=0.85)
                 ax.add_patch(circle)
                 circles.append(circle)
-            panels.append((ax, positions, coords, outline, segments, circles))
+            panels.append((positions, coords, depth, outline, segments, circles))
 
     images = []
     palette_image = None
     for f in tqdm(range(n_frames), desc="animation", unit="frame", disable=not progress,
                   dynamic_ncols=True):
-        for _, positions, (a, b), outline, segments, circles in panels:
+        for positions, (a, b), depth, outline, segments, circles in panels:
             shift = np.array([offsets[f, a], offsets[f, b]])
             outline.set_segments(segments + shift)
-            for circle, centre in zip(circles, positions[f], strict=True):
+            rank = np.argsort(np.argsort(positions[f, :, depth]))
+            for circle, centre, r in zip(circles, positions[f], rank, strict=True):
                 circle.set_center((centre[a], centre[b]))
+                circle.set_zorder(2.0 + 1e-3 * r)
         text = f"t = {t[f]:.3f} s"
         if captions is not None:
             text += "   " + captions[f]

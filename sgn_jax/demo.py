@@ -299,6 +299,7 @@ def run_demo(
     last_ref = int(round((float(prediction.t_pos[-1]) - float(traj.t[0])) / traj.dt))
     summary["position"]["mse_final_check_m2"] = float(
         position_mse(prediction.pos[-1:], traj.pos[last_ref:last_ref + 1])[0])
+    summary["machine"] = _machine()
     summary["wall_time_s"] = time.perf_counter() - t_start
     files["summary"] = str(out / "summary.json")
     write_json(out / "summary.json", summary)
@@ -310,6 +311,22 @@ def _interval_sum(cumulative: np.ndarray, alignment: Any) -> float:
     start = alignment.start_ref_index if alignment.start_ref_index >= 0 else \
         int(alignment.step_ref_index[0])
     return float(cumulative[int(alignment.step_ref_index[-1])] - cumulative[start])
+
+
+def _machine() -> dict[str, Any]:
+    """Where the timings were taken (the demo's numbers are benchmarks too)."""
+    import os
+    import platform
+
+    import jax
+
+    import sgn_jax
+    from sgn_jax.io_utils import git_commit
+
+    return {"platform": platform.platform(), "processor": platform.processor(),
+            "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "jax": jax.__version__, "backend": jax.default_backend(),
+            "sgn_jax": sgn_jax.__version__, "commit": git_commit()}
 
 
 def _per_ball(value: Any, n_balls: int) -> float | None:
