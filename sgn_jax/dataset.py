@@ -32,31 +32,19 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import json
 import math
-import zipfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from sgn_jax.io_utils import atomic_write
+from sgn_jax import records
+from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
 
 
 class DatasetError(ValueError):
     """A trajectory file or its arrays/meta are malformed; the message says what and how to fix."""
-
-
-class ArraySpec(NamedTuple):
-    """Expected shape (symbols "T", "N", "K" or fixed ints) and dtype of one required array.
-
-    ``dtype`` is either an exact numpy dtype name ("float64") or a kind: "float", "int", "bool".
-    """
-
-    shape: tuple[str | int, ...]
-    dtype: str
-    description: str
 
 
 _DISS_NAMES = tuple(
@@ -94,54 +82,32 @@ DISSIPATION_WHICH = ("pp", "pw")
 # Relative tolerance on the spacing of t: t is computed as (index * dt) in float64, whose
 # rounding is ~1e-16 * t_max, far below this; a wrong dt or a dropped sample is far above it.
 _DT_RTOL = 1e-6
-_FIX_HINT = "regenerate the file with `sgn-jax dem` (sgn_jax.dataset.save_trajectory)"
+
+_FORMAT = RecordFormat(
+    kind="trajectory",
+    error=DatasetError,
+    arrays=REQUIRED_ARRAYS,
+    meta_keys=REQUIRED_META,
+    documented_in="SPEC section 4",
+    size_sources="T from 't', N from 'pos', K from 'pp_pairs'",
+    float64_hint=("positions and velocities must be float64 (the surrogate's finite "
+                  "differences need them); cast with .astype(np.float64) before saving"),
+    fix_hint="regenerate the file with `sgn-jax dem` (sgn_jax.dataset.save_trajectory)",
+    produce_hint="generate it with `sgn-jax dem --config CONFIG.toml`",
+    meta_hint="build it with sgn_jax.dataset.build_meta(config, ...)",
+)
 
 
 # --------------------------------------------------------------------------------------------
 # Validation
 
 
-def _where(path: str | Path | None) -> str:
-    return f"trajectory file {str(path)!r}" if path is not None else "trajectory"
-
-
-def _dtype_ok(dtype: np.dtype, expected: str) -> bool:
-    if expected == "float":
-        return np.issubdtype(dtype, np.floating)
-    if expected == "int":
-        return np.issubdtype(dtype, np.integer)
-    if expected == "bool":
-        return dtype == np.bool_
-    return dtype == np.dtype(expected)
-
-
-def _first_bad_sample(values: np.ndarray) -> int | None:
-    finite = np.isfinite(values)
-    if finite.all():
-        return None
-    bad_rows = ~finite.reshape(values.shape[0], -1).all(axis=1) if values.ndim > 1 else ~finite
-    return int(np.flatnonzero(bad_rows)[0])
-
-
 def _check_meta(meta: Any, where: str) -> None:
-    if not isinstance(meta, Mapping):
-        raise DatasetError(f"{where}: meta must be a JSON object (dict), got {type(meta).__name__}; "
-                           "build it with sgn_jax.dataset.build_meta(config, ...)")
-    missing = [key for key in REQUIRED_META if key not in meta]
-    if missing:
-        raise DatasetError(
-            f"{where}: meta is missing key(s) {missing} (required: {list(REQUIRED_META)}); "
-            "build it with sgn_jax.dataset.build_meta(config, ...)"
-        )
-    if not isinstance(meta["config"], Mapping):
-        raise DatasetError(f"{where}: meta['config'] must be a dict "
-                           "(sgn_jax.config.config_to_dict(cfg)), got "
-                           f"{type(meta['config']).__name__}")
+    records.check_config_entry(meta, _FORMAT, where)
     for key in ("dt", "dt_dem", "ball_radius", "ball_mass"):
-        value = meta[key]
-        if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                or not math.isfinite(value) or value <= 0:
-            raise DatasetError(f"{where}: meta[{key!r}] must be a positive number, got {value!r}")
+        if not records.is_positive_number(meta[key]):
+            raise DatasetError(f"{where}: meta[{key!r}] must be a positive number, got "
+                               f"{meta[key]!r}")
     for key in ("seed", "n_balls"):
         if isinstance(meta[key], bool) or not isinstance(meta[key], int):
             raise DatasetError(f"{where}: meta[{key!r}] must be an integer, got {meta[key]!r}")
@@ -164,19 +130,7 @@ def validate_trajectory(arrays: Mapping[str, Any], meta: Mapping[str, Any],
         DatasetError naming ``path`` (if given), the offending array or meta key, what was
         expected and what was found.
     """
-    where = _where(path)
-    if "meta" in arrays:
-        raise DatasetError(f"{where}: 'meta' is reserved for the JSON metadata; pass it as the "
-                           "meta argument, not as an array")
-    _check_meta(meta, where)
-
-    missing = [name for name in REQUIRED_ARRAYS if name not in arrays]
-    if missing:
-        raise DatasetError(
-            f"{where}: missing array(s) {missing}; a trajectory needs "
-            f"{list(REQUIRED_ARRAYS)} (SPEC section 4); {_FIX_HINT}"
-        )
-    arrays = {name: np.asarray(value) for name, value in arrays.items()}
+    where, arrays = records.check_names_and_meta(arrays, meta, path, _FORMAT, _check_meta)
 
     # Sizes: T from t, N from pos, K from pp_pairs; everything else must agree.
     t = arrays["t"]
@@ -187,30 +141,11 @@ def validate_trajectory(arrays: Mapping[str, Any], meta: Mapping[str, Any],
         sizes["N"] = arrays["pos"].shape[1]
     if arrays["pp_pairs"].ndim == 3:
         sizes["K"] = arrays["pp_pairs"].shape[1]
-    for name, spec in REQUIRED_ARRAYS.items():
-        value = arrays[name]
-        expected = tuple(sizes.get(d, -1) if isinstance(d, str) else d for d in spec.shape)
-        pattern = "(" + ", ".join(str(d) for d in spec.shape) + (",)" if len(spec.shape) == 1 else ")")
-        if value.shape != expected:
-            inconsistent = value.ndim == len(expected) and all(
-                g == e or isinstance(d, str) for g, e, d in zip(value.shape, expected, spec.shape,
-                                                                strict=True))
-            reason = ("inconsistent sizes between arrays (T from 't', N from 'pos', K from "
-                      "'pp_pairs')" if inconsistent else "wrong shape")
-            raise DatasetError(
-                f"{where}: array {name!r} ({spec.description}) has shape {value.shape}, expected "
-                f"{pattern} = {expected} with {sizes}: {reason}; {_FIX_HINT}"
-            )
-        if not _dtype_ok(value.dtype, spec.dtype):
-            hint = ("positions and velocities must be float64 (the surrogate's finite "
-                    "differences need them); cast with .astype(np.float64) before saving"
-                    if spec.dtype == "float64" else f"store it as {spec.dtype}")
-            raise DatasetError(f"{where}: array {name!r} has dtype {value.dtype}, expected "
-                               f"{spec.dtype}; {hint}")
+    records.check_array_specs(arrays, _FORMAT, sizes, where)
 
     for name, value in arrays.items():
         if np.issubdtype(value.dtype, np.inexact) and value.ndim >= 1:
-            bad = _first_bad_sample(value)
+            bad = records.first_non_finite(value)
             if bad is not None:
                 raise DatasetError(
                     f"{where}: array {name!r} contains NaN or inf, first at sample {bad} "
@@ -221,7 +156,7 @@ def validate_trajectory(arrays: Mapping[str, Any], meta: Mapping[str, Any],
     n_balls = sizes["N"]
     if meta["n_balls"] != n_balls:
         raise DatasetError(f"{where}: meta['n_balls'] = {meta['n_balls']} but 'pos' has N = "
-                           f"{n_balls} balls; {_FIX_HINT}")
+                           f"{n_balls} balls; {_FORMAT.fix_hint}")
 
     dt = float(meta["dt"])
     if t.size > 1:
@@ -254,18 +189,6 @@ def validate_trajectory(arrays: Mapping[str, Any], meta: Mapping[str, Any],
 # Writing
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, tuple):
-        return list(obj)
-    raise TypeError(f"meta value of type {type(obj).__name__} is not JSON serialisable")
-
-
 def build_meta(config: Any, *, seed: int | None = None, extra: Mapping[str, Any] | None = None
                ) -> dict[str, Any]:
     """The required meta for a trajectory produced from ``config`` (a ``sgn_jax.config.Config``).
@@ -296,45 +219,23 @@ def build_meta(config: Any, *, seed: int | None = None, extra: Mapping[str, Any]
 
 def save_trajectory(path: str | Path, arrays: Mapping[str, Any], meta: Mapping[str, Any],
                     *, compress: bool = False) -> None:
-    """Validate and write one trajectory as ``.npz``, atomically.
+    """Validate (:func:`validate_trajectory`) and write one trajectory as ``.npz``, atomically.
 
-    Args:
-        path: destination, must end in ``.npz``.
-        arrays: name -> array (numpy or jax), see :data:`REQUIRED_ARRAYS`; extra arrays are kept.
-        meta: JSON-serialisable dict with at least :data:`REQUIRED_META`; ``meta['config']`` must
-            rebuild into a ``sgn_jax.config.Config``.
-        compress: use ``np.savez_compressed`` (slower; float64 positions compress poorly).
+    ``path`` must end in ``.npz``. ``arrays`` (numpy or jax) hold at least
+    :data:`REQUIRED_ARRAYS`; extra arrays are kept. ``meta`` is JSON-serialisable with at least
+    :data:`REQUIRED_META` (:func:`build_meta` makes it); its ``config`` must rebuild into a
+    ``sgn_jax.config.Config``. ``compress=True`` uses ``np.savez_compressed`` (slower; float64
+    positions compress poorly).
+
     Raises:
-        DatasetError if the arrays or meta fail :func:`validate_trajectory`; nothing is written.
+        DatasetError saying what is wrong; nothing is written then.
     """
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise DatasetError(f"trajectory path {str(path)!r} must end in '.npz' "
-                           f"(e.g. {str(path.with_suffix('.npz'))!r})")
-    arrays = {name: np.asarray(value) for name, value in arrays.items()}
-    validate_trajectory(arrays, meta, path)
-    _config_from_meta(meta, path)  # refuse to write a config that cannot be read back
-    try:
-        meta_json = json.dumps(dict(meta), default=_json_default, sort_keys=True, allow_nan=False)
-    except (TypeError, ValueError) as exc:
-        raise DatasetError(f"{_where(path)}: meta is not JSON serialisable: {exc}") from exc
-    writer = np.savez_compressed if compress else np.savez
-    with atomic_write(path, "wb") as fh:
-        writer(fh, meta=np.array(meta_json), **arrays)
+    records.write_npz_record(path, arrays, meta, _FORMAT, validate_trajectory,
+                             compress=compress)
 
 
 # --------------------------------------------------------------------------------------------
 # Reading
-
-
-def _config_from_meta(meta: Mapping[str, Any], path: str | Path | None) -> Any:
-    from sgn_jax.config import ConfigError, config_from_dict
-
-    try:
-        return config_from_dict(dict(meta["config"]))
-    except ConfigError as exc:
-        raise DatasetError(f"{_where(path)}: meta['config'] is not a valid config: {exc}; "
-                           "store sgn_jax.config.config_to_dict(cfg) of the run's config") from exc
 
 
 def _split_kinds(spec: str, allowed: tuple[str, ...], argument: str) -> tuple[str, ...]:
@@ -349,52 +250,17 @@ def _split_kinds(spec: str, allowed: tuple[str, ...], argument: str) -> tuple[st
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class Trajectory:
-    """A read-only trajectory: arrays by attribute (``traj.pos`` (T, N, 3) float64), meta, path.
-
-    The arrays are marked non-writeable; copy one (``np.array(traj.pos)``) to modify it.
+class Trajectory(ArrayRecord, record_format=_FORMAT):
+    """A DEM trajectory as loaded: read-only arrays by attribute (``traj.pos`` (T, N, 3)
+    float64), ``meta`` and ``path``, with ``n_balls``, ``dt`` (the sampling step, s) and
+    ``config`` from :class:`ArrayRecord`; adds the sample count, the dissipation and energy
+    sums and slicing in time.
     """
-
-    arrays: dict[str, np.ndarray]
-    meta: dict[str, Any]
-    path: str | None = None
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        # Only called when normal lookup fails; guard against recursion before __init__ ran.
-        if name.startswith("__") or name == "arrays":
-            raise AttributeError(name)
-        try:
-            return self.arrays[name]
-        except KeyError:
-            raise AttributeError(
-                f"Trajectory has no attribute or array {name!r}; arrays: {sorted(self.arrays)}"
-            ) from None
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        return self.arrays[name]
-
-    def __dir__(self) -> Iterable[str]:
-        return sorted(set(super().__dir__()) | set(self.arrays))
 
     @property
     def n_samples(self) -> int:
         """T, the number of samples."""
-        return int(self.arrays["t"].shape[0])
-
-    @property
-    def n_balls(self) -> int:
-        """N, the number of balls."""
-        return int(self.arrays["pos"].shape[1])
-
-    @property
-    def dt(self) -> float:
-        """Sampling step (s)."""
-        return float(self.meta["dt"])
-
-    @property
-    def config(self) -> Any:
-        """The run's ``sgn_jax.config.Config``, rebuilt from ``meta['config']``."""
-        return _config_from_meta(self.meta, self.path)
+        return self._length("t")
 
     def dissipation(self, kind: str = "normal+tangential", which: str = "pp+pw") -> np.ndarray:
         """Dissipation per interval (T,) J, summed over ``kind`` and ``which``.
@@ -458,43 +324,8 @@ class Trajectory:
 def load_trajectory(path: str | Path) -> Trajectory:
     """Read and validate a trajectory file; raises DatasetError saying what is wrong."""
     path = Path(path)
-    where = _where(path)
-    if not path.exists():
-        raise DatasetError(f"{where} not found; check the path, or generate it with "
-                           "`sgn-jax dem --config CONFIG.toml`")
-    if not path.is_file():
-        raise DatasetError(f"{where} is not a file")
-    arrays: dict[str, np.ndarray] = {}
-    try:
-        npz = np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
-        raise DatasetError(f"{where} is not an .npz archive or is corrupt "
-                           f"({type(exc).__name__}: {exc}); {_FIX_HINT}") from exc
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise DatasetError(f"{where} is a single .npy array, not an .npz archive; {_FIX_HINT}")
-    try:
-        with npz:
-            # Read every member now: a corrupt member only fails (CRC, truncation) on access.
-            for name in npz.files:
-                arrays[name] = npz[name]
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as exc:
-        raise DatasetError(f"{where} is a corrupt or truncated .npz archive "
-                           f"({type(exc).__name__}: {exc}); {_FIX_HINT}") from exc
-
-    if "meta" not in arrays:
-        raise DatasetError(f"{where} has no 'meta' entry (the JSON metadata); {_FIX_HINT}")
-    meta_array = arrays.pop("meta")
-    if meta_array.ndim != 0 or meta_array.dtype.kind != "U":
-        raise DatasetError(f"{where}: 'meta' must be a JSON string (0-d unicode array), got "
-                           f"dtype {meta_array.dtype} shape {meta_array.shape}; {_FIX_HINT}")
-    try:
-        meta = json.loads(str(meta_array))
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{where}: 'meta' is not valid JSON ({exc}); {_FIX_HINT}") from exc
-
+    arrays, meta = records.read_npz_record(path, _FORMAT)
     validate_trajectory(arrays, meta, path)
-    for value in arrays.values():
-        value.flags.writeable = False
     return Trajectory(arrays=arrays, meta=meta, path=str(path))
 
 

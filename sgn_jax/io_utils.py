@@ -10,6 +10,7 @@ import contextlib
 import hashlib
 import json
 import os
+import subprocess
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,11 +45,13 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
 def write_json(path: str | Path, data: Any) -> None:
     """Write ``data`` as indented JSON, atomically."""
     with atomic_write(path, "w") as fh:
-        json.dump(data, fh, indent=2, sort_keys=True, default=_json_default)
+        json.dump(data, fh, indent=2, sort_keys=True, default=json_default)
         fh.write("\n")
 
 
-def _json_default(obj: Any) -> Any:
+def json_default(obj: Any) -> Any:
+    """``default=`` hook for ``json.dump(s)``: numpy scalars and arrays become Python numbers
+    and lists, paths strings; anything else raises TypeError naming its type."""
     import numpy as np
 
     if isinstance(obj, np.generic):
@@ -57,7 +60,7 @@ def _json_default(obj: Any) -> Any:
         return obj.tolist()
     if isinstance(obj, Path):
         return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+    raise TypeError(f"value of type {type(obj).__name__} is not JSON serialisable")
 
 
 def sha256_bytes(data: bytes) -> str:
@@ -72,25 +75,17 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def _git(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run ``git *args`` in the source tree (5 s limit), capturing text output."""
+    return subprocess.run(["git", *args], cwd=Path(__file__).resolve().parent,
+                          capture_output=True, text=True, timeout=5)
+
+
 def git_commit() -> str:
     """The current git commit of the source tree, or 'unknown' outside a checkout."""
-    import subprocess
-
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-        )
+        out = _git("rev-parse", "--short", "HEAD")
+        dirty = _git("status", "--porcelain", "--untracked-files=no")
         if out.returncode == 0:
             return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):

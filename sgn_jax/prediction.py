@@ -44,31 +44,18 @@ not by index, so any DEM file on the same time axis (s since the start of motion
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
-import zipfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from sgn_jax.io_utils import atomic_write
+from sgn_jax import records
+from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
 
 
 class PredictionError(ValueError):
     """A prediction file or its arrays/meta are malformed; the message says what and how to fix."""
-
-
-class ArraySpec(NamedTuple):
-    """Expected shape (symbols "S", "P", "N" or fixed ints) and dtype of one required array.
-
-    ``dtype`` is an exact numpy dtype name ("float64") or a kind: "float", "int".
-    """
-
-    shape: tuple[str | int, ...]
-    dtype: str
-    description: str
 
 
 STEP_ARRAYS = ("t_step", "dE", "energy_cum", "n_pp_edges", "n_pw_edges", "overflow", "n_outside",
@@ -99,21 +86,23 @@ _GRID_TOL = 1e-3
 _CUMSUM_RTOL = 1e-3
 _FIX_HINT = "regenerate it with `sgn-jax rollout` (sgn_jax.prediction.save_prediction)"
 
+_FORMAT = RecordFormat(
+    kind="prediction",
+    error=PredictionError,
+    arrays=REQUIRED_ARRAYS,
+    meta_keys=REQUIRED_META,
+    documented_in="see the sgn_jax.prediction module docstring",
+    size_sources="S from 't_step', P from 't_pos', N from 'pos'",
+    float64_hint=("positions must be float64 (differences of nearby positions lose digits in "
+                  "float32); cast with .astype(np.float64) before saving"),
+    fix_hint=_FIX_HINT,
+    produce_hint="produce it with `sgn-jax rollout`",
+    meta_hint=_FIX_HINT,
+)
+
 
 # --------------------------------------------------------------------------------------------
 # Validation
-
-
-def _where(path: str | Path | None) -> str:
-    return f"prediction file {str(path)!r}" if path is not None else "prediction"
-
-
-def _dtype_ok(dtype: np.dtype, expected: str) -> bool:
-    if expected == "float":
-        return np.issubdtype(dtype, np.floating)
-    if expected == "int":
-        return np.issubdtype(dtype, np.integer)
-    return dtype == np.dtype(expected)
 
 
 def _is_int(value: Any) -> bool:
@@ -121,48 +110,26 @@ def _is_int(value: Any) -> bool:
 
 
 def _check_meta(meta: Any, where: str) -> None:
-    if not isinstance(meta, Mapping):
-        raise PredictionError(f"{where}: meta must be a JSON object (dict), got "
-                              f"{type(meta).__name__}")
-    missing = [key for key in REQUIRED_META if key not in meta]
-    if missing:
-        raise PredictionError(f"{where}: meta is missing key(s) {missing} (required: "
-                              f"{list(REQUIRED_META)}); {_FIX_HINT}")
-    dt = meta["dt"]
-    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) \
-            or dt <= 0:
+    if not records.is_positive_number(meta["dt"]):
         raise PredictionError(f"{where}: meta['dt'] (the surrogate step, s) must be a positive "
-                              f"number, got {dt!r}")
+                              f"number, got {meta['dt']!r}")
     if not _is_int(meta["save_every"]) or meta["save_every"] < 1:
         raise PredictionError(f"{where}: meta['save_every'] (steps between saved frames) must be "
                               f"an integer >= 1, got {meta['save_every']!r}")
     if not _is_int(meta["init_index"]) or meta["init_index"] < 0:
         raise PredictionError(f"{where}: meta['init_index'] (the initial dataset's sample index) "
                               f"must be an integer >= 0, got {meta['init_index']!r}")
-    if not isinstance(meta["config"], Mapping):
-        raise PredictionError(f"{where}: meta['config'] must be a dict "
-                              "(sgn_jax.config.config_to_dict(cfg)), got "
-                              f"{type(meta['config']).__name__}")
+    records.check_config_entry(meta, _FORMAT, where)
 
 
 def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
                         path: str | Path | None = None) -> None:
     """Check names, shapes, dtypes, finiteness, the time grids, counts, cumsum and meta.
 
-    Raises:
-        PredictionError naming ``path`` (if given), the offending array or meta key, what was
-        expected and what was found.
+    Raises PredictionError that names ``path`` (if given) and the offending array or meta key,
+    and says what was expected and what was found.
     """
-    where = _where(path)
-    if "meta" in arrays:
-        raise PredictionError(f"{where}: 'meta' is reserved for the JSON metadata; pass it as the "
-                              "meta argument, not as an array")
-    _check_meta(meta, where)
-    missing = [name for name in REQUIRED_ARRAYS if name not in arrays]
-    if missing:
-        raise PredictionError(f"{where}: missing array(s) {missing}; a prediction needs "
-                              f"{list(REQUIRED_ARRAYS)}; {_FIX_HINT}")
-    arrays = {name: np.asarray(value) for name, value in arrays.items()}
+    where, arrays = records.check_names_and_meta(arrays, meta, path, _FORMAT, _check_meta)
 
     t_step, t_pos = arrays["t_step"], arrays["t_pos"]
     if t_step.ndim != 1 or t_step.shape[0] < 1:
@@ -175,31 +142,17 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
     sizes: dict[str, int] = {"S": t_step.shape[0], "P": t_pos.shape[0]}
     if arrays["pos"].ndim == 3:
         sizes["N"] = arrays["pos"].shape[1]
-    for name, spec in REQUIRED_ARRAYS.items():
-        value = arrays[name]
-        expected = tuple(sizes.get(d, -1) if isinstance(d, str) else d for d in spec.shape)
-        pattern = "(" + ", ".join(str(d) for d in spec.shape) + (",)" if len(spec.shape) == 1
-                                                                  else ")")
-        if value.shape != expected:
-            raise PredictionError(
-                f"{where}: array {name!r} ({spec.description}) has shape {value.shape}, expected "
-                f"{pattern} = {expected} with {sizes} (S from 't_step', P from 't_pos', N from "
-                f"'pos'); {_FIX_HINT}")
-        if not _dtype_ok(value.dtype, spec.dtype):
-            hint = ("positions must be float64 (differences of nearby positions lose digits in "
-                    "float32); cast with .astype(np.float64) before saving"
-                    if spec.dtype == "float64" else f"store it as {spec.dtype}")
-            raise PredictionError(f"{where}: array {name!r} has dtype {value.dtype}, expected "
-                                  f"{spec.dtype}; {hint}")
+    records.check_array_specs(arrays, _FORMAT, sizes, where)
     if sizes["N"] < 1:
         raise PredictionError(f"{where}: array 'pos' has no balls (N = 0)")
 
     for name, value in arrays.items():
-        if np.issubdtype(value.dtype, np.inexact) and not np.isfinite(value).all():
-            bad = np.flatnonzero(~np.isfinite(value.reshape(value.shape[0], -1)).all(axis=1)) \
-                if value.ndim >= 1 else [0]
+        if not np.issubdtype(value.dtype, np.inexact):
+            continue
+        bad = records.first_non_finite(value)
+        if bad is not None:
             raise PredictionError(
-                f"{where}: array {name!r} contains NaN or inf, first at index {int(bad[0])}; the "
+                f"{where}: array {name!r} contains NaN or inf, first at index {bad}; the "
                 "rollout diverged (check the model and the n_outside/overflow counts) or the "
                 "array was not filled")
     for name in COUNT_ARRAYS:
@@ -248,164 +201,58 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
 # Writing
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, tuple):
-        return list(obj)
-    raise TypeError(f"meta value of type {type(obj).__name__} is not JSON serialisable")
-
-
 def save_prediction(path: str | Path, arrays: Mapping[str, Any], meta: Mapping[str, Any],
                     *, compress: bool = False) -> None:
-    """Validate and write one rollout prediction as ``.npz``, atomically.
+    """Check one rollout prediction with :func:`validate_prediction`, then write it atomically.
 
-    Args:
-        path: destination, must end in ``.npz``.
-        arrays: name -> array (numpy or jax), see :data:`REQUIRED_ARRAYS`; extra arrays are kept.
-        meta: JSON-serialisable dict with at least :data:`REQUIRED_META`; ``meta['config']`` must
-            rebuild into a ``sgn_jax.config.Config``.
-        compress: use ``np.savez_compressed``.
+    ``path``: the ``.npz`` destination; ``arrays``: name -> numpy or jax array, all of
+    :data:`REQUIRED_ARRAYS` and any extras (kept); ``meta``: a JSON-serialisable mapping with
+    :data:`REQUIRED_META`, whose ``config`` is ``sgn_jax.config.config_to_dict`` of a valid
+    config; ``compress``: write with ``np.savez_compressed``.
+
     Raises:
-        PredictionError if the arrays or meta fail :func:`validate_prediction`; nothing is
-        written.
+        PredictionError on any problem, before anything is written.
     """
-    path = Path(path)
-    if path.suffix != ".npz":
-        raise PredictionError(f"prediction path {str(path)!r} must end in '.npz' "
-                              f"(e.g. {str(path.with_suffix('.npz'))!r})")
-    arrays = {name: np.asarray(value) for name, value in arrays.items()}
-    validate_prediction(arrays, meta, path)
-    _config_from_meta(meta, path)  # refuse to write a config that cannot be read back
-    try:
-        meta_json = json.dumps(dict(meta), default=_json_default, sort_keys=True, allow_nan=False)
-    except (TypeError, ValueError) as exc:
-        raise PredictionError(f"{_where(path)}: meta is not JSON serialisable: {exc}") from exc
-    writer = np.savez_compressed if compress else np.savez
-    with atomic_write(path, "wb") as fh:
-        writer(fh, meta=np.array(meta_json), **arrays)
+    records.write_npz_record(path, arrays, meta, _FORMAT, validate_prediction, compress=compress)
 
 
 # --------------------------------------------------------------------------------------------
 # Reading
 
 
-def _config_from_meta(meta: Mapping[str, Any], path: str | Path | None) -> Any:
-    from sgn_jax.config import ConfigError, config_from_dict
-
-    try:
-        return config_from_dict(dict(meta["config"]))
-    except ConfigError as exc:
-        raise PredictionError(f"{_where(path)}: meta['config'] is not a valid config: {exc}; "
-                              "store sgn_jax.config.config_to_dict(cfg) of the run's config"
-                              ) from exc
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
-class Prediction:
-    """A read-only rollout prediction: arrays by attribute (``pred.pos`` (P, N, 3)), meta, path.
-
-    The arrays are marked non-writeable; copy one (``np.array(pred.pos)``) to modify it.
+class Prediction(ArrayRecord, record_format=_FORMAT):
+    """A loaded rollout prediction (see :class:`ArrayRecord` for the read-only view, ``n_balls``,
+    ``dt`` (the surrogate step, s) and ``config``): ``pred.pos`` (P, N, 3), ``pred.dE`` (S,),
+    ...; adds the step and frame counts and the rollout's start time.
     """
-
-    arrays: dict[str, np.ndarray]
-    meta: dict[str, Any]
-    path: str | None = None
-
-    def __getattr__(self, name: str) -> np.ndarray:
-        if name.startswith("__") or name == "arrays":
-            raise AttributeError(name)
-        try:
-            return self.arrays[name]
-        except KeyError:
-            raise AttributeError(
-                f"Prediction has no attribute or array {name!r}; arrays: {sorted(self.arrays)}"
-            ) from None
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        return self.arrays[name]
-
-    def __dir__(self) -> Iterable[str]:
-        return sorted(set(super().__dir__()) | set(self.arrays))
 
     @property
     def n_steps(self) -> int:
         """S, the number of surrogate steps."""
-        return int(self.arrays["t_step"].shape[0])
+        return self._length("t_step")
 
     @property
     def n_frames(self) -> int:
         """P, the number of saved position frames."""
-        return int(self.arrays["t_pos"].shape[0])
-
-    @property
-    def n_balls(self) -> int:
-        """N, the number of balls."""
-        return int(self.arrays["pos"].shape[1])
-
-    @property
-    def dt(self) -> float:
-        """Surrogate step (s)."""
-        return float(self.meta["dt"])
+        return self._length("t_pos")
 
     @property
     def t_start(self) -> float:
         """Time of the rollout's start (the newest true sample of the initial window), s."""
         return float(self.arrays["t_step"][0]) - self.dt
 
-    @property
-    def config(self) -> Any:
-        """The run's ``sgn_jax.config.Config``, rebuilt from ``meta['config']``."""
-        return _config_from_meta(self.meta, self.path)
-
 
 def load_prediction(path: str | Path) -> Prediction:
     """Read and validate a prediction file; raises PredictionError saying what is wrong."""
     path = Path(path)
-    where = _where(path)
-    if not path.exists():
-        raise PredictionError(f"{where} not found; check the path, or produce it with "
-                              "`sgn-jax rollout`")
-    if not path.is_file():
-        raise PredictionError(f"{where} is not a file")
-    arrays: dict[str, np.ndarray] = {}
-    try:
-        npz = np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
-        raise PredictionError(f"{where} is not an .npz archive or is corrupt "
-                              f"({type(exc).__name__}: {exc}); {_FIX_HINT}") from exc
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise PredictionError(f"{where} is a single .npy array, not an .npz archive; {_FIX_HINT}")
-    try:
-        with npz:
-            for name in npz.files:  # read all now: a corrupt member only fails on access
-                arrays[name] = npz[name]
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as exc:
-        raise PredictionError(f"{where} is a corrupt or truncated .npz archive "
-                              f"({type(exc).__name__}: {exc}); {_FIX_HINT}") from exc
-    if "meta" not in arrays:
-        raise PredictionError(f"{where} has no 'meta' entry (the JSON metadata); a trajectory "
-                              f"file is not a prediction; {_FIX_HINT}")
-    meta_array = arrays.pop("meta")
-    if meta_array.ndim != 0 or meta_array.dtype.kind != "U":
-        raise PredictionError(f"{where}: 'meta' must be a JSON string (0-d unicode array), got "
-                              f"dtype {meta_array.dtype} shape {meta_array.shape}; {_FIX_HINT}")
-    try:
-        meta = json.loads(str(meta_array))
-    except json.JSONDecodeError as exc:
-        raise PredictionError(f"{where}: 'meta' is not valid JSON ({exc}); {_FIX_HINT}") from exc
+    arrays, meta = records.read_npz_record(path, _FORMAT)
     if isinstance(meta, Mapping) and "t_step" not in arrays and "pos" in arrays \
             and "pp_pairs" in arrays:
-        raise PredictionError(f"{where} is a DEM trajectory file (SPEC 4), not a rollout "
-                              "prediction; pass it as --reference instead")
+        raise PredictionError(f"{_FORMAT.where(path)} is a DEM trajectory file (SPEC 4), not a "
+                              "rollout prediction; pass it as --reference instead")
     validate_prediction(arrays, meta, path)
-    _config_from_meta(meta, path)
-    for value in arrays.values():
-        value.flags.writeable = False
+    _FORMAT.config_from_meta(meta, path)
     return Prediction(arrays=arrays, meta=meta, path=str(path))
 
 

@@ -1,8 +1,5 @@
 """Tests of sgn_jax.dataset: the SPEC 4 trajectory file, its round trip and every refusal."""
 
-import json
-import zipfile
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -62,40 +59,17 @@ def make_valid(seed: int = 0):
     return arrays, meta
 
 
-def write_raw(path, arrays, meta):
-    """Write an npz without validation (to produce bad files)."""
-    entries = dict(arrays)
-    if meta is not None:
-        entries["meta"] = np.array(meta if isinstance(meta, str) else json.dumps(meta))
-    np.savez(path, **entries)
-    return path
-
-
 # ---------------------------------------------------------------------------------------------
 # Round trip and conveniences
 
 
-def test_round_trip_bit_identical(tmp_path):
-    arrays, meta = make_valid()
-    path = tmp_path / "traj.npz"
-    save_trajectory(path, arrays, meta)
-    assert [p.name for p in tmp_path.iterdir()] == ["traj.npz"]  # no temp file left behind
-    traj = load_trajectory(path)
-    assert isinstance(traj, Trajectory)
-    assert set(traj.arrays) == set(arrays)
-    for name, value in arrays.items():
-        loaded = traj.arrays[name]
-        assert loaded.dtype == value.dtype and loaded.shape == value.shape, name
-        assert loaded.tobytes() == value.tobytes(), name
-    assert traj.meta == meta
-    assert traj.path == str(path)
-    assert traj.pos is traj.arrays["pos"] and traj["vel"] is traj.arrays["vel"]
+def test_round_trip_bit_identical(round_trip):
+    traj = round_trip(save_trajectory, load_trajectory, *make_valid())
+    assert isinstance(traj, Trajectory) and traj["vel"] is traj.arrays["vel"]
     assert traj.n_samples == T and traj.n_balls == N and traj.dt == DT
     assert traj.config == _config()
     assert traj.meta["ball_mass"] == pytest.approx(4 / 3 * np.pi * 0.005**3 * 7700, rel=1e-12)
     assert traj.meta["seed"] == 11 and traj.meta["n_balls"] == N
-    with pytest.raises(ValueError):
-        traj.pos[0, 0, 0] = 1.0  # read-only
     with pytest.raises(AttributeError, match="no attribute or array 'poss'"):
         _ = traj.poss
 
@@ -109,10 +83,15 @@ def test_save_accepts_jax_arrays_and_compression(tmp_path):
     assert traj.pos.dtype == np.float64
 
 
-def test_cumulative_dissipation_and_energy_balance(tmp_path):
+def _saved_and_loaded(tmp_path):
+    """(arrays, trajectory): a valid trajectory saved as tmp_path / "a.npz" and loaded back."""
     arrays, meta = make_valid()
     save_trajectory(tmp_path / "a.npz", arrays, meta)
-    traj = load_trajectory(tmp_path / "a.npz")
+    return arrays, load_trajectory(tmp_path / "a.npz")
+
+
+def test_cumulative_dissipation_and_energy_balance(tmp_path):
+    arrays, traj = _saved_and_loaded(tmp_path)
     target = np.cumsum(arrays["diss_pp_normal"] + arrays["diss_pp_tangential"]
                        + arrays["diss_pw_normal"] + arrays["diss_pw_tangential"])
     np.testing.assert_allclose(traj.cumulative_dissipation(), target, rtol=1e-15)
@@ -129,9 +108,7 @@ def test_cumulative_dissipation_and_energy_balance(tmp_path):
 
 
 def test_slice(tmp_path):
-    arrays, meta = make_valid()
-    save_trajectory(tmp_path / "a.npz", arrays, meta)
-    traj = load_trajectory(tmp_path / "a.npz")
+    arrays, traj = _saved_and_loaded(tmp_path)
     part = traj.slice(5, 12)
     assert part.n_samples == 7
     np.testing.assert_array_equal(part.t, arrays["t"][5:12])
@@ -238,6 +215,8 @@ CORRUPTIONS = {
                    r"'diss_pw_rolling' must be 0 at the first sample"),
     "pair range": (_set("pp_pairs", _bad_pair), r"'pp_pairs' holds indices outside \[-1, N\)"),
     "meta missing key": (_meta("seed", delete=True), r"meta is missing key\(s\) \['seed'\]"),
+    "meta not object": (lambda arrays, meta: (arrays, [1, 2]),
+                        r"meta must be a JSON object \(dict\), got list"),
     "meta bad created": (_meta("created", "yesterday"), r"meta\['created'\] must be an ISO 8601"),
     "meta bad dt": (_meta("dt", -1.0), r"meta\['dt'\] must be a positive number"),
     "meta config not dict": (_meta("config", "emax"), r"meta\['config'\] must be a dict"),
@@ -246,10 +225,10 @@ CORRUPTIONS = {
 
 
 @pytest.mark.parametrize("case", sorted(CORRUPTIONS))
-def test_load_refuses_corrupted_trajectory(tmp_path, case):
+def test_load_refuses_corrupted_trajectory(tmp_path, write_raw_npz, case):
     corrupt, message = CORRUPTIONS[case]
     arrays, meta = corrupt(*make_valid())
-    path = write_raw(tmp_path / "bad.npz", arrays, meta)
+    path = write_raw_npz(tmp_path / "bad.npz", arrays, meta)
     with pytest.raises(DatasetError, match=message) as info:
         load_trajectory(path)
     assert str(path) in str(info.value)  # the message names the file
@@ -259,56 +238,10 @@ def test_load_refuses_corrupted_trajectory(tmp_path, case):
     assert not (tmp_path / "refused.npz").exists()
 
 
-def test_load_refuses_missing_and_non_npz_files(tmp_path):
-    with pytest.raises(DatasetError, match=r"nope\.npz.*not found.*sgn-jax dem"):
-        load_trajectory(tmp_path / "nope.npz")
-    text = tmp_path / "text.npz"
-    text.write_text("this is not an archive\n")
-    with pytest.raises(DatasetError, match=r"text\.npz.*not an \.npz archive"):
-        load_trajectory(text)
-    single = tmp_path / "single.npz"
-    with open(single, "wb") as fh:
-        np.save(fh, np.zeros(3))
-    with pytest.raises(DatasetError, match=r"single\.npz.*single \.npy array"):
-        load_trajectory(single)
-
-
-def test_load_refuses_truncated_and_corrupted_zip(tmp_path):
-    arrays, meta = make_valid()
-    good = tmp_path / "good.npz"
-    save_trajectory(good, arrays, meta)
-    data = good.read_bytes()
-    truncated = tmp_path / "truncated.npz"
-    truncated.write_bytes(data[: len(data) // 2])
-    with pytest.raises(DatasetError, match=r"truncated\.npz.*(not an \.npz|corrupt)"):
-        load_trajectory(truncated)
-    # Flip bytes inside the stored 'pos' member: the zip directory is intact, the CRC is not.
-    with zipfile.ZipFile(good) as zf:
-        info = zf.getinfo("pos.npy")
-    start = info.header_offset + 30 + len(info.filename) + len(info.extra) + 200
-    flipped = bytearray(data)
-    flipped[start:start + 8] = bytes(b ^ 0xFF for b in flipped[start:start + 8])
-    corrupt = tmp_path / "crc.npz"
-    corrupt.write_bytes(bytes(flipped))
-    with pytest.raises(DatasetError, match=r"crc\.npz.*corrupt"):
-        load_trajectory(corrupt)
-
-
-def test_load_refuses_bad_meta_entry(tmp_path):
-    arrays, meta = make_valid()
-    no_meta = write_raw(tmp_path / "nometa.npz", arrays, None)
-    with pytest.raises(DatasetError, match=r"nometa\.npz' has no 'meta' entry"):
-        load_trajectory(no_meta)
-    not_json = write_raw(tmp_path / "notjson.npz", arrays, "{config: oops")
-    with pytest.raises(DatasetError, match=r"notjson\.npz': 'meta' is not valid JSON"):
-        load_trajectory(not_json)
-    entries = dict(arrays, meta=np.zeros(3))
-    np.savez(tmp_path / "numeric.npz", **entries)
-    with pytest.raises(DatasetError, match=r"'meta' must be a JSON string"):
-        load_trajectory(tmp_path / "numeric.npz")
-    list_meta = write_raw(tmp_path / "list.npz", arrays, "[1, 2]")
-    with pytest.raises(DatasetError, match="meta must be a JSON object"):
-        load_trajectory(list_meta)
+def test_load_refuses_unreadable_file(load_refuses_unreadable):
+    # once per case of the fixture: missing, not a zip, corrupt, no meta entry, ...
+    load_refuses_unreadable(save_trajectory, load_trajectory, DatasetError, *make_valid(),
+                            kind="trajectory", produce="sgn-jax dem --config CONFIG.toml")
 
 
 def test_save_refuses_bad_path_meta_and_config(tmp_path):
@@ -325,10 +258,10 @@ def test_save_refuses_bad_path_meta_and_config(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_loaded_config_error_is_reported(tmp_path):
+def test_loaded_config_error_is_reported(tmp_path, write_raw_npz):
     arrays, meta = make_valid()
     meta["config"] = {"case": {"name": "x"}}  # a dict, but not a whole config
-    path = write_raw(tmp_path / "cfg.npz", arrays, meta)
+    path = write_raw_npz(tmp_path / "cfg.npz", arrays, meta)
     traj = load_trajectory(path)  # loading does not need the config...
     with pytest.raises(DatasetError, match=r"cfg\.npz': meta\['config'\] is not a valid config"):
         _ = traj.config  # ...but asking for it says what is wrong
