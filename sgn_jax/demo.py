@@ -80,12 +80,14 @@ def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
                             "checkpoints/best directory")
         return path
     shipped = shipped_model_dir(DEFAULT_CASE)
-    if not has_checkpoint(shipped):
-        raise DemoError(
-            f"no trained model is shipped with this installation (looked in {shipped}); pass "
-            "one with --checkpoint DIR: a training run directory written by `sgn-jax train "
-            "--out DIR` (its checkpoints/best is used) or a checkpoint directory")
-    return shipped
+    # The checkpoint directory itself (the documented layout), or a copied checkpoints/ folder.
+    for candidate in (shipped, shipped / "best"):
+        if has_checkpoint(candidate):
+            return candidate
+    raise DemoError(
+        f"no trained model is shipped with this installation (looked in {shipped}); pass one "
+        "with --checkpoint DIR: a training run directory written by `sgn-jax train --out DIR` "
+        "(its checkpoints/best is used) or a checkpoint directory")
 
 
 def resolve_config(name_or_path: str | Path) -> Any:

@@ -166,6 +166,10 @@ def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, cap
     (tmp_path / "models").mkdir()
     (tmp_path / "models" / "emax_300rpm").symlink_to(tiny["run"] / "checkpoints" / "best")
     assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "emax_300rpm"
+    # ... also when a whole checkpoints/ folder (best, latest) was copied there.
+    (tmp_path / "models" / "emax_300rpm").unlink()
+    (tmp_path / "models" / "emax_300rpm").symlink_to(tiny["run"] / "checkpoints")
+    assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "emax_300rpm" / "best"
     assert demo_module.has_checkpoint(tiny["run"])
     assert not demo_module.has_checkpoint(tmp_path / "models")
 
