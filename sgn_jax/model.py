@@ -10,12 +10,25 @@ Encoder-processor-decoder on the padded graphs of :mod:`sgn_jax.graph` (normalis
 - ``interaction_layers`` interaction layers: message ``psi_e([h_r, h_s, h_e])`` on each real edge
   (sender s -> receiver r), mean over the incoming real edges of each node (count clamped at 1,
   so a node without edges gets a zero message), update ``h_r <- psi_v([h_r, m_r])`` (replaces h,
-  no residual, as in the paper). Edge embeddings are not updated. The first linear layer of
-  ``psi_e`` is split into receiver, sender and edge blocks, the node blocks applied once per
-  node and gathered: the same function as a dense layer on the concatenation, fewer FLOPs.
+  no residual, as in the paper). Edge embeddings are not updated.
 - Decoder ``MLP_d`` -> 3 normalised acceleration components per ball (zero on other rows).
 - Global readout: mean of the final embeddings of the balls with at least one incident real
   edge in their graph (a zero vector if there is none), then an MLP -> normalised dE per graph.
+
+Exact restructurings for speed (the same function and parameters as the straightforward
+network, up to float32 rounding; ``tests/test_model.py`` checks both against a reference):
+
+1. The first layer of ``psi_e`` is split into receiver, sender and edge blocks; the node blocks
+   run once per node and are gathered per edge instead of a 3*hidden-wide matmul per edge.
+2. The edge encoder's output layer is linear and feeds only the edge block of each message
+   layer, so the two are one linear map: ``(z W4 + b4) Wc = z (W4 Wc) + b4 Wc``. The product
+   ``W4 Wc`` costs as much as ``hidden`` edge rows, so it is used when the graph has more edge
+   slots than that (training batches); otherwise the two layers run on the edges as written.
+3. The message MLP's output layer is linear and the aggregation is a mean, so the layer runs
+   after the mean, once per node: ``mean_e(z_e W + b) = mean_e(z_e) W + b [count > 0]``.
+
+Per edge slot this leaves the edge encoder's first three layers and two hidden x hidden
+message layers (plus the edge block), against seven hidden x hidden matmuls before.
 
 Padding is handled with the boolean masks of the graph (jraph's ``zero_out_padding`` is broken
 on current JAX): padding edges carry no message, padding nodes are never read by a real node.
@@ -25,7 +38,7 @@ All computation is in ``float32`` (parameters and activations).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax.linen as nn
 import jax
@@ -68,27 +81,93 @@ def masked_mean_by_segment(values: jax.Array, mask: jax.Array, segment_ids: jax.
     return total / jnp.maximum(count, 1.0)[:, None], count
 
 
-class InteractionLayer(nn.Module):
-    """One message-passing layer (paper Eqs. 24-26) with mean aggregation."""
+class DenseParams(nn.Module):
+    """The parameters of an ``nn.Dense(features)`` on ``in_features`` inputs, not applied.
+
+    Same names, shapes, dtypes and initialisers (LeCun-normal kernel, zero bias) as
+    ``nn.Dense``, created in the same order, so the parameter tree and its initial values are
+    those of the dense layer it stands for; used where a layer is fused with another one.
+    Returns ``(kernel (in_features, features), bias (features,) or None)``.
+    """
+
+    features: int
+    use_bias: bool = True
+
+    @nn.compact
+    def __call__(self, in_features: int) -> tuple[jax.Array, jax.Array | None]:
+        kernel = self.param("kernel", nn.initializers.lecun_normal(),
+                            (in_features, self.features), DTYPE)
+        bias = (self.param("bias", nn.initializers.zeros_init(), (self.features,), DTYPE)
+                if self.use_bias else None)
+        return kernel, bias
+
+
+class EdgeEmbedding(NamedTuple):
+    """The edge encoder's output ``h_e = hidden @ kernel + bias``, kept factored.
+
+    ``hidden`` (E, H) is the last ReLU activation of the encoder, ``kernel`` (H, H) and ``bias``
+    (H,) its linear output layer; ``h_edge`` (E, H) is the product, or None when every
+    interaction layer fuses the output layer into its message layer instead.
+    """
+
+    hidden: jax.Array
+    kernel: jax.Array
+    bias: jax.Array
+    h_edge: jax.Array | None
+
+
+class EdgeEncoder(nn.Module):
+    """``MLP`` with its linear output layer returned as parameters (see :class:`EdgeEmbedding`).
+
+    Same parameter tree as ``MLP(hidden, hidden, layers)``.
+    """
 
     hidden: int
     layers: int = 4
 
     @nn.compact
-    def __call__(self, h_node: jax.Array, h_edge: jax.Array, senders: jax.Array,
+    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        for i in range(self.layers - 1):
+            x = nn.relu(nn.Dense(self.hidden, dtype=DTYPE, param_dtype=DTYPE, name=f"dense_{i}")(x))
+        kernel, bias = DenseParams(self.hidden, name=f"dense_{self.layers - 1}")(x.shape[-1])
+        return x, kernel, bias
+
+
+class InteractionLayer(nn.Module):
+    """One message-passing layer (paper Eqs. 24-26) with mean aggregation.
+
+    ``psi_e``'s first layer is split into receiver, sender and edge blocks (node blocks once per
+    node, gathered per edge); its edge block is fused with the edge encoder's output layer when
+    ``edge.h_edge`` is None; its output layer runs after the mean, once per node.
+    """
+
+    hidden: int
+    layers: int = 4
+
+    @nn.compact
+    def __call__(self, h_node: jax.Array, edge: EdgeEmbedding, senders: jax.Array,
                  receivers: jax.Array, edge_mask: jax.Array) -> jax.Array:
         n_node = h_node.shape[0]
         dense = lambda name, bias=True: nn.Dense(  # noqa: E731
             self.hidden, use_bias=bias, dtype=DTYPE, param_dtype=DTYPE, name=name)
-        # First layer of psi_e on [h_receiver, h_sender, h_edge], split by block.
-        z = (dense("message_in_receiver")(h_node)[receivers]
-             + dense("message_in_sender", bias=False)(h_node)[senders]
-             + dense("message_in_edge", bias=False)(h_edge))
-        z = nn.relu(z)
+        edge_kernel, _ = DenseParams(self.hidden, use_bias=False, name="message_in_edge")(
+            edge.kernel.shape[-1])
+        at_receiver = dense("message_in_receiver")(h_node)
+        if edge.h_edge is None:
+            # (z W4 + b4) Wc = z (W4 Wc) + b4 Wc; the constant goes on the receiver's rows.
+            edge_term = edge.hidden @ (edge.kernel @ edge_kernel)
+            at_receiver = at_receiver + edge.bias @ edge_kernel
+        else:
+            edge_term = edge.h_edge @ edge_kernel
+        z = nn.relu(at_receiver[receivers]
+                    + dense("message_in_sender", bias=False)(h_node)[senders] + edge_term)
         for i in range(1, self.layers - 1):
             z = nn.relu(dense(f"message_{i}")(z))
-        messages = dense(f"message_{self.layers - 1}")(z)
-        aggregated, _ = masked_mean_by_segment(messages, edge_mask, receivers, n_node)
+        # The output layer is linear and the mean is linear: apply it to the mean (once per
+        # node); a node without incoming edges gets a zero message, not the bias.
+        mean_z, count = masked_mean_by_segment(z, edge_mask, receivers, n_node)
+        aggregated = jnp.where((count > 0)[:, None],
+                               dense(f"message_{self.layers - 1}")(mean_z), 0.0)
         return MLP(self.hidden, self.hidden, self.layers, name="node_update")(
             jnp.concatenate([h_node, aggregated], axis=-1))
 
@@ -110,6 +189,9 @@ class SGN(nn.Module):
     hidden: int = 256
     mlp_layers: int = 4
     interaction_layers: int = 1
+    # Fuse the edge encoder's output layer into the message layers (see the module docstring):
+    # None chooses by FLOPs from the static edge count; True/False force it (same function).
+    fuse_edge_output: bool | None = None
 
     @nn.compact
     def __call__(self, graph: jraph.GraphsTuple) -> tuple[jax.Array, jax.Array]:
@@ -129,11 +211,18 @@ class SGN(nn.Module):
         h = h.at[wall_rows].set(h_wall, mode="drop")
         e_in = jnp.concatenate([jnp.asarray(graph.edges["features"], DTYPE),
                                 is_pp[:, None].astype(DTYPE), is_pw[:, None].astype(DTYPE)], -1)
-        h_edge = mlp(self.hidden, "edge_encoder")(e_in)
+        z_edge, out_kernel, out_bias = EdgeEncoder(self.hidden, self.mlp_layers,
+                                                   name="edge_encoder")(e_in)
+        # Fusing the encoder's output layer into the L message layers costs L kernel products
+        # (L H^3) and saves one H x H matmul per edge slot (E H^2): worth it when E > L H.
+        fuse = (self.fuse_edge_output if self.fuse_edge_output is not None
+                else e_in.shape[0] > self.interaction_layers * self.hidden)
+        h_edge = None if fuse else z_edge @ out_kernel + out_bias
+        edge = EdgeEmbedding(z_edge, out_kernel, out_bias, h_edge)
 
         for layer in range(self.interaction_layers):
             h = InteractionLayer(self.hidden, self.mlp_layers, name=f"interaction_{layer}")(
-                h, h_edge, graph.senders, graph.receivers, edge_mask)
+                h, edge, graph.senders, graph.receivers, edge_mask)
 
         accel = mlp(3, "decoder")(h)
         accel = jnp.where(is_particle[:, None], accel, 0.0)

@@ -97,22 +97,24 @@ def _reference_forward(params, graph):
     e_in = np.concatenate([g.edges["features"], g.edges["pp"][:, None], g.edges["pw"][:, None]],
                           -1).astype(np.float64)
     he = _np_mlp(params["edge_encoder"], e_in)
-    p = params["interaction_0"]
-    # psi_e as one dense layer on the concatenation [h_receiver, h_sender, h_edge].
-    k0 = np.concatenate([p["message_in_receiver"]["kernel"], p["message_in_sender"]["kernel"],
-                         p["message_in_edge"]["kernel"]]).astype(np.float64)
-    b0 = np.asarray(p["message_in_receiver"]["bias"], np.float64)
-    agg = np.zeros_like(h)
-    count = np.zeros(len(h))
-    for e in real:
-        s, r = g.senders[e], g.receivers[e]
-        z = np.maximum(np.concatenate([h[r], h[s], he[e]]) @ k0 + b0, 0)
-        for i in (1, 2):
-            z = np.maximum(z @ p[f"message_{i}"]["kernel"] + p[f"message_{i}"]["bias"], 0)
-        agg[r] += z @ p["message_3"]["kernel"] + p["message_3"]["bias"]
-        count[r] += 1
-    agg /= np.maximum(count, 1)[:, None]
-    h = _np_mlp(p["node_update"], np.concatenate([h, agg], -1))
+    n_layers = sum(1 for name in params if name.startswith("interaction_"))
+    for layer in range(n_layers):
+        p = params[f"interaction_{layer}"]
+        # psi_e as one dense layer on the concatenation [h_receiver, h_sender, h_edge].
+        k0 = np.concatenate([p["message_in_receiver"]["kernel"], p["message_in_sender"]["kernel"],
+                             p["message_in_edge"]["kernel"]]).astype(np.float64)
+        b0 = np.asarray(p["message_in_receiver"]["bias"], np.float64)
+        agg = np.zeros_like(h)
+        count = np.zeros(len(h))
+        for e in real:
+            s, r = g.senders[e], g.receivers[e]
+            z = np.maximum(np.concatenate([h[r], h[s], he[e]]) @ k0 + b0, 0)
+            for i in (1, 2):
+                z = np.maximum(z @ p[f"message_{i}"]["kernel"] + p[f"message_{i}"]["bias"], 0)
+            agg[r] += z @ p["message_3"]["kernel"] + p["message_3"]["bias"]
+            count[r] += 1
+        agg /= np.maximum(count, 1)[:, None]
+        h = _np_mlp(p["node_update"], np.concatenate([h, agg], -1))
     accel = _np_mlp(params["decoder"], h) * part[:, None]
     touched = set(g.senders[real]) | set(g.receivers[real])
     active = [i for i in np.flatnonzero(part) if i in touched]
@@ -131,6 +133,88 @@ def test_model_matches_a_reference_implementation(setup):
         np.testing.assert_allclose(float(de[0]), ref_de, rtol=2e-4, atol=2e-5)
         checked_edges += int(g.n_edge[0])
     assert checked_edges > 10
+
+
+def _with_random_biases(params, seed):
+    """``params`` with N(0, 0.1) biases (init gives zeros), so every bias path is exercised."""
+    key = jax.random.PRNGKey(seed)
+    leaves, tree = jax.tree_util.tree_flatten_with_path(params)
+    return jax.tree_util.tree_unflatten(tree, [
+        0.1 * jax.random.normal(jax.random.fold_in(key, i), leaf.shape, leaf.dtype)
+        if "bias" in jax.tree_util.keystr(path) else leaf
+        for i, (path, leaf) in enumerate(leaves)])
+
+
+def _random_graph(graph, seed, n_real):
+    """``graph`` with random node and edge features, random senders and receivers (balls and
+    the wall node) and ``n_real`` real edges of both kinds: a graph that no layout assumption
+    of the model can be exact on by accident."""
+    rng = np.random.default_rng(seed)
+    e_cap, n_rows = graph.senders.shape[0], graph.nodes["features"].shape[0]
+    ids = np.arange(e_cap)
+    return graph._replace(
+        nodes=dict(graph.nodes, features=jnp.asarray(
+            rng.normal(size=graph.nodes["features"].shape), jnp.float32)),
+        edges=dict(graph.edges, features=jnp.asarray(rng.normal(size=(e_cap, 3)), jnp.float32),
+                   pp=jnp.asarray(ids < n_real // 2), pw=jnp.asarray((ids >= n_real // 2)
+                                                                    & (ids < n_real))),
+        senders=jnp.asarray(rng.integers(0, n_rows - 1, e_cap), jnp.int32),
+        receivers=jnp.asarray(rng.integers(0, n_rows - 1, e_cap), jnp.int32))
+
+
+@pytest.mark.parametrize("fuse", [True, False])
+def test_restructured_forward_equals_the_straightforward_one(setup, fuse):
+    """The split, fused and post-mean layers of the model vs the concatenation, edge by edge,
+    in float64 (hidden 64, two interaction layers, non-zero biases), on built graphs and on
+    random graphs, with the encoder's output layer fused and not (same function)."""
+    graphs, stats, _, _ = setup
+    model = SGN(hidden=64, mlp_layers=4, interaction_layers=2, fuse_edge_output=fuse)
+    params = _with_random_biases(init_params(model, normalize_graph(graphs[0], stats), 5), 6)
+    apply = jax.jit(model.apply)
+    cases = [normalize_graph(graphs[k], stats) for k in (1, 5)]
+    cases += [_random_graph(cases[0], seed, n) for seed, n in ((1, 20), (2, 31))]
+    for g in cases:
+        accel, de = apply({"params": params}, g)
+        ref_accel, ref_de = _reference_forward(params, g)
+        assert np.linalg.norm(ref_accel) > 1e-2
+        rel = np.linalg.norm(np.asarray(accel, np.float64) - ref_accel) / np.linalg.norm(ref_accel)
+        assert rel < 1e-5, rel
+        assert abs(float(de[0]) - ref_de) < 1e-5 * max(abs(ref_de), 1.0), (float(de[0]), ref_de)
+
+
+def test_checkpoint_from_before_the_restructuring_predicts_the_same():
+    """tests/data/sgn_checkpoint_v1 was saved, with its predictions, by the model code of
+    commit 66433cc (straightforward edge encoder and message MLP; made by
+    tests/data/make_sgn_checkpoint_v1.py). It restores into today's model and predicts the same
+    up to float32 rounding."""
+    import json
+    from pathlib import Path
+
+    from sgn_jax.checkpoint import restore_checkpoint
+    from sgn_jax.train import synthetic_trajectory as trajectory
+
+    directory = Path(__file__).parent / "data" / "sgn_checkpoint_v1"
+    expected = json.loads((directory / "expected_predictions.json").read_text())
+    restored = restore_checkpoint(directory)
+    model = SGN(**expected["model"])
+    spec = GraphSpec(n_particles=6, window=3, ball_radius=0.005, dt=1e-4, pp_pair_capacity=8)
+
+    def sphere(_, points, offset):
+        d = jnp.asarray(points) - jnp.asarray(offset) - jnp.array([0.0, 0.02, 0.0])
+        r = jnp.linalg.norm(d, axis=-1)
+        return r - 0.03, d / r[..., None]
+
+    wins, _, _ = windows_from_trajectory(trajectory(20, 6, seed=2), 3)
+    predict = jax.jit(make_predict(model))
+    for case in expected["predictions"]:
+        win = jax.tree_util.tree_map(lambda a, k=case["window"]: a[k], wins)
+        graph = build_graph(win, None, spec, sphere)[0]
+        assert int(graph.n_edge[0]) == case["n_edge"] > 0
+        accel, de = predict(restored.params, restored.norm_stats, graph)
+        want = np.asarray(case["accel"])
+        rel = np.linalg.norm(np.asarray(accel, np.float64) - want) / np.linalg.norm(want)
+        assert rel < 1e-5, rel
+        np.testing.assert_allclose(np.asarray(de, np.float64), case["dE"], rtol=1e-5)
 
 
 def test_mlps_have_four_layers_of_the_hidden_width():
