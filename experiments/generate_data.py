@@ -1,0 +1,853 @@
+#!/usr/bin/env python
+"""Generate the DEM ensembles of the paper reproduction (issue 6, item 1; SPEC section 7).
+
+    python experiments/generate_data.py [--ensembles experiments/ensembles.toml]
+        [--cases standard,motion1,...] [--split all|train|eval] [--out data/] [--jobs 1]
+        [--dry-run] [--no-pin] [--no-progress]
+
+For every (case, seed) of the ensembles file (experiments/ensembles.toml: config, seconds of
+motion, seeds and which of them are training packings) this runs
+
+    taskset -c CORE sgn-jax dem --config CONFIG --duration D --seed S --out OUT/{case}_seed{S}.npz
+
+unless that file is already complete. A file counts as complete when
+``sgn_jax.dataset.load_trajectory`` accepts it *and* it is the run asked for: its seed, its
+number of samples (D / dt + 1) and the DEM-relevant part of its config ([jar], [motion],
+[balls], [material], [dem] except seed/duration/chunk_samples, [sdf] for mesh jars) match the
+case. A corrupt or stale file is deleted and redone. An interrupted run left ``OUT.partial/``
+behind; ``sgn-jax dem`` resumes from there, so rerunning this script continues where it stopped.
+
+Runs go to ``--jobs`` parallel processes, process k pinned to the k-th core this process may
+use (``taskset -c``), because one DEM process per core is the fastest way to run an ensemble
+on a CPU: vmapping packings inside one process gives fewer system-steps per second per core
+(docs/benchmarks.md, DEM throughput). Each run's output (its JSON summary line, errors) goes to
+``OUT/logs/{case}_seed{S}.log``.
+
+After every finished run ``OUT/manifest.json`` is rewritten atomically: one entry per file
+(case, seed, split, file, sha256, duration, wall time, total dissipation, mean dissipation
+power, mean ball-ball contacts, regime label, ...) and a per-case summary (states of the
+training and evaluation packings, mean power and spread).
+
+The regime label is SPEC 7's state from the regime indicator "mean ball-ball contact count" of
+the DEM: "bed" when the mean number of ball-ball contacts per ball is >=
+:data:`REGIME_PP_CONTACTS_PER_BALL` (14 contacts for 24 balls), else "agitated"; it is also
+given per 1-s window (``regime_windows``) because a run can switch. Why this indicator and
+threshold: on the standard case the agitated seed 0 has 9-11 contacts (0.30 W) in every second
+of its 10 s, the bed seeds 1-3 have 17-21 (0.09-0.14 W) (docs/dem.md, and 1-s reruns of seeds 1
+and 3); 14 lies between. The rule of ``sgn-jax evaluate`` (ball pairs within ``2 R + [graph]
+pp_skin`` per ball >= ``sgn_jax.metrics.BED_PAIRS_PER_BALL`` = 0.75) does not separate them:
+1.45-1.59 pairs per ball for the agitated seed 0, 1.66-1.76 for the bed seeds 1 and 3, all
+"bed". Its label is recorded too (``regime_evaluate_rule``) with the value it thresholds.
+
+Exit status: 0 when every selected run is complete, 1 if a run failed (the others still run),
+2 for a bad ensembles file or argument, 130 when interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import datetime
+import json
+import math
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_ENSEMBLES = HERE / "ensembles.toml"
+MANIFEST_NAME = "manifest.json"
+MANIFEST_FORMAT = 1
+REGIME_WINDOW_S = 1.0  # length of the windows of ``regime_windows`` (s of motion)
+REGIME_PP_CONTACTS_PER_BALL = 14.0 / 24.0
+"""Bed/agitated threshold on the DEM's mean ball-ball contacts per ball (module docstring)."""
+# Wall time per simulated second of one DEM process (settling included), for estimates before
+# any run has finished: 11 s uncontended (95k steps/s), ~30 s with a busy second core
+# (docs/dem.md: 308 s for 0.5 s of settling + 10 s of motion).
+WALL_PER_SIM_SECOND_RANGE = (11.0, 30.0)
+POLL_S = 1.0
+
+_CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+_CASE_KEYS = {"config", "duration", "seeds", "train_seeds", "description"}
+# Config sections that determine the DEM trajectory of a seed (the rest configure the SGN).
+_DEM_SECTIONS = ("jar", "motion", "balls", "material", "dem")
+_DEM_KEYS_NOT_COMPARED = ("seed", "duration", "chunk_samples")
+
+
+class EnsembleError(ValueError):
+    """The ensembles file or an argument is wrong; the message says what and how to fix it."""
+
+
+# --------------------------------------------------------------------------------------------
+# The ensembles file
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """One case of the ensembles file: a config run from several seeds (packings).
+
+    ``duration`` is seconds of motion after settling; ``train_seeds`` is a subset of ``seeds``
+    (the packings the SGN may train on); the other seeds are held-out evaluation packings.
+    """
+
+    name: str
+    config: str
+    config_path: Path
+    duration: float
+    seeds: tuple[int, ...]
+    train_seeds: tuple[int, ...]
+    description: str = ""
+
+    @property
+    def eval_seeds(self) -> tuple[int, ...]:
+        return tuple(s for s in self.seeds if s not in self.train_seeds)
+
+    def split_of(self, seed: int) -> str:
+        return "train" if seed in self.train_seeds else "eval"
+
+
+def _resolve_config(value: str, base: Path) -> Path:
+    """A config named in the ensembles file: a ``.toml`` path (relative to the file's folder)
+    or a name looked up in ``<folder>/configs/NAME.toml``, then in the package's configs."""
+    if value.endswith(".toml") or "/" in value:
+        path = Path(value)
+        return path if path.is_absolute() else base / path
+    local = base / "configs" / f"{value}.toml"
+    if local.is_file():
+        return local
+    from sgn_jax.config import ConfigError, builtin_config_path
+
+    try:
+        return builtin_config_path(value)
+    except ConfigError as exc:
+        raise EnsembleError(f"config {value!r}: not in {base / 'configs'} and {exc}") from None
+
+
+def _seed_list(value: Any, where: str) -> tuple[int, ...]:
+    if not isinstance(value, list) or not all(
+            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in value):
+        raise EnsembleError(f"{where} must be a list of integers >= 0, got {value!r}")
+    duplicates = sorted({s for s in value if value.count(s) > 1})
+    if duplicates:
+        raise EnsembleError(f"{where} lists seed(s) {duplicates} more than once")
+    return tuple(value)
+
+
+def load_ensembles(path: str | Path) -> dict[str, Case]:
+    """Read and check an ensembles file (see experiments/ensembles.toml for the format).
+
+    Returns:
+        {case name: Case}, in file order.
+    Raises:
+        EnsembleError naming the file, the case and the problem.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise EnsembleError(f"ensembles file not found: {path}")
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise EnsembleError(f"{path}: not valid TOML: {exc}") from None
+    tables = data.get("cases")
+    unknown_top = sorted(set(data) - {"cases"})
+    if unknown_top:
+        raise EnsembleError(f"{path}: unknown top-level key(s) {unknown_top}; cases go in "
+                            "[cases.NAME] tables")
+    if not isinstance(tables, dict) or not tables:
+        raise EnsembleError(f"{path}: no cases; add [cases.NAME] tables with config, duration, "
+                            "seeds and train_seeds")
+    cases: dict[str, Case] = {}
+    for name, table in tables.items():
+        where = f"{path}: [cases.{name}]"
+        if not _CASE_NAME.match(name):
+            raise EnsembleError(f"{where}: a case name may hold only letters, digits, '_' and "
+                                "'-' (it names the data files)")
+        if not isinstance(table, dict):
+            raise EnsembleError(f"{where} must be a table")
+        unknown = sorted(set(table) - _CASE_KEYS)
+        missing = sorted({"config", "duration", "seeds"} - set(table))
+        if unknown or missing:
+            raise EnsembleError(f"{where}: unknown key(s) {unknown}, missing key(s) {missing}; "
+                                f"allowed: {sorted(_CASE_KEYS)}")
+        config = table["config"]
+        if not isinstance(config, str) or not config:
+            raise EnsembleError(f"{where}: config must be a config name or a .toml path")
+        config_path = _resolve_config(config, path.parent)
+        if not config_path.is_file():
+            raise EnsembleError(f"{where}: config file {config_path} does not exist")
+        duration = table["duration"]
+        if isinstance(duration, bool) or not isinstance(duration, (int, float)) \
+                or not duration > 0 or not math.isfinite(duration):
+            raise EnsembleError(f"{where}: duration must be a number of seconds > 0, got "
+                                f"{duration!r}")
+        seeds = _seed_list(table["seeds"], f"{where} seeds")
+        if not seeds:
+            raise EnsembleError(f"{where}: seeds is empty")
+        train = _seed_list(table.get("train_seeds", []), f"{where} train_seeds")
+        stray = [s for s in train if s not in seeds]
+        if stray:
+            raise EnsembleError(f"{where}: train_seeds {stray} are not in seeds {list(seeds)}; "
+                                "every training seed must also be listed in seeds")
+        description = table.get("description", "")
+        if not isinstance(description, str):
+            raise EnsembleError(f"{where}: description must be a string")
+        cases[name] = Case(name=name, config=config, config_path=config_path,
+                           duration=float(duration), seeds=seeds, train_seeds=train,
+                           description=description)
+    return cases
+
+
+def select_cases(cases: dict[str, Case], names: str | None) -> list[Case]:
+    """The cases named in a comma-separated list (all if None), in the file's order."""
+    if not names:
+        return list(cases.values())
+    wanted = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = [n for n in wanted if n not in cases]
+    if unknown or not wanted:
+        raise EnsembleError(f"--cases {names!r}: unknown case(s) {unknown}; the ensembles file "
+                            f"has {list(cases)}")
+    return [case for name, case in cases.items() if name in wanted]
+
+
+# --------------------------------------------------------------------------------------------
+# Runs and their files
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One (case, seed): the DEM run that writes ``out_dir/{case}_seed{seed}.npz``."""
+
+    case: Case
+    seed: int
+    out_dir: Path
+
+    @property
+    def key(self) -> str:
+        return f"{self.case.name}_seed{self.seed}"
+
+    @property
+    def file_name(self) -> str:
+        return f"{self.key}.npz"
+
+    @property
+    def out_path(self) -> Path:
+        return self.out_dir / self.file_name
+
+    @property
+    def log_path(self) -> Path:
+        return self.out_dir / "logs" / f"{self.key}.log"
+
+    @property
+    def split(self) -> str:
+        return self.case.split_of(self.seed)
+
+
+def plan_runs(cases: Iterable[Case], out_dir: str | Path, split: str = "all") -> list[Run]:
+    """Every (case, seed) of ``cases`` in ``split`` ("all", "train" or "eval")."""
+    if split not in ("all", "train", "eval"):
+        raise EnsembleError(f"--split must be all, train or eval, got {split!r}")
+    runs = []
+    for case in cases:
+        for seed in case.seeds:
+            if split in ("all", case.split_of(seed)):
+                runs.append(Run(case=case, seed=seed, out_dir=Path(out_dir)))
+    return runs
+
+
+def dem_relevant_config(cfg: Any) -> dict[str, Any]:
+    """The parts of a config that determine a seed's DEM trajectory, as plain data."""
+    from sgn_jax.config import config_to_dict
+
+    full = config_to_dict(cfg)
+    out = {section: full[section] for section in _DEM_SECTIONS}
+    out["dem"] = {k: v for k, v in out["dem"].items() if k not in _DEM_KEYS_NOT_COMPARED}
+    if full["jar"].get("kind") != "emax":  # only mesh jars read the DEM's walls from [sdf]
+        out["sdf"] = full["sdf"]
+    return out
+
+
+def _differences(a: Any, b: Any, prefix: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b)):
+            out += _differences(a.get(key), b.get(key), f"{prefix}{key}.")
+        return out
+    return [] if a == b else [f"{prefix[:-1]}: file {b!r}, case {a!r}"]
+
+
+@dataclasses.dataclass
+class FileStatus:
+    """What is at a run's output path: kind in missing / partial / valid / corrupt / stale."""
+
+    kind: str
+    reason: str = ""
+    trajectory: Any = None
+    partial_sim_s: float = 0.0  # simulated seconds (settling + motion) done in OUT.partial/
+
+
+def partial_progress(run: Run, cfg: Any) -> float:
+    """Simulated seconds (settling + motion) a run has in its ``OUT.partial/`` checkpoint.
+
+    The DEM driver writes chunk 0 (the settled state) after settling, then one chunk file per
+    ``[dem] chunk_samples`` samples of motion.
+    """
+    from sgn_jax.dem.driver import partial_dir
+
+    folder = partial_dir(run.out_path)
+    if not folder.is_dir():
+        return 0.0
+    n_chunks = len(list(folder.glob("chunk_*.npz")))
+    if n_chunks == 0:
+        return 0.0
+    motion = min(run.case.duration, (n_chunks - 1) * cfg.dem.chunk_samples * cfg.dem.dt)
+    return cfg.dem.settle_time + motion
+
+
+def inspect_output(run: Run, cfg: Any) -> FileStatus:
+    """Classify the run's output file; a valid one comes with its loaded Trajectory."""
+    from sgn_jax.config import config_from_dict
+    from sgn_jax.dataset import DatasetError, load_trajectory
+
+    path = run.out_path
+    if not path.exists():
+        done = partial_progress(run, cfg)
+        return FileStatus("partial" if done > 0 else "missing", partial_sim_s=done)
+    try:
+        traj = load_trajectory(path)
+    except DatasetError as exc:
+        return FileStatus("corrupt", str(exc))
+    meta = traj.meta
+    if meta["seed"] != run.seed:
+        return FileStatus("stale", f"{path} holds seed {meta['seed']}, not {run.seed}")
+    expected = int(round(run.case.duration / cfg.dem.dt)) + 1
+    if traj.n_samples != expected or not math.isclose(meta["dt"], cfg.dem.dt, rel_tol=1e-9):
+        return FileStatus("stale", f"{path} holds {traj.n_samples} samples of dt = "
+                          f"{meta['dt']:g} s, the case asks for {expected} (duration "
+                          f"{run.case.duration:g} s, dt = {cfg.dem.dt:g} s)")
+    try:
+        file_cfg = config_from_dict(meta["config"])
+    except ValueError as exc:
+        return FileStatus("corrupt", f"{path}: its meta config does not load: {exc}")
+    differences = _differences(dem_relevant_config(cfg), dem_relevant_config(file_cfg))
+    if differences:
+        shown = "; ".join(differences[:4]) + (" ..." if len(differences) > 4 else "")
+        return FileStatus("stale", f"{path} was made with a different config ({shown})")
+    return FileStatus("valid", trajectory=traj)
+
+
+def regime_of(pp_contacts_per_ball: float) -> str:
+    """SPEC 7 state from the DEM's mean ball-ball contacts per ball (module docstring)."""
+    return "bed" if pp_contacts_per_ball >= REGIME_PP_CONTACTS_PER_BALL else "agitated"
+
+
+def file_record(run: Run, traj: Any, cfg: Any, sha256: str) -> dict[str, Any]:
+    """The manifest entry of a valid file, from the file itself (wall times added by caller)."""
+    import numpy as np
+
+    from sgn_jax.metrics import (
+        BED_PAIRS_PER_BALL,
+        classify_state,
+        pairs_within,
+        pp_contact_counts,
+    )
+
+    arrays = traj.arrays
+    diss = {name: float(np.sum(value)) for name, value in arrays.items()
+            if name.startswith("diss_")}
+    total = sum(diss.values())
+    duration = float(traj.t[-1] - traj.t[0])
+    n_balls = traj.n_balls
+    cutoff = 2.0 * float(traj.meta["ball_radius"]) + float(cfg.graph.pp_skin)
+    mean_pairs = float(np.mean(pairs_within(traj.pos, cutoff))) / n_balls
+    contacts = pp_contact_counts(traj.pp_pairs)
+    n_windows = max(1, int(round(duration / REGIME_WINDOW_S)))
+    windows = [regime_of(float(np.mean(part)) / n_balls)
+               for part in np.array_split(contacts[1:] if contacts.size > 1 else contacts,
+                                          n_windows)]
+    return {
+        "case": run.case.name,
+        "seed": run.seed,
+        "split": run.split,
+        "config": str(run.case.config),
+        "file": run.file_name,
+        "sha256": sha256,
+        "size_bytes": run.out_path.stat().st_size,
+        "duration_s": duration,
+        "n_samples": traj.n_samples,
+        "settle_time_s": traj.meta.get("settle_time"),
+        "total_dissipation_J": total,
+        "surrogate_target_J": float(traj.cumulative_dissipation()[-1]),
+        "dissipation_J": diss,
+        "mean_dissipation_power_W": total / duration if duration > 0 else None,
+        "mean_pp_contacts": float(np.mean(contacts)),
+        "mean_pw_contacts": float(np.mean(np.sum(traj.pw_contact, axis=1))),
+        "mean_ke_trans_J": float(np.mean(traj.ke_trans)),
+        "regime": regime_of(float(np.mean(contacts)) / n_balls),
+        "regime_threshold_pp_contacts_per_ball": REGIME_PP_CONTACTS_PER_BALL,
+        "regime_windows": windows,
+        "regime_window_s": duration / n_windows,
+        "pp_pairs_within_skin_per_ball": mean_pairs,
+        "pp_cutoff_m": cutoff,
+        "regime_evaluate_rule": classify_state(mean_pairs, BED_PAIRS_PER_BALL),
+        "ledger_residual_J": traj.meta.get("ledger_residual_J"),
+        "code_version": traj.meta.get("code_version"),
+        "created": traj.meta.get("created"),
+    }
+
+
+def dem_command(run: Run, base: Sequence[str] | None = None) -> list[str]:
+    """The ``sgn-jax dem`` command of a run (without the taskset prefix)."""
+    base = list(base) if base is not None else sgn_jax_command()
+    return [*base, "dem", "--config", str(run.case.config_path), "--duration",
+            repr(run.case.duration), "--seed", str(run.seed), "--out", str(run.out_path),
+            "--no-progress"]
+
+
+def sgn_jax_command() -> list[str]:
+    """How to call the CLI: this interpreter's ``sgn-jax`` script, else ``python -m``."""
+    script = Path(sys.executable).with_name("sgn-jax")
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("sgn-jax")
+    return [found] if found else [sys.executable, "-m", "sgn_jax.cli"]
+
+
+def usable_cores() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return list(range(os.cpu_count() or 1))
+
+
+# --------------------------------------------------------------------------------------------
+# The manifest
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+
+
+def read_manifest(out_dir: Path) -> dict[str, dict[str, Any]]:
+    """The entries of an existing manifest by file name ({} if none or unreadable)."""
+    path = out_dir / MANIFEST_NAME
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+        return {entry["file"]: entry for entry in data["runs"]}
+    except (ValueError, KeyError, TypeError) as exc:
+        print(f"generate_data: warning: {path} is unreadable ({exc}); rebuilding it from the "
+              "files", file=sys.stderr)
+        return {}
+
+
+def _spread(values: list[float]) -> dict[str, Any]:
+    import numpy as np
+
+    if not values:
+        return {"n": 0, "mean": None, "std": None, "min": None, "max": None}
+    array = np.asarray(values, dtype=np.float64)
+    return {"n": int(array.size), "mean": float(array.mean()),
+            "std": float(array.std(ddof=1)) if array.size > 1 else None,
+            "min": float(array.min()), "max": float(array.max())}
+
+
+def case_summaries(cases: Iterable[Case], entries: dict[str, dict[str, Any]]
+                   ) -> tuple[dict[str, Any], list[str]]:
+    """Per case: completeness, states and power of its training and evaluation packings; plus
+    warnings (a complete training set in one state only: SPEC 7 asks for both)."""
+    summaries, warnings = {}, []
+    for case in cases:
+        per_split: dict[str, Any] = {}
+        for split, seeds in (("train", case.train_seeds), ("eval", case.eval_seeds)):
+            done = [entries[f"{case.name}_seed{s}.npz"] for s in seeds
+                    if f"{case.name}_seed{s}.npz" in entries]
+            states: dict[str, list[int]] = collections.defaultdict(list)
+            for entry in done:
+                states[entry["regime"]].append(entry["seed"])
+            per_split[split] = {
+                "seeds": list(seeds), "complete": len(done), "states": dict(states),
+                "power_W": _spread([e["mean_dissipation_power_W"] for e in done
+                                    if e["mean_dissipation_power_W"] is not None]),
+                "mean_pp_contacts": _spread([e["mean_pp_contacts"] for e in done]),
+            }
+        train = per_split["train"]
+        if case.train_seeds and train["complete"] == len(case.train_seeds) \
+                and len(train["states"]) == 1 and len(case.train_seeds) > 1:
+            (state,) = train["states"]
+            warnings.append(f"{case.name}: every training packing {list(case.train_seeds)} is "
+                            f"'{state}'; SPEC 7 wants training data in both states: move a "
+                            "packing of the other state into train_seeds (or add seeds)")
+        summaries[case.name] = {"config": case.config, "duration_s": case.duration,
+                                "description": case.description, **per_split}
+    return summaries, warnings
+
+
+def write_manifest(out_dir: Path, ensembles_path: Path, cases: Sequence[Case],
+                   entries: dict[str, dict[str, Any]]) -> list[str]:
+    """Rewrite ``out_dir/manifest.json`` atomically; returns the case warnings."""
+    from sgn_jax.io_utils import git_commit, sha256_file, write_json
+
+    summaries, warnings = case_summaries(cases, entries)
+    write_json(out_dir / MANIFEST_NAME, {
+        "format": MANIFEST_FORMAT,
+        "updated": _now(),
+        "generator": "experiments/generate_data.py",
+        "generator_commit": git_commit(),
+        "ensembles": str(ensembles_path),
+        "ensembles_sha256": sha256_file(ensembles_path),
+        "runs": sorted(entries.values(), key=lambda entry: (entry["case"], entry["seed"])),
+        "cases": summaries,
+        "warnings": warnings,
+    })
+    return warnings
+
+
+# --------------------------------------------------------------------------------------------
+# Running
+
+
+@dataclasses.dataclass
+class Active:
+    run: Run
+    process: subprocess.Popen
+    log: Any
+    log_offset: int
+    core: int | None
+    started: float
+    partial_at_start: float  # simulated s already in OUT.partial/ when it started
+
+    @property
+    def resumed(self) -> bool:
+        return self.partial_at_start > 0
+
+
+def _format_duration(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def _last_json_line(path: Path, offset: int) -> dict[str, Any] | None:
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        text = fh.read().decode("utf-8", "replace")
+    for line in reversed(text.splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            try:
+                data = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(data, dict) and "total_dissipation_J" in data:
+                return data
+    return None
+
+
+def _log_tail(path: Path, offset: int, lines: int = 6) -> str:
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        text = fh.read().decode("utf-8", "replace")
+    return "\n".join("    " + line for line in text.splitlines()[-lines:])
+
+
+class Generator:
+    """Plans, runs and records one invocation (see the module docstring)."""
+
+    def __init__(self, ensembles_path: Path, cases: dict[str, Case], selected: list[Case],
+                 out_dir: Path, split: str, jobs: int, pin: bool, progress: bool,
+                 echo=print) -> None:
+        from sgn_jax.config import load_config
+
+        self.ensembles_path = ensembles_path
+        self.all_cases = list(cases.values())
+        self.selected = selected
+        self.out_dir = out_dir
+        self.jobs = jobs
+        self.progress = progress
+        self.echo = echo
+        self.runs = plan_runs(selected, out_dir, split)
+        self.configs = {case.name: load_config(case.config_path) for case in selected}
+        self.pin = pin and shutil.which("taskset") is not None
+        self.pin_note = "" if self.pin or not pin else " (taskset not found: not pinned)"
+        self.cores = usable_cores()
+        self.base = sgn_jax_command()
+
+    def work_of(self, run: Run) -> float:
+        """Simulated seconds of a run: settling + motion."""
+        return self.configs[run.case.name].dem.settle_time + run.case.duration
+
+    def command(self, run: Run, slot: int) -> tuple[list[str], int | None]:
+        cmd = dem_command(run, self.base)
+        if not self.pin:
+            return cmd, None
+        core = self.cores[slot % len(self.cores)]
+        return ["taskset", "-c", str(core), *cmd], core
+
+    # ---- scan
+    def scan(self, dry_run: bool) -> tuple[list[tuple[Run, FileStatus]], dict[str, Any]]:
+        """Check every planned run's file; returns (runs to do with their status, entries)."""
+        from sgn_jax.io_utils import sha256_file
+
+        entries = read_manifest(self.out_dir)
+        todo = []
+        for run in self.runs:
+            cfg = self.configs[run.case.name]
+            status = inspect_output(run, cfg)
+            if status.kind == "valid":
+                if dry_run:  # no manifest is written: skip hashing and statistics
+                    self.echo(f"skip  {run.key}: valid ({run.out_path})")
+                    continue
+                sha = sha256_file(run.out_path)
+                old = entries.get(run.file_name)
+                if old is None or old.get("sha256") != sha:
+                    entry = file_record(run, status.trajectory, cfg, sha)
+                    entry.update(wall_time_s=None, note="recorded from an existing file")
+                    entries[run.file_name] = entry
+                else:
+                    old["split"] = run.split  # the split may have been edited since
+                self.echo(f"skip  {run.key}: valid ({run.out_path})")
+                continue
+            entries.pop(run.file_name, None)
+            if status.kind in ("corrupt", "stale"):
+                action = "would redo" if dry_run else "redo"
+                self.echo(f"{action}  {run.key}: {status.kind}: {status.reason}")
+                if not dry_run:
+                    run.out_path.unlink()
+                status.partial_sim_s = partial_progress(run, cfg)
+            elif status.kind == "partial":
+                self.echo(f"resume {run.key}: {status.partial_sim_s:g} of "
+                          f"{self.work_of(run):g} simulated s done in "
+                          f"{run.out_path.name}.partial/")
+            todo.append((run, status))
+        return todo, entries
+
+    # ---- run
+    def execute(self, todo: list[tuple[Run, FileStatus]], entries: dict[str, Any]) -> int:
+        from tqdm import tqdm
+
+        write_manifest(self.out_dir, self.ensembles_path, self.all_cases, entries)
+        n_total = len(self.runs)
+        n_done = n_total - len(todo)
+        total_work = sum(self.work_of(run) for run, _ in todo)
+        done_work = sum(status.partial_sim_s for _, status in todo)
+        queue = collections.deque(todo)
+        active: dict[int, Active] = {}
+        failures: list[str] = []
+        t_start = time.perf_counter()
+        session_start_work = done_work
+        completed_work = done_work  # work of finished runs + partial work found at start
+        bar = tqdm(total=round(total_work, 3), initial=round(done_work, 3), unit="sim s",
+                   disable=not self.progress, dynamic_ncols=True,
+                   bar_format="{l_bar}{bar}| {n:.4g}/{total:.4g} sim s "
+                   "[{elapsed}<{remaining}{postfix}]")
+        bar.set_postfix_str(f"runs {n_done}/{n_total}")
+        write = bar.write if self.progress else self.echo
+
+        def progress_of(item: Active) -> float:
+            cfg = self.configs[item.run.case.name]
+            return max(0.0, partial_progress(item.run, cfg) - item.partial_at_start)
+
+        def current_work() -> float:
+            return completed_work + sum(progress_of(item) for item in active.values())
+
+        def eta() -> float | None:
+            elapsed = time.perf_counter() - t_start
+            gained = current_work() - session_start_work
+            if gained <= 0:
+                return None
+            return elapsed / gained * (total_work - current_work())
+
+        try:
+            while queue or active:
+                for slot in range(self.jobs):
+                    if slot in active or not queue:
+                        continue
+                    run, status = queue.popleft()
+                    cmd, core = self.command(run, slot)
+                    run.log_path.parent.mkdir(parents=True, exist_ok=True)
+                    log = open(run.log_path, "ab")  # closed when the process ends
+                    offset = log.tell()
+                    log.write(f"# {_now()} {shlex.join(cmd)}\n".encode())
+                    log.flush()
+                    env = dict(os.environ, PYTHONUNBUFFERED="1")
+                    process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                               env=env)
+                    active[slot] = Active(run, process, log, offset, core,
+                                          time.perf_counter(), status.partial_sim_s)
+                    where = f" on core {core}" if core is not None else ""
+                    write(f"start {run.key}{where}: {shlex.join(cmd)}")
+                time.sleep(POLL_S)
+                for slot in list(active):
+                    item = active[slot]
+                    if item.process.poll() is None:
+                        continue
+                    item.log.close()
+                    ok = self.finish(item, entries, write)
+                    if ok:
+                        n_done += 1
+                        completed_work += self.work_of(item.run) - item.partial_at_start
+                    else:  # what it did stays in OUT.partial/; the rest is not done now
+                        failures.append(item.run.key)
+                        gained = progress_of(item)
+                        completed_work += gained
+                        total_work -= self.work_of(item.run) - item.partial_at_start - gained
+                        bar.total = round(total_work, 3)
+                    del active[slot]
+                    write_manifest(self.out_dir, self.ensembles_path, self.all_cases, entries)
+                    write(f"[{n_done}/{n_total} runs done, {len(failures)} failed] "
+                          f"ETA {_format_duration(eta() if (queue or active) else 0.0)}")
+                    bar.set_postfix_str(f"runs {n_done}/{n_total}")
+                shown = round(min(current_work(), total_work), 3)
+                if shown != bar.n:  # a new checkpoint chunk: redraw (and no more often)
+                    bar.n = shown
+                    bar.refresh()
+        except KeyboardInterrupt:
+            for item in active.values():
+                item.process.terminate()
+            for item in active.values():
+                try:
+                    item.process.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    item.process.kill()
+                item.log.close()
+            bar.close()
+            write_manifest(self.out_dir, self.ensembles_path, self.all_cases, entries)
+            self.echo("generate_data: interrupted; rerun the same command to resume (the "
+                      "runs continue from their .partial/ checkpoints)")
+            return 130
+        bar.close()
+        for warning in write_manifest(self.out_dir, self.ensembles_path, self.all_cases,
+                                      entries):
+            self.echo(f"generate_data: warning: {warning}")
+        self.echo(f"generate_data: {n_done}/{n_total} runs complete in "
+                  f"{_format_duration(time.perf_counter() - t_start)}; manifest "
+                  f"{self.out_dir / MANIFEST_NAME}")
+        if failures:
+            self.echo(f"generate_data: {len(failures)} run(s) failed: {failures}; see their "
+                      f"logs in {self.out_dir / 'logs'}; rerun to retry (they resume)")
+            return 1
+        return 0
+
+    def finish(self, item: Active, entries: dict[str, Any], write) -> bool:
+        """Validate and record a finished process's file; False (with the log's tail) if not."""
+        from sgn_jax.io_utils import sha256_file
+
+        run = item.run
+        wall = time.perf_counter() - item.started
+        rc = item.process.returncode
+        status = inspect_output(run, self.configs[run.case.name]) if rc == 0 else None
+        if status is None or status.kind != "valid":
+            why = f"exit status {rc}" if rc != 0 else f"its file is {status.kind}: {status.reason}"
+            write(f"FAILED {run.key} after {wall:.0f} s ({why}); log {run.log_path}:\n"
+                  f"{_log_tail(run.log_path, item.log_offset)}")
+            return False
+        entry = file_record(run, status.trajectory, self.configs[run.case.name],
+                            sha256_file(run.out_path))
+        summary = _last_json_line(run.log_path, item.log_offset) or {}
+        entry.update({
+            "wall_time_s": wall,
+            "dem_wall_time_s": summary.get("wall_time_s"),
+            "compile_time_s": summary.get("compile_time_s"),
+            "steps_per_s": summary.get("steps_per_s"),
+            "balls_outside": summary.get("balls_outside"),
+            "resumed": item.resumed,
+            "core": item.core,
+            "log": str(run.log_path),
+        })
+        entries[run.file_name] = entry
+        power = entry["mean_dissipation_power_W"]
+        write(f"done  {run.key} in {wall:.0f} s: {entry['total_dissipation_J']:.4g} J "
+              f"({power:.4g} W), {entry['mean_pp_contacts']:.1f} ball-ball contacts, "
+              f"{entry['regime']}")
+        return True
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+
+
+def _short(path: Path) -> Path:
+    """``path`` relative to the working directory when it lies below it (shorter commands)."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve())
+    except ValueError:
+        return path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="generate_data.py",
+        description="Run `sgn-jax dem` for every (case, seed) of the ensembles file that has no "
+        "complete file yet (valid files are skipped, corrupt or stale ones redone, interrupted "
+        "ones resumed), in --jobs processes pinned to one core each, and keep OUT/manifest.json "
+        "up to date.")
+    p.add_argument("--ensembles", default=str(_short(DEFAULT_ENSEMBLES)),
+                   help="ensembles file (default: experiments/ensembles.toml)")
+    p.add_argument("--cases", default=None,
+                   help="comma-separated case names (default: all cases of the file)")
+    p.add_argument("--split", choices=("all", "train", "eval"), default="all",
+                   help="only the training or only the evaluation packings (default: all)")
+    p.add_argument("--out", default="data", help="output folder (default: data/)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="parallel DEM processes, one per core (default 1)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="check the existing files and print the commands; run nothing")
+    p.add_argument("--no-pin", action="store_true", help="do not pin processes with taskset")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from sgn_jax.config import ConfigError
+
+    try:
+        if args.jobs < 1:
+            raise EnsembleError(f"--jobs must be >= 1, got {args.jobs}")
+        ensembles_path = Path(args.ensembles)
+        cases = load_ensembles(ensembles_path)
+        selected = select_cases(cases, args.cases)
+        generator = Generator(ensembles_path, cases, selected, Path(args.out), args.split,
+                              args.jobs, pin=not args.no_pin,
+                              progress=not args.no_progress and not args.dry_run)
+    except (EnsembleError, ConfigError) as exc:
+        print(f"generate_data: error: {exc}", file=sys.stderr)
+        return 2
+    if args.jobs > len(generator.cores):
+        print(f"generate_data: warning: {args.jobs} jobs on {len(generator.cores)} core(s): "
+              "processes will share cores", file=sys.stderr)
+    todo, entries = generator.scan(dry_run=args.dry_run)
+    work = sum(generator.work_of(run) - status.partial_sim_s for run, status in todo)
+    low, high = (work * rate / 60.0 for rate in WALL_PER_SIM_SECOND_RANGE)
+    print(f"generate_data: {len(generator.runs)} runs selected, {len(todo)} to do "
+          f"({work:g} simulated s incl. settling: ~{low:.0f}-{high:.0f} core-minutes, "
+          f"~{low / args.jobs:.0f}-{high / args.jobs:.0f} min with {args.jobs} job(s))"
+          f"{generator.pin_note}")
+    if args.dry_run:
+        for slot, (run, _) in enumerate(todo):
+            cmd, _core = generator.command(run, slot % args.jobs)
+            print(shlex.join(cmd))
+        return 0
+    if not todo:
+        for warning in write_manifest(generator.out_dir, ensembles_path, generator.all_cases,
+                                      entries):
+            print(f"generate_data: warning: {warning}")
+        print(f"generate_data: nothing to do; manifest {generator.out_dir / MANIFEST_NAME}")
+        return 0
+    return generator.execute(todo, entries)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
