@@ -22,9 +22,11 @@ network, up to float32 rounding; ``tests/test_model.py`` checks both against a r
    run once per node and are gathered per edge instead of a 3*hidden-wide matmul per edge.
 2. The edge encoder's output layer is linear and feeds only the edge block of each message
    layer, so the two are one linear map: ``(z W4 + b4) Wc = z (W4 Wc) + b4 Wc``. The product
-   ``W4 Wc`` costs as much as ``hidden`` edge rows per call, but in a rollout the parameters
-   are loop constants and XLA hoists it out of the ``lax.scan`` (checked in the compiled HLO),
-   and a training batch has many more edge rows than ``hidden``.
+   ``W4 Wc`` costs as much as ``hidden`` edge rows per call, so by default it is used when the
+   graph has more edge slots than ``interaction_layers * hidden`` (training batches). In a
+   rollout without capacity tiers XLA hoists the product out of the ``lax.scan`` (the
+   parameters are loop constants), so fusing always pays there (``fuse_edge_output=True``);
+   inside the ``lax.switch`` of capacity tiers it is not hoisted and is paid every step.
 3. The message MLP's output layer is linear and the aggregation is a mean, so the layer runs
    after the mean, once per node: ``mean_e(z_e W + b) = mean_e(z_e) W + b [count > 0]``.
 
@@ -190,9 +192,9 @@ class SGN(nn.Module):
     hidden: int = 256
     mlp_layers: int = 4
     interaction_layers: int = 1
-    # Fuse the edge encoder's output layer into the message layers (see the module docstring);
-    # False runs them as written (the same function up to float32 rounding).
-    fuse_edge_output: bool = True
+    # Fuse the edge encoder's output layer into the message layers (see the module docstring):
+    # None chooses by FLOPs from the static edge count; True/False force it (same function).
+    fuse_edge_output: bool | None = None
 
     @nn.compact
     def __call__(self, graph: jraph.GraphsTuple) -> tuple[jax.Array, jax.Array]:
@@ -215,8 +217,10 @@ class SGN(nn.Module):
         z_edge, out_kernel, out_bias = EdgeEncoder(self.hidden, self.mlp_layers,
                                                    name="edge_encoder")(e_in)
         # Fusing the encoder's output layer into the L message layers costs L kernel products
-        # (L H^3, hoisted out of a rollout's loop by XLA) and saves one H x H matmul per edge.
-        h_edge = None if self.fuse_edge_output else z_edge @ out_kernel + out_bias
+        # (L H^3) and saves one H x H matmul per edge slot (E H^2): worth it when E > L H.
+        fuse = (self.fuse_edge_output if self.fuse_edge_output is not None
+                else e_in.shape[0] > self.interaction_layers * self.hidden)
+        h_edge = None if fuse else z_edge @ out_kernel + out_bias
         edge = EdgeEmbedding(z_edge, out_kernel, out_bias, h_edge)
 
         for layer in range(self.interaction_layers):
