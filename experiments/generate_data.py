@@ -58,7 +58,6 @@ import shutil
 import subprocess
 import sys
 import time
-import tomllib
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -150,14 +149,10 @@ def load_ensembles(path: str | Path) -> dict[str, Case]:
     Raises:
         EnsembleError naming the file, the case and the problem.
     """
+    from sgn_jax.config import read_toml
+
     path = Path(path)
-    if not path.is_file():
-        raise EnsembleError(f"ensembles file not found: {path}")
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise EnsembleError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, EnsembleError, "ensembles file")
     tables = data.get("cases")
     unknown_top = sorted(set(data) - {"cases"})
     if unknown_top:

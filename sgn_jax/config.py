@@ -480,16 +480,22 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     return _to_plain(cfg)
 
 
-def load_config(path: str | Path) -> Config:
-    """Load and validate a TOML config file. Raises ConfigError with the file name on error."""
+def read_toml(path: str | Path, error: type[Exception] = ConfigError,
+              what: str = "config file") -> dict[str, Any]:
+    """Read a TOML file as a dict; a missing file or bad TOML raises ``error`` naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise error(f"{what} not found: {path}")
     try:
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            return tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+        raise error(f"{path}: not valid TOML: {exc}") from exc
+
+
+def load_config(path: str | Path) -> Config:
+    """Load and validate a TOML config file. Raises ConfigError with the file name on error."""
+    data = read_toml(path)
     try:
         return config_from_dict(data)
     except ConfigError as exc:
