@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -281,14 +279,9 @@ def memory_in_subprocess(n_steps: int, hidden: int) -> dict:
 
 
 def machine() -> dict:
-    import jax
+    from sgn_jax.io_utils import machine_info
 
-    from sgn_jax.io_utils import git_commit
-
-    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(), "cores_used": len(os.sched_getaffinity(0)),
-            "load_average": [round(x, 2) for x in os.getloadavg()], "python": platform.python_version(),
-            "jax": jax.__version__, "backend": jax.default_backend(), "commit": git_commit()}
+    return machine_info()
 
 
 def markdown(report: dict) -> str:

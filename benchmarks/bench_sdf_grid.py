@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import tempfile
 import time
 
@@ -38,7 +37,7 @@ from sgn_jax.geometry import (
     sdf_grid_from_mesh,
 )
 from sgn_jax.geometry.accuracy import grid_error_report
-from sgn_jax.io_utils import git_commit, write_json
+from sgn_jax.io_utils import machine_info, write_json
 
 DEFAULT = JarParams()
 POST = JarParams(post_radius=0.006, has_post=True)
@@ -175,16 +174,7 @@ def main() -> None:
     args = parser.parse_args()
 
     results = {
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor(),
-            "cpu_count": os.cpu_count(),
-            "load_average_start": os.getloadavg()[0],
-            "jax": jax.__version__,
-            "backend": jax.default_backend(),
-            "commit": git_commit(),
-            "date": time.strftime("%Y-%m-%d %H:%M"),
-        }
+        "machine": machine_info(),
     }
     spacing = 5e-4
     results["sampling"] = {"spacing_mm": spacing * 1e3,

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 
 import jax
@@ -26,7 +25,7 @@ import numpy as np
 import sgn_jax  # noqa: F401  (enables x64)
 from sgn_jax.geometry import JarParams, grid_sdf, jar_sdf, query_sdf_grid, sdf_grid_from_jar
 from sgn_jax.geometry.accuracy import cavity_points, grid_error_report
-from sgn_jax.io_utils import git_commit, write_json
+from sgn_jax.io_utils import machine_info, write_json
 
 DEFAULT = JarParams()
 POST = JarParams(post_radius=0.006, has_post=True)
@@ -175,16 +174,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer points and repeats (smoke test)")
     args = parser.parse_args()
     results = {
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor(),
-            "cpu_count": os.cpu_count(),
-            "load_average_start": os.getloadavg()[0],
-            "jax": jax.__version__,
-            "backend": jax.default_backend(),
-            "commit": git_commit(),
-            "date": time.strftime("%Y-%m-%d %H:%M"),
-        }
+        "machine": machine_info(),
     }
     results["build"] = build_times(1 if args.quick else 3)
     results["queries"] = query_times(200 if args.quick else 2000)

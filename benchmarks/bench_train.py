@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -24,7 +22,7 @@ import numpy as np
 
 import sgn_jax  # noqa: F401  (enables x64 before any array is made)
 from sgn_jax.config import ModelConfig, TrainConfig
-from sgn_jax.io_utils import git_commit
+from sgn_jax.io_utils import machine_info
 from sgn_jax.model import count_params, init_params, make_apply, make_model
 from sgn_jax.train import (
     BatchPacker,
@@ -106,13 +104,7 @@ def main() -> None:
     p.add_argument("--append", action="store_true", help="append the results to docs/benchmarks.md")
     args = p.parse_args()
 
-    machine = {"platform": platform.platform(), "processor": platform.processor() or
-               platform.machine(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
-               "commit": git_commit()}
-    import jax
-
-    machine["jax"] = jax.__version__
-    machine["backend"] = jax.default_backend()
+    machine = machine_info()
     print(json.dumps(machine))
     rows = []
     for hidden in args.hidden:

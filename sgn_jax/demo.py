@@ -317,18 +317,9 @@ def _interval_sum(cumulative: np.ndarray, alignment: Any) -> float:
 
 def _machine() -> dict[str, Any]:
     """Where the timings were taken (the demo's numbers are benchmarks too)."""
-    import os
-    import platform
+    from sgn_jax.io_utils import machine_info
 
-    import jax
-
-    import sgn_jax
-    from sgn_jax.io_utils import git_commit
-
-    return {"platform": platform.platform(), "processor": platform.processor(),
-            "cpu_count": os.cpu_count(), "python": platform.python_version(),
-            "jax": jax.__version__, "backend": jax.default_backend(),
-            "sgn_jax": sgn_jax.__version__, "commit": git_commit()}
+    return machine_info()
 
 
 def _per_ball(value: Any, n_balls: int) -> float | None:

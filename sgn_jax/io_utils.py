@@ -91,3 +91,34 @@ def git_commit() -> str:
     except (OSError, subprocess.SubprocessError):
         pass
     return "unknown"
+
+
+def machine_info() -> dict[str, Any]:
+    """Where a timing was taken: platform, CPU, cores used, load, versions, commit and date.
+
+    Shared by the benchmark scripts and ``sgn-jax demo`` so that every recorded number names
+    its machine the same way.
+    """
+    import platform
+    import time
+
+    import jax
+
+    import sgn_jax
+
+    affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    load = os.getloadavg()
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "cores_used": len(affinity) if affinity else os.cpu_count(),
+        "load_average": [round(x, 2) for x in load],
+        "load_average_start": load[0],
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "sgn_jax": sgn_jax.__version__,
+        "commit": git_commit(),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+    }
