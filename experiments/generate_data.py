@@ -393,7 +393,7 @@ def file_record(run: Run, traj: Any, cfg: Any, sha256: str) -> dict[str, Any]:
         "regime_window_s": duration / n_windows,
         "pp_pairs_within_skin_per_ball": mean_pairs,
         "pp_cutoff_m": cutoff,
-        "regime_evaluate_rule": classify_state(mean_pairs, BED_PAIRS_PER_BALL),
+        "regime_evaluate_rule": classify_state(mean_pairs, BED_PAIRS_PER_BALL, "contacts"),
         "ledger_residual_J": traj.meta.get("ledger_residual_J"),
         "code_version": traj.meta.get("code_version"),
         "created": traj.meta.get("created"),

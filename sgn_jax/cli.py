@@ -275,11 +275,12 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reference", required=True, nargs="+", metavar="DATASET",
                    help="DEM trajectory .npz file(s), one per prediction, same order")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--classify-by", choices=("contacts", "power"), default="contacts",
-                   help="ensemble state classification (default: contacts)")
+    p.add_argument("--classify-by", choices=("speed", "contacts", "power"), default="speed",
+                   help="state rule (SPEC 7): mean ball speed in the jar frame (default), ball "
+                   "pairs within the skin per ball, or dissipation power")
     p.add_argument("--threshold", type=float, default=None,
-                   help="state threshold: ball pairs within the skin per ball (contacts, "
-                   "default 0.75) or W (power, required)")
+                   help="state threshold: m/s (speed, default 0.19), pairs per ball "
+                   "(contacts, default 0.75) or W (power, required)")
     p.set_defaults(handler=_cmd_evaluate)
 
 
@@ -289,7 +290,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from sgn_jax.dataset import load_trajectory
     from sgn_jax.io_utils import write_json
     from sgn_jax.metrics import (
-        BED_PAIRS_PER_BALL,
         MetricsError,
         MetricsWarning,
         compare,
@@ -304,7 +304,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                         "prediction, in the same order")
     if args.classify_by == "power" and args.threshold is None:
         raise UserError("--classify-by power needs --threshold W")
-    threshold = args.threshold if args.threshold is not None else BED_PAIRS_PER_BALL
     out = Path(args.out)
     several = len(args.prediction) > 1
     summaries, headline = [], []
@@ -314,9 +313,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             prediction, reference = load_prediction(pred_path), load_trajectory(ref_path)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", MetricsWarning)
-                comparison = compare(prediction, reference,
-                                     bed_pairs_per_ball=threshold
-                                     if args.classify_by == "contacts" else BED_PAIRS_PER_BALL)
+                comparison = compare(prediction, reference, classify_by=args.classify_by,
+                                     threshold=args.threshold)
         except (PredictionError, MetricsError) as exc:
             raise UserError(str(exc)) from exc
         for warning in caught:

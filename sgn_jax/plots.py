@@ -146,7 +146,17 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
         return np.asarray([np.nan if r[key] is None else r[key] for r in rows], dtype=np.float64)
 
     p_pred, p_ref = column("power_pred_W"), column("power_ref_W")
-    c_pred, c_ref = column("pp_contacts_pred_mean"), column("pp_pairs_within_skin_ref_mean")
+    states = summary.get("states", {})
+    by_speed = states.get("classify_by") == "speed" and all(
+        "jar_speed_ref_mean_m_s" in r for r in rows)
+    if by_speed:  # the state rule's own indicator on the x axis
+        c_pred, c_ref = column("jar_speed_pred_mean_m_s"), column("jar_speed_ref_mean_m_s")
+        ref_label, pred_label = "DEM", "SGN"
+        x_label = "mean ball speed in the jar frame (m/s)"
+    else:
+        c_pred, c_ref = column("pp_contacts_pred_mean"), column("pp_pairs_within_skin_ref_mean")
+        ref_label, pred_label = "DEM (pairs within skin)", "SGN (edges / 2)"
+        x_label = "mean ball pairs within the edge skin"
     fig = _new_figure(10.0, 4.2, layout="constrained")
     left, right = fig.subplots(1, 2)
 
@@ -171,13 +181,16 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
     left.legend(loc="upper left", fontsize=8, ncols=2)
     left.grid(True, axis="y", alpha=0.3)
 
-    right.scatter(c_ref, p_ref, marker="s", color="grey", label="DEM (pairs within skin)")
-    right.scatter(c_pred, p_pred, marker="o", color=_PRED_COLOR, label="SGN (edges / 2)")
+    right.scatter(c_ref, p_ref, marker="s", color="grey", label=ref_label)
+    right.scatter(c_pred, p_pred, marker="o", color=_PRED_COLOR, label=pred_label)
     for i in index:
         if np.isfinite([c_ref[i], p_ref[i], c_pred[i], p_pred[i]]).all():
             right.plot([c_ref[i], c_pred[i]], [p_ref[i], p_pred[i]], color="grey", lw=0.5)
-    states = summary.get("states", {})
-    if states.get("classify_by") == "contacts":
+    if by_speed:
+        right.axvline(states["threshold"], color="tab:red", ls=":", lw=1.0)
+        right.set_title(f"agitated if speed >= {states['threshold']:g} m/s (dotted), else bed",
+                        fontsize=10)
+    elif states.get("classify_by") == "contacts":
         ball_counts = {r.get("n_balls") for r in rows}
         if len(ball_counts) == 1 and None not in ball_counts:
             # the threshold is per ball; in pairs it is threshold * N when all runs share N
@@ -189,7 +202,7 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
         right.axhline(states["threshold"], color="tab:red", ls=":", lw=1.0)
         right.set_title(f"agitated if power >= {states['threshold']:g} W", fontsize=10)
     right.set_xlim(left=0.0)
-    right.set_xlabel("mean ball pairs within the edge skin")
+    right.set_xlabel(x_label)
     right.set_ylabel("mean dissipation power (W)")
     right.legend(loc="best")
     right.grid(True, alpha=0.3)

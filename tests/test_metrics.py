@@ -13,13 +13,16 @@ from sgn_jax import cli, metrics
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.dataset import build_meta, load_trajectory, save_trajectory
 from sgn_jax.metrics import (
+    AGITATED_SPEED_M_S,
     CoverageWarning,
     MetricsError,
     align,
     classify_state,
     compare,
+    default_threshold,
     ensemble_summary,
     evaluate,
+    jar_frame_speed,
     kinetic_energy_fd,
     mse_plateau,
     pairs_within,
@@ -189,12 +192,55 @@ def test_kinetic_energy_fd_uniform_velocity():
     np.testing.assert_allclose(ke, 0.5 * 2.0 * 5 * 9.0)
 
 
+def test_jar_frame_speed_known_answer():
+    t = np.array([0.0, 0.1, 0.3])
+    offset = np.stack([np.sin(t), np.zeros(3), t**2], axis=1)  # any jar motion
+    v = np.array([0.0, 3.0, 4.0])  # |v| = 5 m/s relative to the jar
+    rel = t[:, None, None] * v * np.ones((1, 4, 1))
+    pos = rel + offset[:, None, :]
+    np.testing.assert_allclose(jar_frame_speed(t, pos, offset), [5.0, 5.0])
+    # balls carried with the jar: zero speed in its frame, whatever the lab speed
+    carried = np.ones((3, 4, 3)) * 0.01 + offset[:, None, :]
+    np.testing.assert_allclose(jar_frame_speed(t, carried, offset), [0.0, 0.0], atol=1e-12)
+    assert jar_frame_speed(t[:1], pos[:1], offset[:1]).shape == (0,)
+
+
+def test_speed_rule_reads_positions_not_energy(tmp_path, reference):
+    """The default state rule gives the same state for predictions that differ in energy only,
+    and the same jar-frame speed for the prediction and its perfect reference."""
+    preds = [make_prediction(tmp_path, reference, name=f"s{i}.npz", energy_scale=s)
+             for i, s in enumerate([1.0, 3.0])]
+    summaries = [evaluate(p, reference) for p in preds]
+    for summary in summaries:
+        regime = summary["regime"]
+        assert regime["state_rule"] == "speed"
+        assert regime["jar_speed_pred_mean_m_s"] == pytest.approx(
+            regime["jar_speed_ref_mean_m_s"], rel=1e-9)
+    assert summaries[0]["regime"]["state_pred"] == summaries[1]["regime"]["state_pred"]
+    ens = ensemble_summary(summaries)
+    assert ens["states"]["classify_by"] == "speed"
+    assert ens["states"]["agreement"] == 1.0
+    speed = summaries[0]["regime"]["jar_speed_ref_mean_m_s"]
+    low = ensemble_summary(summaries, threshold=0.5 * speed)
+    high = ensemble_summary(summaries, threshold=2.0 * speed)
+    assert low["states"]["ref"]["agitated"]["count"] == 2
+    assert high["states"]["ref"]["bed"]["count"] == 2
+
+
 def test_classify_state():
-    assert classify_state(1.0, 0.75) == "bed"
-    assert classify_state(0.5, 0.75) == "agitated"
+    assert classify_state(1.0, 0.75, "contacts") == "bed"
+    assert classify_state(0.5, 0.75, "contacts") == "agitated"
+    # the default rule is the jar-frame ball speed (m/s): agitated when >= threshold
+    assert classify_state(0.27, AGITATED_SPEED_M_S) == "agitated"
+    assert classify_state(0.12, AGITATED_SPEED_M_S) == "bed"
+    assert default_threshold("speed") == AGITATED_SPEED_M_S
+    assert default_threshold("contacts") == 0.75
+    with pytest.raises(MetricsError, match="explicit threshold"):
+        default_threshold("power")
     assert classify_state(0.3, 0.2, "power") == "agitated"
     assert classify_state(0.1, 0.2, "power") == "bed"
     assert classify_state(math.nan, 0.75) == "unknown"
+    assert classify_state(math.nan, 0.75, "contacts") == "unknown"
     with pytest.raises(MetricsError, match="classify_by"):
         classify_state(1.0, 0.75, "kinetic")
 
@@ -278,7 +324,7 @@ def test_ensemble_summary_known_spread(tmp_path, reference):
              for i, s in enumerate(scales)]
     summaries = [evaluate(p, reference) for p in preds]
     power_ref = summaries[0]["regime"]["power_ref_W"]
-    ens = ensemble_summary(summaries)
+    ens = ensemble_summary(summaries, classify_by="contacts")
     assert ens["n_runs"] == 3 and not ens["meets_spec_minimum"]
     expected = power_ref * np.array(scales)
     assert ens["power"]["pred_W"]["mean"] == pytest.approx(expected.mean(), rel=1e-12)
@@ -289,7 +335,7 @@ def test_ensemble_summary_known_spread(tmp_path, reference):
     # 1 pair per 4 balls = 0.25 < 0.75: all agitated; a 0.2 threshold makes them all beds
     assert ens["states"]["pred"]["agitated"]["count"] == 3
     assert ens["states"]["ref"]["fraction_agitated"] == 1.0
-    bed = ensemble_summary(summaries, threshold=0.2)
+    bed = ensemble_summary(summaries, classify_by="contacts", threshold=0.2)
     assert bed["states"]["pred"]["bed"]["count"] == 3 and bed["states"]["agreement"] == 1.0
     # by power: the 1.2x run is "agitated" above 1.1 x power_ref, the reference runs are not
     by_power = ensemble_summary(summaries, classify_by="power", threshold=1.1 * power_ref)
