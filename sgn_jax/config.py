@@ -302,8 +302,9 @@ class TrainConfig:
     """SGN training (SPEC section 5). Defaults are the paper's (batch 2, 2000 epochs, GPU).
 
     The learning rate decays exponentially from ``lr_init`` to ``lr_final`` over all epochs.
-    Loss = ``node_loss_weight`` * Huber(node) + Huber(global), Huber as in paper Eq. 30 with
-    threshold ``huber_delta``. ``noise_std``: Gaussian noise on the normalised velocity features.
+    Loss = ``node_loss_weight`` * Huber(node) + ``global_loss_weight`` * Huber(global), Huber as
+    in paper Eq. 30 with threshold ``huber_delta``; ``global_loss_weight = 0`` is the paper's
+    appendix ablation without the global loss. ``noise_std``: Gaussian noise on the normalised velocity features.
     Split per trajectory, chronological: windows whose target step ends at t <= ``train_time``
     (s of motion) train; windows lying wholly in (train_time, train_time + val_time] validate.
     Each step packs up to ``batch_size`` graphs under a static edge capacity (docs/sgn.md).
@@ -314,6 +315,7 @@ class TrainConfig:
     lr_init: float = 1e-4
     lr_final: float = 1e-6
     node_loss_weight: float = 3.0
+    global_loss_weight: float = 1.0
     huber_delta: float = 2.0
     noise_std: float = 0.005
     train_time: float = 4.5
@@ -329,6 +331,8 @@ class TrainConfig:
             )
         if self.huber_delta <= 0 or self.noise_std < 0 or self.node_loss_weight < 0:
             raise ConfigError("[train] need huber_delta > 0, noise_std >= 0, node_loss_weight >= 0")
+        if self.global_loss_weight < 0:
+            raise ConfigError("[train] need global_loss_weight >= 0 (0: no global loss)")
         if self.train_time <= 0 or self.val_time < 0:
             raise ConfigError("[train] need train_time > 0 and val_time >= 0 (s)")
 

@@ -10,8 +10,9 @@ Pipeline (:func:`train`):
 3. Each epoch shuffles the training samples and packs them greedily into batches of at most
    ``batch_size`` graphs and at most a static number of edges (:class:`BatchPacker`), so every
    batch has the same array shapes and the step compiles once; unused graph slots are masked.
-4. Loss (paper Eqs. 28-30): ``alpha * Huber(accel) + Huber(dE)`` on normalised targets, Huber in
-   Eq. 30's form ``optax.huber_loss(e, delta) / delta`` (= ``huber_loss(delta=2) / 2``), means
+4. Loss (paper Eqs. 28-30): ``alpha * Huber(accel) + beta * Huber(dE)`` (beta =
+   ``global_loss_weight``: 1 as in the paper, 0 for the appendix ablation) on normalised
+   targets, Huber in Eq. 30's form ``optax.huber_loss(e, delta) / delta`` (= ``huber_loss(delta=2) / 2``), means
    over the real ball components and the real graphs of the batch. Gaussian noise of
    ``noise_std`` is added to the normalised velocity columns of the ball nodes.
 5. Adam; learning rate ``lr_init * (lr_final / lr_init) ** progress`` with progress = fraction of
@@ -383,6 +384,7 @@ def make_train_step(apply: Callable, tx: optax.GradientTransformation, train_cfg
                     window: int) -> Callable:
     """Jitted ``step(state, batch, lr, key) -> (state, sums)``; ``sums`` as in :func:`loss_sums`."""
     alpha, delta, noise = train_cfg.node_loss_weight, train_cfg.huber_delta, train_cfg.noise_std
+    beta = train_cfg.global_loss_weight
 
     def loss_fn(params, batch, key):
         if noise > 0:
@@ -390,7 +392,7 @@ def make_train_step(apply: Callable, tx: optax.GradientTransformation, train_cfg
         sums = loss_sums(apply, params, batch, delta)
         node = sums[0] / jnp.maximum(sums[1], 1.0)
         glob = sums[2] / jnp.maximum(sums[3], 1.0)
-        return alpha * node + glob, jnp.stack(sums)
+        return alpha * node + beta * glob, jnp.stack(sums)
 
     def step(state: TrainState, batch: Batch, lr: jax.Array, key: jax.Array):
         grads, sums = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
@@ -410,20 +412,20 @@ def make_eval_step(apply: Callable, train_cfg: Any) -> Callable:
     return jax.jit(lambda params, batch: jnp.stack(loss_sums(apply, params, batch, delta)))
 
 
-def losses_from_sums(sums: np.ndarray, alpha: float) -> dict[str, float]:
+def losses_from_sums(sums: np.ndarray, alpha: float, beta: float = 1.0) -> dict[str, float]:
     """Exact means over all real components / graphs: node, global and total loss."""
     node = float(sums[0] / max(sums[1], 1.0))
     glob = float(sums[2] / max(sums[3], 1.0))
-    return {"loss": alpha * node + glob, "node": node, "global": glob}
+    return {"loss": alpha * node + beta * glob, "node": node, "global": glob}
 
 
-def evaluate(eval_step: Callable, params: Any, packer: BatchPacker, alpha: float
-             ) -> dict[str, float]:
-    """Loss over a whole dataset, in chronological order."""
+def evaluate(eval_step: Callable, params: Any, packer: BatchPacker, alpha: float,
+             beta: float = 1.0) -> dict[str, float]:
+    """Loss over a whole dataset, in chronological order (weights as in the training loss)."""
     total = jnp.zeros(4, jnp.float32)
     for batch in packer.batches(np.arange(len(packer.ds))):
         total = total + eval_step(params, batch)
-    return losses_from_sums(np.asarray(total, np.float64), alpha)
+    return losses_from_sums(np.asarray(total, np.float64), alpha, beta)
 
 
 # --------------------------------------------------------------------------------------------
@@ -663,7 +665,7 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     train_step = make_train_step(apply, tx, tcfg, spec.window)
     eval_step = make_eval_step(apply, tcfg)
     base_key = jax.random.PRNGKey(tcfg.seed)
-    alpha = tcfg.node_loss_weight
+    alpha, beta = tcfg.node_loss_weight, tcfg.global_loss_weight
     best = min((r["val_loss"] if r["val_loss"] is not None else r["train_loss"]
                 for r in history), default=math.inf)
     meta_base = {"config": config_to_dict(cfg), "info": info}
@@ -686,8 +688,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
             step_no += 1
             state, batch_sums = train_step(state, train_packer.make(idx), np.float32(lr), key)
             sums = sums + batch_sums
-        train_loss = losses_from_sums(np.asarray(sums, np.float64), alpha)
-        val_loss = (evaluate(eval_step, state.params, val_packer, alpha)
+        train_loss = losses_from_sums(np.asarray(sums, np.float64), alpha, beta)
+        val_loss = (evaluate(eval_step, state.params, val_packer, alpha, beta)
                     if val_packer is not None else None)
         seconds = time.perf_counter() - t_epoch
         score = val_loss["loss"] if val_loss is not None else train_loss["loss"]

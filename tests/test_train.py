@@ -161,7 +161,8 @@ def test_tiny_model_overfits_tiny_dataset(data):
     tx = make_optimizer(3e-3)
     params = init_params(model, batch.graph, 0)
     state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0))
-    cfg = type("T", (), {"node_loss_weight": 3.0, "huber_delta": 2.0, "noise_std": 0.0})
+    cfg = type("T", (), {"node_loss_weight": 3.0, "global_loss_weight": 1.0, "huber_delta": 2.0,
+                         "noise_std": 0.0})
     step = make_train_step(apply, tx, cfg, 3)
     key = jax.random.PRNGKey(0)
 
@@ -174,6 +175,35 @@ def test_tiny_model_overfits_tiny_dataset(data):
         first = float(total(sums)) if first is None else first
     final = float(total(loss_sums(apply, state.params, batch, 2.0)))
     assert final < first / 10, (first, final)
+
+
+def test_no_global_loss_leaves_the_global_readout_untrained(data):
+    """global_loss_weight = 0 (the paper's appendix ablation): the dE head gets no gradient,
+    so Adam leaves its parameters exactly as initialised, while the rest of the network moves."""
+    ds = data[4]
+    packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
+    batch = packer.make(np.arange(6))
+    model = SGN(hidden=24)
+    apply = make_apply(model)
+    tx = make_optimizer(1e-3)
+    params = init_params(model, batch.graph, 0)
+    before = jax.tree_util.tree_map(np.asarray, params)
+    for weight, head_moves in ((0.0, False), (1.0, True)):
+        state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0))
+        cfg = type("T", (), {"node_loss_weight": 3.0, "global_loss_weight": weight,
+                             "huber_delta": 2.0, "noise_std": 0.0})
+        step = make_train_step(apply, tx, cfg, 3)
+        for _ in range(3):
+            state, _ = step(state, batch, np.float32(1e-3), jax.random.PRNGKey(0))
+        after = state.params
+        head = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
+            lambda a, b: np.abs(np.asarray(a) - b).max(), after["global_readout"],
+            before["global_readout"]))
+        decoder = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
+            lambda a, b: np.abs(np.asarray(a) - b).max(), after["decoder"],
+            before["decoder"]))
+        assert (max(head) > 0) == head_moves, (weight, head)
+        assert max(decoder) > 0
 
 
 def test_train_writes_metrics_checkpoints_and_resumes_identically(cfg, grid, tmp_path):
