@@ -82,8 +82,10 @@ def main(argv: list[str] | None = None) -> int:
     windows = [w for r in rows for w in r["windows"]]
     bed = [w["jar_speed_m_s"] for w in windows if w["pp_contacts"] >= args.contacts_threshold]
     agitated = [w["jar_speed_m_s"] for w in windows if w["pp_contacts"] < args.contacts_threshold]
-    gap = {"bed_max_m_s": max(bed) if bed else None,
-           "agitated_min_m_s": min(agitated) if agitated else None}
+    gap = {"bed_min_m_s": min(bed) if bed else None, "bed_max_m_s": max(bed) if bed else None,
+           "agitated_min_m_s": min(agitated) if agitated else None,
+           "agitated_max_m_s": max(agitated) if agitated else None,
+           "midpoint_m_s": 0.5 * (max(bed) + min(agitated)) if bed and agitated else None}
     separates = bool(bed and agitated and max(bed) < AGITATED_SPEED_M_S <= min(agitated))
     result = {"case": args.case, "threshold_in_use_m_s": AGITATED_SPEED_M_S,
               "contacts_threshold": args.contacts_threshold,

@@ -279,7 +279,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="state rule (SPEC 7): mean ball speed in the jar frame (default), ball "
                    "pairs within the skin per ball, or dissipation power")
     p.add_argument("--threshold", type=float, default=None,
-                   help="state threshold: m/s (speed, default 0.19), pairs per ball "
+                   help="state threshold: m/s (speed, default 0.16), pairs per ball "
                    "(contacts, default 0.75) or W (power, required)")
     p.set_defaults(handler=_cmd_evaluate)
 
