@@ -206,6 +206,43 @@ def case_result(case: Any, seeds: Sequence[int], out: Path) -> dict[str, Any]:
     }
 
 
+def plot_case_curves(title: str, preds: Sequence[Path], refs: Sequence[Path], labels:
+                     Sequence[str], path: Path) -> Path:
+    """All runs of a case in one figure: cumulative dissipated energy (DEM dashed, SGN solid)
+    and the position MSE_t (paper Eq. 33), with the paper's ~2e-4 m^2 plateau for scale."""
+    from sgn_jax.dataset import load_trajectory
+    from sgn_jax.metrics import align, position_mse
+    from sgn_jax.plots import _new_figure, _save
+    from sgn_jax.prediction import load_prediction
+
+    fig = _new_figure(10.0, 7.0, layout="constrained")
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    colors = [f"C{i % 10}" for i in range(len(preds))]
+    for pred_path, ref_path, label, color in zip(preds, refs, labels, colors, strict=True):
+        pred, ref = load_prediction(pred_path), load_trajectory(ref_path)
+        al = align(pred, ref)
+        cum = np.asarray(ref.cumulative_dissipation("normal+tangential", "pp+pw"))
+        zero = cum[al.start_ref_index] if al.start_ref_index >= 0 else cum[al.step_ref_index[0]]
+        t = np.asarray(pred.t_step)[al.step_index]
+        top.plot(t, np.asarray(pred.energy_cum)[al.step_index], color=color, lw=1.0,
+                 label=label)
+        top.plot(t, cum[al.step_ref_index] - zero, color=color, lw=1.0, ls="--")
+        mse = position_mse(np.asarray(pred.pos)[al.frame_index], ref.pos[al.frame_ref_index])
+        bottom.plot(np.asarray(pred.t_pos)[al.frame_index], mse, color=color, lw=0.6)
+    bottom.axhline(2e-4, color="k", ls=":", lw=1.0, label="paper plateau ~2e-4 m²")
+    top.set_ylabel("cumulative dissipated energy (J)")
+    top.set_title("SGN solid, DEM dashed (normal + tangential damping)", fontsize=10)
+    top.legend(fontsize=7, ncols=4, loc="upper left")
+    top.grid(True, alpha=0.3)
+    bottom.set_yscale("log")
+    bottom.set_ylabel("MSE_t (m²)")
+    bottom.set_xlabel("time since the start of motion (s)")
+    bottom.legend(fontsize=8, loc="lower right")
+    bottom.grid(True, which="both", alpha=0.3)
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
 # --------------------------------------------------------------------------------------------
 # Main
 
@@ -319,6 +356,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             failed.append(f"eval {case.name}")
             continue
         results["cases"][case.name] = case_result(case, seeds, out)
+        results["cases"][case.name]["curves_plot"] = str(plot_case_curves(
+            f"{case.name}: {len(seeds)} held-out packings, model {model}", preds, refs,
+            [f"seed {s}" for s in seeds], out / "eval" / case.name / "curves.png"))
 
     # 3. runtime row: DEM and surrogate for the same physical time, same process, one core
     if not args.skip_runtime:

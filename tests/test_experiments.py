@@ -97,6 +97,7 @@ def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
             assert run["energy_relative_error_final"] == pytest.approx(expected, rel=1e-9)
     assert case["ensemble"]["n_runs"] == 2
     assert case["ensemble"]["states"]["classify_by"] == "speed"
+    assert Path(case["curves_plot"]).stat().st_size > 10_000
     markdown = rt.table(results)
     row = next(line for line in markdown.splitlines() if line.startswith("| tiny |"))
     signed = np.mean([(r["energy_pred_J"] - r["energy_ref_J"]) / r["energy_ref_J"]
