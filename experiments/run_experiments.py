@@ -114,6 +114,48 @@ def _last_json_line(text: str) -> dict[str, Any] | None:
     return None
 
 
+def parse_rollout_settings(items: Sequence[str]) -> dict[str, Any]:
+    """``["pp_separation=false", "pp_max_overlap=1e-4"]`` -> typed [rollout] field values."""
+    import dataclasses
+
+    from sgn_jax.config import RolloutConfig
+
+    fields = {f.name: f for f in dataclasses.fields(RolloutConfig)}
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or key not in fields:
+            raise ExperimentError(f"--rollout {item!r}: expected KEY=VALUE with KEY one of "
+                                  f"{sorted(fields)}")
+        kind = type(getattr(RolloutConfig(), key))
+        text = text.strip()
+        if kind is bool:
+            if text.lower() not in ("true", "false"):
+                raise ExperimentError(f"--rollout {item!r}: {key} takes true or false")
+            out[key] = text.lower() == "true"
+        else:
+            try:
+                out[key] = kind(text)
+            except ValueError as exc:
+                raise ExperimentError(f"--rollout {item!r}: {key} takes a {kind.__name__}") \
+                    from exc
+    return out
+
+
+def case_config(case: Any, settings: dict[str, Any], out: Path) -> Path:
+    """The config a case's rollouts use: the case's own, or a copy with ``settings`` applied
+    to its [rollout] section, written to ``OUT/configs/{case}.toml``."""
+    if not settings:
+        return case.config_path
+    from sgn_jax.config import load_config, replace_section, save_config
+
+    cfg = replace_section(load_config(case.config_path), "rollout", **settings)
+    path = out / "configs" / f"{case.name}.toml"
+    save_config(cfg, path)
+    return path
+
+
 # --------------------------------------------------------------------------------------------
 # Running
 
@@ -267,7 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="placement seed of the runtime row (default 4, held out)")
     p.add_argument("--skip-runtime", action="store_true", help="no runtime row")
     p.add_argument("--no-pin", action="store_true", help="do not pin processes with taskset")
-    p.add_argument("--classify-by", choices=("contacts", "power"), default=None,
+    p.add_argument("--rollout", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a [rollout] field of every case's config for these rollouts, e.g. "
+                   "pp_separation=false (the paper's rollout); repeatable. The configs used "
+                   "are written to OUT/configs/")
+    p.add_argument("--classify-by", choices=("speed", "contacts", "power"), default=None,
                    help="passed to sgn-jax evaluate (default: its own)")
     p.add_argument("--threshold", type=float, default=None, help="passed to sgn-jax evaluate")
     return p
@@ -280,6 +326,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         cases = select_cases(load_ensembles(args.ensembles), args.cases)
+        settings = parse_rollout_settings(args.rollout)
         if args.jobs < 1:
             raise ExperimentError(f"--jobs must be >= 1, got {args.jobs}")
         try:
@@ -318,7 +365,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             duration = (args.duration if args.duration is not None
                         else rollout_duration(ref, window, dt, save_every))
             argv_ = [*cli, "rollout", "--checkpoint", str(model), "--init", str(ref),
-                     "--duration", repr(duration), "--config", str(case.config_path),
+                     "--duration", repr(duration), "--config",
+                     str(case_config(case, settings, out)),
                      "--out", str(pred), "--no-progress"]
             jobs.append((pred.stem, argv_, out / "logs" / f"rollout_{pred.stem}.log"))
     status = run_pinned(jobs, args.jobs, pin=not args.no_pin)
@@ -379,6 +427,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     results.update({
         "model": str(model),
+        "rollout_settings": settings,
         "model_config_window": window,
         "dt_ml": dt,
         "commit": git_commit(),

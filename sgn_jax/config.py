@@ -349,6 +349,9 @@ class RolloutConfig:
     ``snap_velocity``: "keep" (the paper's choice: the velocity is unchanged, the ball's window
     history is moved with it) or "position" (the finite-difference velocity follows the moved
     position).
+    ``pp_separation``: the ball-ball analogue of the snap-back (not in the paper;
+    docs/rollout.md): pairs overlapping by more than ``pp_max_overlap`` (m) after a step are
+    moved apart to it, with the velocity rule of ``snap_velocity``.
     """
 
     save_every: int = 10
@@ -356,6 +359,8 @@ class RolloutConfig:
     checkpoint_steps: int = 100
     snap_back: bool = True
     snap_velocity: str = "keep"
+    pp_separation: bool = False
+    pp_max_overlap: float = 5e-5
 
     def __post_init__(self) -> None:
         if self.save_every < 1:
@@ -365,6 +370,8 @@ class RolloutConfig:
             if value < 1 or value % self.save_every:
                 raise ConfigError(f"[rollout] {name} must be a positive multiple of save_every "
                                   f"= {self.save_every}, got {value}")
+        if self.pp_max_overlap < 0:
+            raise ConfigError(f"[rollout] pp_max_overlap must be >= 0 m, got {self.pp_max_overlap}")
         if self.snap_velocity not in ("keep", "position"):
             raise ConfigError(f"[rollout] snap_velocity must be 'keep' or 'position', got "
                               f"{self.snap_velocity!r}")

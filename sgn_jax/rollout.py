@@ -257,6 +257,34 @@ class SnapBack:
     enabled: bool = True
     phi_sb: float = -0.0049
     keep_velocity: bool = True
+    pp_max_overlap: float | None = None  # m; None: no ball-ball separation
+
+
+def separate_pairs(positions: jax.Array, radius: float, max_overlap: float
+                   ) -> tuple[jax.Array, jax.Array]:
+    """Ball-ball analogue of the snap-back: the shift that reduces every overlap beyond
+    ``max_overlap`` back to it.
+
+    For each pair with overlap o = 2R - |x_j - x_i| > ``max_overlap`` both balls move apart
+    along the pair's normal by (o - max_overlap) / 2 (one Jacobi pass: a ball in several deep
+    overlaps gets the sum of its shifts). Coincident balls (|x_j - x_i| = 0) have no normal and
+    are not moved.
+
+    Args:
+        positions: (N, 3) m; radius: R (m); max_overlap: m.
+    Returns:
+        ``(shift (N, 3) m, n_pairs ())``: the shift to add and the number of pairs separated.
+    """
+    diff = positions[None, :, :] - positions[:, None, :]  # x_j - x_i at [i, j]
+    dist2 = jnp.sum(diff * diff, axis=-1)
+    n = positions.shape[0]
+    valid = (dist2 > 0) & ~jnp.eye(n, dtype=bool)
+    dist = jnp.sqrt(jnp.where(valid, dist2, 1.0))
+    excess = jnp.where(valid, 2.0 * radius - dist - max_overlap, 0.0)
+    deep = excess > 0
+    push = jnp.where(deep, 0.5 * excess / dist, 0.0)  # per unit of (x_j - x_i)
+    shift = -jnp.sum(push[:, :, None] * diff, axis=1)
+    return shift, jnp.sum(deep, dtype=I32) // 2
 
 
 def check_tiers(spec: GraphSpec, tiers: Any) -> tuple[int, ...]:
@@ -319,6 +347,15 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         jar_offset = jnp.asarray(offset(motion, t_next), F64)
         jar_velocity = jnp.asarray(velocity(motion, t_next), F64)
         window = slide_window(window, x_next, jar_offset, jar_velocity)
+
+        if snap.pp_max_overlap is not None:  # before the wall snap, so that walls win
+            shift, _ = separate_pairs(window.positions[-1], spec.ball_radius,
+                                      snap.pp_max_overlap)
+            if snap.keep_velocity:
+                positions = window.positions + shift[None]
+            else:
+                positions = window.positions.at[-1].add(shift)
+            window = window.replace(positions=positions)
 
         if snap.enabled:
             phi, normal = query(sdf, x_next, jar_offset)
@@ -400,7 +437,8 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
                          checkpoint_steps: int | None = None, snap_back: bool = True,
                          phi_sb: float = -0.0049, snap_velocity: str = "keep",
                          query: SDFQuery | None = None, unroll: int = 1,
-                         pp_capacity_tiers: Any = (), jit: bool = True
+                         pp_capacity_tiers: Any = (), jit: bool = True,
+                         pp_max_overlap: float | None = None
                          ) -> Callable[..., RolloutResult]:
     """``advance(params, stats, state, motion, sdf, t0) -> RolloutResult`` of ``n_steps`` steps.
 
@@ -414,7 +452,10 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
     checkpoint_steps = _check_counts(n_steps, save_every, checkpoint_steps)
     predictor = _as_predictor(predictor)
     query = _default_query() if query is None else query
-    snap = SnapBack(bool(snap_back), float(phi_sb), snap_velocity == "keep")
+    if pp_max_overlap is not None and pp_max_overlap < 0:
+        raise RolloutError(f"pp_max_overlap must be >= 0 m or None, got {pp_max_overlap}")
+    snap = SnapBack(bool(snap_back), float(phi_sb), snap_velocity == "keep",
+                    None if pp_max_overlap is None else float(pp_max_overlap))
     tiers = check_tiers(spec, pp_capacity_tiers)
     n_frames = n_steps // save_every
     frames_per_chunk = min(checkpoint_steps // save_every, n_frames)
@@ -459,7 +500,8 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
                  checkpoint_steps: int | None = None, snap_back: bool = True,
                  phi_sb: float = -0.0049, snap_velocity: str = "keep",
                  query: SDFQuery | None = None, unroll: int = 1,
-                 pp_capacity_tiers: Any = (), jit: bool = True
+                 pp_capacity_tiers: Any = (), jit: bool = True,
+                 pp_max_overlap: float | None = None
                  ) -> Callable[..., RolloutResult]:
     """A rollout of ``n_steps`` surrogate steps as one pure (by default jitted) function.
 
@@ -480,6 +522,9 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
             holds its pairs (``lax.switch``), the same prediction on fewer padded edge rows.
             Speed only, for single rollouts: under ``vmap`` every tier runs.
         jit: return the ``jax.jit``-ed function (one compilation per argument shapes/types).
+        pp_max_overlap: ball-ball separation (:func:`separate_pairs`, not in the paper): after
+            each step, pairs overlapping by more than this (m) are moved apart to it, with the
+            velocity rule of ``snap_velocity``; None (default) = off, as in the paper.
 
     Returns:
         ``rollout(params, stats, window0, motion, sdf, t0) -> RolloutResult`` where ``window0``
@@ -493,7 +538,7 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
                                    checkpoint_steps=checkpoint_steps, snap_back=snap_back,
                                    phi_sb=phi_sb, snap_velocity=snap_velocity, query=query,
                                    unroll=unroll, pp_capacity_tiers=pp_capacity_tiers,
-                                   jit=False)
+                                   jit=False, pp_max_overlap=pp_max_overlap)
 
     def rollout(params: Any, stats: Any, window0: Window, motion: Motion, sdf: Any,
                 t0: Any) -> RolloutResult:
@@ -605,6 +650,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     options = dict(checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
                    snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
                    snap_velocity=rcfg.snap_velocity,
+                   pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),
                    pp_capacity_tiers=tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap))
     predictor = model_predictor(trained_model.model)
     params = jax.device_put(trained_model.params)
@@ -671,6 +717,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
         "created": datetime.datetime.now(datetime.UTC).isoformat(),
         "surrogate": "SGN",
         "snap_back": bool(rcfg.snap_back), "snap_velocity": rcfg.snap_velocity,
+        "pp_max_overlap": rcfg.pp_max_overlap if rcfg.pp_separation else None,
         "phi_sb": float(cfg.graph.phi_sb),
         **{key: summary[key] for key in ("wall_time_s", "compile_time_s", "ms_per_step")},
     }

@@ -36,6 +36,7 @@ from sgn_jax.rollout import (
     model_predictor,
     replay_predictor,
     run_rollout,
+    separate_pairs,
 )
 
 REPLAY_STEPS = 1000
@@ -176,6 +177,51 @@ def test_snap_back_position_mode_changes_fd_velocity():
     # The newest FD velocity follows the move: (0.0049 - 0.00491) / dt = -0.1 m/s.
     np.testing.assert_allclose(fd_velocity[-1, 0], [0.0, -0.1, 0.0], rtol=0, atol=1e-10)
     np.testing.assert_allclose(fd_velocity[-2, 0], [0.0, -0.2, 0.0], rtol=0, atol=1e-10)
+
+
+def test_separate_pairs_known_answer():
+    radius, limit = 0.005, 5e-5
+    positions = jnp.array([[0.0, 0.0, 0.0], [0.009, 0.0, 0.0],  # 1 mm overlap
+                           [0.0, 0.03, 0.0],  # far away
+                           [0.0, 0.0, 0.05], [0.0, 0.0, 0.05]])  # coincident: no normal
+    shift, n_pairs = separate_pairs(positions, radius, limit)
+    shift = np.asarray(shift)
+    moved = positions + shift
+    assert int(n_pairs) == 1
+    np.testing.assert_allclose(np.linalg.norm(moved[1] - moved[0]), 2 * radius - limit,
+                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(shift[0], [-0.000475, 0.0, 0.0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(shift[1], -shift[0], rtol=0, atol=1e-15)  # momentum-neutral
+    np.testing.assert_array_equal(shift[2:], 0.0)
+    # within the allowed overlap nothing moves
+    shift, n_pairs = separate_pairs(positions.at[1, 0].set(0.00996), radius, limit)
+    assert int(n_pairs) == 0 and np.all(np.asarray(shift) == 0.0)
+
+
+def test_pp_separation_in_the_rollout_caps_the_overlap():
+    """Two balls driven into each other: without the separation they pass through each other;
+    with it their overlap after every step is at most pp_max_overlap (velocities kept)."""
+    spec = GraphSpec(n_particles=2, window=3, ball_radius=0.005, dt=1e-4, pp_pair_capacity=1)
+    t0 = 0.01
+    centre = np.array([0.0, 0.012, 0.0]) + _circle_offset(300.0, 0.017, t0)
+    velocities = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])  # 2 m/s closing speed
+    last = centre + np.array([[-0.0052, 0.0, 0.0], [0.0052, 0.0, 0.0]])
+    positions = last + velocities * spec.dt * np.arange(-spec.window, 1)[:, None, None]
+    window0 = Window(positions=positions, offsets=np.zeros((3, 3)),
+                     offset_velocities=np.zeros((3, 3)), frequency_hz=np.float64(0.0))
+    n_steps = 8
+    table = ReplayTable(accel=np.zeros((n_steps, 2, 3)), dE=np.zeros(n_steps))
+    gaps = {}
+    for limit in (None, 5e-5):
+        rollout = make_rollout(spec, replay_predictor(), n_steps, 1, query=analytic_jar_query,
+                               pp_max_overlap=limit)
+        res = jax.device_get(rollout(table, None, window0, CircleMotion(rpm=300.0,
+                                                                        amplitude=0.017),
+                                     JarParams(), t0))
+        gaps[limit] = np.linalg.norm(res.positions[:, 1] - res.positions[:, 0], axis=-1)
+    assert gaps[None][-1] < 0.009  # free flight: 1.2 mm of overlap after 8 steps
+    assert np.all(gaps[5e-5][1:] >= 2 * 0.005 - 5e-5 - 1e-12)
+    assert gaps[5e-5][-1] == pytest.approx(2 * 0.005 - 5e-5, abs=1e-12)
 
 
 # --------------------------------------------------------------------------------------------
