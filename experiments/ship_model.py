@@ -1,0 +1,109 @@
+#!/usr/bin/env python
+"""Copy a trained model into the package (``sgn_jax/data/models/CASE/``) with its provenance.
+
+    python experiments/ship_model.py --run runs/standard_4traj --data data/standard_seed0.npz,...
+        --train-command "sgn-jax train ..." [--results runs/experiments/standard_4traj/results.json]
+        [--case emax_300rpm] [--what "..."]
+
+Replaces the shipped model of CASE with the best checkpoint of the training run RUN (its
+``checkpoints/best/<step>`` orbax directory, a few MB) and writes next to it:
+
+- ``PROVENANCE.json``: what the model is, the training command, the sha256 of every training
+  file, the commit at training, the best and last epochs' losses, the parameter count, the
+  numbers of windows, the wall time, and (with ``--results``) the held-out evaluation headline
+  of ``experiments/run_experiments.py`` and its command;
+- ``loss.png`` and ``metrics.csv`` of the run.
+
+The new model is loaded back (``sgn_jax.checkpoint.load_trained_model``) before the old one is
+removed, so a failed copy never leaves the package without a model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    from sgn_jax.checkpoint import load_trained_model
+    from sgn_jax.demo import SHIPPED_MODELS_DIR
+    from sgn_jax.io_utils import git_commit, sha256_file, write_json
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--run", required=True, help="training run directory")
+    p.add_argument("--data", required=True, help="comma-separated training files")
+    p.add_argument("--train-command", required=True, help="the command that trained it")
+    p.add_argument("--results", default=None, help="results.json of run_experiments.py")
+    p.add_argument("--case", default="emax_300rpm")
+    p.add_argument("--what", default="SGN of the standard case")
+    args = p.parse_args(argv)
+
+    run = Path(args.run)
+    best = run / "checkpoints" / "best"
+    steps = sorted(d for d in best.iterdir() if d.is_dir()) if best.is_dir() else []
+    if len(steps) != 1:
+        print(f"ship_model: expected one checkpoint under {best}, found {len(steps)}",
+              file=sys.stderr)
+        return 2
+    summary = json.loads((run / "summary.json").read_text())
+    history = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()
+               if line.strip()]
+    best_row = next(r for r in history if r["epoch"] == summary["best_epoch"])
+    data_files = [Path(f) for f in args.data.split(",") if f]
+    provenance = {
+        "what": args.what,
+        "train_command": args.train_command,
+        "datasets": [{"file": str(f), "sha256": sha256_file(f)} for f in data_files],
+        "code_commit_at_training": summary.get("git_commit"),
+        "code_commit_at_shipping": git_commit(),
+        "best_epoch": summary["best_epoch"],
+        "epochs": summary["epochs"],
+        "final_losses_best_epoch": {k: best_row.get(k) for k in
+                                    ("train_loss", "train_node", "train_global", "val_loss",
+                                     "val_node", "val_global")},
+        "last_epoch": {k: history[-1].get(k) for k in ("epoch", "train_loss", "val_loss")},
+        "n_params": summary["n_params"],
+        "n_train": summary["n_train"],
+        "n_val": summary["n_val"],
+        "train_wall_time_s": sum(r.get("epoch_seconds", 0.0) for r in history),
+    }
+    if args.results:
+        results = json.loads(Path(args.results).read_text())
+        provenance["held_out_evaluation"] = {
+            "results": args.results, "command": results.get("command"),
+            "cases": {name: {"runs": len(c["runs"]),
+                             "mse_plateau_m2_mean": c["mse_plateau_m2"]["mean"],
+                             "energy_relative_error_final_mean":
+                                 c["energy_relative_error_final"]["mean"],
+                             "power_relative_error_of_means":
+                                 c["ensemble"]["power"]["relative_error_of_means"],
+                             "balls_outside_total": c["balls_outside_total"]}
+                      for name, c in results["cases"].items()}}
+
+    target = SHIPPED_MODELS_DIR / args.case
+    staging = target.with_name(target.name + ".new")
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    shutil.copytree(steps[0], staging / steps[0].name)
+    for name in ("loss.png", "metrics.csv"):
+        if (run / name).is_file():
+            shutil.copy2(run / name, staging / name)
+    write_json(staging / "PROVENANCE.json", provenance)
+    load_trained_model(staging)  # refuse to ship what does not load
+    if target.exists():
+        shutil.rmtree(target)
+    staging.rename(target)
+    print(json.dumps({"shipped": str(target), "step": steps[0].name,
+                      "best_epoch": provenance["best_epoch"],
+                      "val_loss": provenance["final_losses_best_epoch"]["val_loss"]}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
