@@ -370,12 +370,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                      "--out", str(pred), "--no-progress"]
             jobs.append((pred.stem, argv_, out / "logs" / f"rollout_{pred.stem}.log"))
     status = run_pinned(jobs, args.jobs, pin=not args.no_pin)
-    for name_, rc in status.items():
-        log = out / "logs" / f"rollout_{name_}.log"
-        line = _last_json_line(log.read_text())
-        if rc == 0 and line is not None:
-            write_json(out / "rollouts" / f"{name_}.json", line)
     failed = [n for n, rc in status.items() if rc != 0]
+    # the rollout's JSON line, also for rollouts of an earlier, interrupted call of this script
+    for case in cases:
+        for seed in plan[case.name]:
+            stem = f"{case.name}_seed{seed}"
+            log = out / "logs" / f"rollout_{stem}.log"
+            if (out / "rollouts" / f"{stem}.json").is_file() or stem in failed \
+                    or not log.is_file() or not (out / "rollouts" / f"{stem}.npz").is_file():
+                continue
+            line = _last_json_line(log.read_text())
+            if line is not None:
+                write_json(out / "rollouts" / f"{stem}.json", line)
 
     # 2. evaluation per case
     results: dict[str, Any] = {"cases": {}}
