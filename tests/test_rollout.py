@@ -437,7 +437,8 @@ def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
     from sgn_jax.prediction import load_prediction
 
     traj, spec, grid, motion = dem
-    run_dir, _ = checkpoint
+    run_dir, cfg = checkpoint
+    assert cfg.rollout.pp_separation  # the shipped configs separate ball pairs; so must `whole`
     out = run_dir / "pred.npz"
     # 120 steps in chunks of 50: two calls of one compiled chunk and a remainder of 20.
     summary = run_rollout(load_trained_model(run_dir), traj, 20, 0.012, out, progress=False)
@@ -447,7 +448,8 @@ def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
     np.testing.assert_array_equal(pred.pos[0], traj.pos[20])
     assert summary["compile_time_s"] > 0 and summary["steps"] == 120
 
-    whole = make_rollout(spec, tiny["model"], 120, 10)(
+    whole = make_rollout(spec, tiny["model"], 120, 10,
+                         pp_max_overlap=cfg.rollout.pp_max_overlap)(
         tiny["params"], tiny["stats"], initial_window(traj, 20, spec.window), motion, grid,
         traj.t[20])
     np.testing.assert_allclose(pred.pos, whole.positions, rtol=0, atol=1e-12)
