@@ -291,6 +291,8 @@ def run_demo(
                 cmp["regime"]["pp_pairs_within_skin_ref_mean"], traj.n_balls),
             "pairs_per_ball_sgn": _per_ball(cmp["regime"]["pp_contacts_pred_mean"],
                                             traj.n_balls),
+            "jar_speed_dem_m_s": cmp["regime"].get("jar_speed_ref_mean_m_s"),
+            "jar_speed_sgn_m_s": cmp["regime"].get("jar_speed_pred_mean_m_s"),
             "state_dem": cmp["regime"]["state_ref"],
             "state_sgn": cmp["regime"]["state_pred"],
         },
@@ -388,10 +390,12 @@ def format_report(summary: dict[str, Any]) -> str:
         f"  checks     balls outside the jar: SGN {c['sgn_balls_outside_ball_steps']} "
         f"ball-steps, DEM {c['dem_balls_outside']} balls; edge overflows "
         f"{c['edge_overflow_total']}; snapped ball-steps {g['snapped_ball_steps']}",
-        f"  regime     ball pairs within the edge skin per ball: DEM "
-        f"{_fmt(r['pairs_within_skin_per_ball_dem'], '.2f')} ({r['state_dem']}), SGN "
-        f"{_fmt(r['pairs_per_ball_sgn'], '.2f')} ({r['state_sgn']}); one trajectory of a "
-        "multistable charge: judge dissipation on ensembles (SPEC 7)",
+        f"  regime     mean ball speed in the jar frame: DEM "
+        f"{_fmt(r['jar_speed_dem_m_s'], '.3f')} m/s ({r['state_dem']}), SGN "
+        f"{_fmt(r['jar_speed_sgn_m_s'], '.3f')} m/s ({r['state_sgn']}); ball pairs within the "
+        f"edge skin per ball: DEM {_fmt(r['pairs_within_skin_per_ball_dem'], '.2f')}, SGN "
+        f"{_fmt(r['pairs_per_ball_sgn'], '.2f')}; one trajectory of a multistable charge: "
+        "judge dissipation on ensembles (SPEC 7)",
         f"  wrote      {out}/: summary.json, {names}",
         f"  total      {summary['wall_time_s']:.1f} s",
     ]

@@ -149,6 +149,10 @@ def test_demo_prints_the_headline_numbers(demo):
     assert f"ratio {summary['speed']['ratio']:.2f}x" in text
     assert "balls outside the jar" in text and "edge overflows" in text
     assert f"MSE_t plateau {summary['position']['mse_plateau_m2']:.3g}" in text
+    regime = summary["regime"]
+    # the state printed is the one of the speed rule, next to the speed it thresholds
+    assert (f"DEM {regime['jar_speed_dem_m_s']:.3f} m/s ({regime['state_dem']})") in text
+    assert (f"SGN {regime['jar_speed_sgn_m_s']:.3f} m/s ({regime['state_sgn']})") in text
 
 
 def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, capsys):
