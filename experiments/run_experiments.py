@@ -207,6 +207,8 @@ def _stats(values: Sequence[float | None]) -> dict[str, Any]:
 
 def case_result(case: Any, seeds: Sequence[int], out: Path) -> dict[str, Any]:
     """The summary of one case from its rollout JSON lines and its evaluation files."""
+    from sgn_jax.metrics import headline
+
     eval_dir = out / "eval" / case.name
     ensemble = json.loads((eval_dir / "ensemble.json").read_text())
     runs = []
@@ -214,20 +216,8 @@ def case_result(case: Any, seeds: Sequence[int], out: Path) -> dict[str, Any]:
         metrics = json.loads((eval_dir / f"run_{i:02d}" / "metrics.json").read_text())
         roll_json = out / "rollouts" / f"{case.name}_seed{seed}.json"
         roll = json.loads(roll_json.read_text()) if roll_json.is_file() else {}
-        runs.append({
-            "seed": seed,
-            "mse_plateau_m2": (metrics.get("position") or {}).get("mse_plateau_m2"),
-            "energy_pred_J": metrics["energy"].get("E_pred_final_J"),
-            "energy_ref_J": metrics["energy"].get("E_ref_final_J"),
-            "energy_relative_error_final": metrics["energy"]["relative_error_final"],
-            "pearson_r": metrics["energy"]["pearson_r"],
-            "balls_outside_total": metrics["outside"]["total_ball_steps"],
-            "overflow_total": metrics["overflow"]["total_edges"],
-            "state_pred": metrics["regime"]["state_pred"],
-            "state_ref": metrics["regime"]["state_ref"],
-            "ms_per_step": roll.get("ms_per_step"),
-            "metrics": str(eval_dir / f"run_{i:02d}" / "metrics.json"),
-        })
+        runs.append({"seed": seed, **headline(metrics), "ms_per_step": roll.get("ms_per_step"),
+                     "metrics": str(eval_dir / f"run_{i:02d}" / "metrics.json")})
     return {
         "case": case.name,
         "description": case.description,

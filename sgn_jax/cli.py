@@ -295,6 +295,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         compare,
         ensemble_summary,
     )
+    from sgn_jax.metrics import headline as run_headline
     from sgn_jax.plots import plot_ensemble, plot_run
     from sgn_jax.prediction import PredictionError, load_prediction
 
@@ -324,17 +325,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         summary["plots"] = plot_run(comparison, prediction, reference, run_dir)
         write_json(run_dir / "metrics.json", summary)
         summaries.append(summary)
-        headline.append({
-            "metrics": str(run_dir / "metrics.json"),
-            "mse_plateau_m2": (summary["position"] or {}).get("mse_plateau_m2"),
-            "energy_relative_error_final": summary["energy"]["relative_error_final"],
-            "pearson_r": summary["energy"]["pearson_r"],
-            "balls_outside_total": summary["outside"]["total_ball_steps"],
-            "overflow_total": summary["overflow"]["total_edges"],
-            "state_pred": summary["regime"]["state_pred"],
-            "state_ref": summary["regime"]["state_ref"],
-            "reference_covers_prediction": summary["overlap"]["complete"],
-        })
+        headline.append({"metrics": str(run_dir / "metrics.json"), **run_headline(summary)})
     if not several:
         print(json.dumps(headline[0]))
         return 0

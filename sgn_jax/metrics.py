@@ -550,6 +550,22 @@ def evaluate(prediction: Any, reference: Any, *, classify_by: str = "speed",
     return compare(prediction, reference, classify_by=classify_by, threshold=threshold).summary
 
 
+def headline(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """The headline numbers of one run's summary (from :func:`evaluate`), for one-line reports."""
+    return {
+        "mse_plateau_m2": (summary["position"] or {}).get("mse_plateau_m2"),
+        "energy_pred_J": summary["energy"].get("E_pred_final_J"),
+        "energy_ref_J": summary["energy"].get("E_ref_final_J"),
+        "energy_relative_error_final": summary["energy"]["relative_error_final"],
+        "pearson_r": summary["energy"]["pearson_r"],
+        "balls_outside_total": summary["outside"]["total_ball_steps"],
+        "overflow_total": summary["overflow"]["total_edges"],
+        "state_pred": summary["regime"]["state_pred"],
+        "state_ref": summary["regime"]["state_ref"],
+        "reference_covers_prediction": summary["overlap"]["complete"],
+    }
+
+
 # --------------------------------------------------------------------------------------------
 # Ensembles (SPEC 7)
 
@@ -707,6 +723,7 @@ __all__ = [
     "default_threshold",
     "ensemble_summary",
     "evaluate",
+    "headline",
     "jar_frame_speed",
     "kinetic_energy_fd",
     "mse_plateau",
