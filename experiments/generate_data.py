@@ -534,7 +534,10 @@ def _format_duration(seconds: float | None) -> str:
     return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def _last_json_line(path: Path, offset: int) -> dict[str, Any] | None:
+def last_json_line(path: Path, offset: int = 0, key: str = "total_dissipation_J"
+                   ) -> dict[str, Any] | None:
+    """The last JSON object with ``key`` in the log ``path`` after byte ``offset`` (the summary
+    line a ``sgn-jax`` command prints: ``dem`` has total_dissipation_J, ``rollout`` ms_per_step)."""
     with open(path, "rb") as fh:
         fh.seek(offset)
         text = fh.read().decode("utf-8", "replace")
@@ -545,7 +548,7 @@ def _last_json_line(path: Path, offset: int) -> dict[str, Any] | None:
                 data = json.loads(line)
             except ValueError:
                 continue
-            if isinstance(data, dict) and "total_dissipation_J" in data:
+            if isinstance(data, dict) and key in data:
                 return data
     return None
 
@@ -750,7 +753,7 @@ class Generator:
             return False
         entry = file_record(run, status.trajectory, self.configs[run.case.name],
                             sha256_file(run.out_path))
-        summary = _last_json_line(run.log_path, item.log_offset) or {}
+        summary = last_json_line(run.log_path, item.log_offset) or {}
         entry.update({
             "wall_time_s": wall,
             "dem_wall_time_s": summary.get("wall_time_s"),

@@ -57,6 +57,7 @@ sys.path.insert(0, str(HERE))
 from generate_data import (  # noqa: E402  (the sibling script is the ensembles' one reader)
     DEFAULT_ENSEMBLES,
     EnsembleError,
+    last_json_line,
     load_ensembles,
     select_cases,
     sgn_jax_command,
@@ -101,17 +102,6 @@ def _prediction_ok(path: Path) -> bool:
     except (PredictionError, OSError, ValueError):
         return False
     return True
-
-
-def _last_json_line(text: str) -> dict[str, Any] | None:
-    for line in reversed(text.strip().splitlines()):
-        line = line.strip()
-        if line.startswith("{"):
-            try:
-                return json.loads(line)
-            except json.JSONDecodeError:
-                return None
-    return None
 
 
 def parse_rollout_settings(items: Sequence[str]) -> dict[str, Any]:
@@ -369,7 +359,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if (out / "rollouts" / f"{stem}.json").is_file() or stem in failed \
                     or not log.is_file() or not (out / "rollouts" / f"{stem}.npz").is_file():
                 continue
-            line = _last_json_line(log.read_text())
+            line = last_json_line(log, key="ms_per_step")
             if line is not None:
                 write_json(out / "rollouts" / f"{stem}.json", line)
 
