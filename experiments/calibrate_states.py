@@ -53,7 +53,7 @@ def indicators(path: Path, window_s: float = 1.0) -> dict:
                         "jar_speed_m_s": float(speed[in_s].mean()),
                         "pp_contacts": float(contacts[in_t].mean()),
                         "power_W": float((energy[i1] - energy[i0]) / (t[i1] - t[i0]))})
-    return {"file": str(path), "seed": traj.meta.get("seed"),
+    return {"file": str(path), "seed": traj.meta.get("seed"), "n_balls": int(traj.n_balls),
             "jar_speed_m_s": float(speed.mean()), "pp_contacts": float(contacts.mean()),
             "power_W": float((energy[-1] - energy[0]) / (t[-1] - t[0])),
             "windows": windows}
@@ -68,9 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case", default="standard")
     p.add_argument("--data", default="data")
     p.add_argument("--out", default="runs/states")
-    p.add_argument("--contacts-threshold", type=float, default=14.0,
-                   help="DEM ball-ball contacts that separate bed (>=) from agitated (default "
-                   "14, experiments/generate_data.py)")
+    p.add_argument("--contacts-threshold", type=float, default=None,
+                   help="DEM ball-ball contacts that separate bed (>=) from agitated (default: "
+                   "generate_data.REGIME_PP_CONTACTS_PER_BALL x balls, 14 for 24 balls)")
     args = p.parse_args(argv)
     files = sorted(Path(args.data).glob(f"{args.case}_seed*.npz"),
                    key=lambda f: int(f.stem.rsplit("seed", 1)[1]))
@@ -79,6 +79,11 @@ def main(argv: list[str] | None = None) -> int:
               "experiments/generate_data.py", file=sys.stderr)
         return 2
     rows = [indicators(f) for f in files]
+    if args.contacts_threshold is None:  # the manifest's regime rule, per ball
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from generate_data import REGIME_PP_CONTACTS_PER_BALL
+
+        args.contacts_threshold = REGIME_PP_CONTACTS_PER_BALL * rows[0]["n_balls"]
     windows = [w for r in rows for w in r["windows"]]
     bed = [w["jar_speed_m_s"] for w in windows if w["pp_contacts"] >= args.contacts_threshold]
     agitated = [w["jar_speed_m_s"] for w in windows if w["pp_contacts"] < args.contacts_threshold]
