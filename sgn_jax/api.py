@@ -1,0 +1,274 @@
+"""The public Python API: configs, the shipped surrogate, packings, ensembles, design sensitivities.
+
+A design study in five lines (docs/design.md, README)::
+
+    import jax, sgn_jax.api as sj
+    cfg = sj.load_config("emax_300rpm")
+    model = sj.load_surrogate()                       # the shipped default model
+    packings = sj.make_packings(cfg, seeds=range(8))  # DEM settle + first window, per seed
+    study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=1.5, burn_in=0.5)
+    power, grad = jax.value_and_grad(study.power)(study.theta0)   # W, W/rpm
+
+``study.power`` is a jitted function of the flat parameter vector alone; its gradient is the
+truncated-horizon ensemble estimator of :mod:`sgn_jax.design`. ``study.estimate(theta)``
+returns the same with standard errors; ``study.powers(theta)`` the per-packing powers without
+gradient work (for curves and finite differences).
+
+This module is the layer where configs and files meet the core (:mod:`sgn_jax.design`,
+:mod:`sgn_jax.rollout`, :mod:`sgn_jax.dem`); the CLI and the experiments call it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgn_jax.checkpoint import TrainedModel, load_trained_model
+from sgn_jax.config import Config, builtin_config_path, replace_section
+from sgn_jax.config import load_config as _load_config_file
+from sgn_jax.demo import resolve_checkpoint
+from sgn_jax.design import (
+    DesignError,
+    EnsemblePower,
+    anchored_window,
+    apply_parameters,
+    check_parameters,
+    make_ensemble_power,
+    parameter_values,
+    summarize_estimate,
+)
+from sgn_jax.dem.driver import run_dem
+from sgn_jax.geometry import jar_params_from_config
+from sgn_jax.graph import Window, graph_spec_from_config
+from sgn_jax.motion import Motion, motion_from_config
+from sgn_jax.rollout import initial_window, model_predictor
+
+
+def load_config(name_or_path: str | Path) -> Config:
+    """A built-in config by name (``"emax_300rpm"``, ``"motion1"``, ...) or a TOML file."""
+    text = str(name_or_path)
+    path = Path(text)
+    if path.suffix == ".toml" or "/" in text or path.exists():
+        return _load_config_file(path)
+    return _load_config_file(builtin_config_path(text))
+
+
+def load_surrogate(checkpoint: str | Path | None = None, which: str = "best") -> TrainedModel:
+    """The trained surrogate: the shipped default model, or a training run / checkpoint dir."""
+    return load_trained_model(resolve_checkpoint(checkpoint), which=which)
+
+
+@dataclasses.dataclass(frozen=True)
+class Packings:
+    """K initial states of the surrogate, one per DEM packing.
+
+    Attributes:
+        windows: :class:`sgn_jax.graph.Window` with a leading axis K (positions (K, W+1, N, 3)).
+        t0: time (s since the start of motion) of the windows' newest sample.
+        seeds: the K DEM placement seeds.
+        config: the config they were made with (jar, balls, motion at which they were sampled).
+    """
+
+    windows: Window
+    t0: float
+    seeds: tuple[int, ...]
+    config: Config
+
+    def __len__(self) -> int:
+        return len(self.seeds)
+
+
+def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = None,
+                  progress: bool = False, log: Callable[[str], None] = lambda m: None
+                  ) -> Packings:
+    """Settle one DEM packing per seed and take the surrogate's first full window of motion.
+
+    Each packing: the DEM places the balls from the seed, settles them with the jar at rest
+    (``[dem] settle_time``), then runs ``W`` samples of the config's motion; the window ends at
+    ``t0 = W dt``.
+    """
+    seeds = tuple(int(s) for s in seeds)
+    if not seeds:
+        raise DesignError("make_packings needs at least one seed")
+    if any(s < 0 for s in seeds):
+        raise DesignError(f"seeds must be >= 0, got {list(seeds)}")
+    w = int(cfg.graph.window if window is None else window)
+    dt = float(cfg.dem.dt)
+    windows = []
+    for i, seed in enumerate(seeds):
+        log(f"packing {i + 1}/{len(seeds)} (seed {seed})")
+        run = run_dem(cfg, duration=w * dt, seed=seed, progress=progress)
+        traj = SimpleNamespace(pos=run.arrays["pos"], offset=run.arrays["offset"],
+                               offset_vel=run.arrays["offset_vel"])
+        windows.append(initial_window(traj, w, w))
+    stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *windows)
+    return Packings(windows=stacked, t0=w * dt, seeds=seeds, config=cfg)
+
+
+@dataclasses.dataclass(frozen=True)
+class DesignStudy:
+    """A design study: the ensemble-mean power as a function of named design parameters.
+
+    Attributes:
+        names: the D parameter names (``motion.rpm``, ``jar.straight_length``, ...).
+        theta0: (D,) their values at the config's design point (SI units; rpm for rpm).
+        power: ``power(theta) -> () W``, jitted; ``jax.value_and_grad(power)(theta)`` gives the
+            power and its estimated gradient (W per unit).
+        ensemble: the underlying :class:`sgn_jax.design.EnsemblePower`.
+        duration, burn_in: seconds of rollout and of the burn-in at its start; the power is
+            averaged over the remaining ``duration - burn_in`` seconds.
+    """
+
+    names: tuple[str, ...]
+    theta0: np.ndarray
+    power: Callable[[Any], jax.Array]
+    ensemble: EnsemblePower
+    duration: float
+    burn_in: float
+    _args: tuple = dataclasses.field(repr=False)
+
+    def estimate(self, theta: Any = None) -> dict[str, Any]:
+        """Power and gradient with standard errors at ``theta`` (default ``theta0``)."""
+        theta = self.theta0 if theta is None else theta
+        est = jax.device_get(self.ensemble.estimate(jnp.asarray(theta, jnp.float64),
+                                                    *self._args))
+        return summarize_estimate(est, self.names)
+
+    def powers(self, theta: Any = None) -> np.ndarray:
+        """(K,) per-packing powers (W) at ``theta`` without any gradient work."""
+        theta = self.theta0 if theta is None else theta
+        powers = np.asarray(self.ensemble.forward(jnp.asarray(theta, jnp.float64), *self._args))
+        if not np.all(np.isfinite(powers)):
+            raise DesignError(f"a rollout diverged at theta = {np.asarray(theta).tolist()} "
+                              f"({int(np.sum(~np.isfinite(powers)))} of {powers.size} packings "
+                              "non-finite)")
+        return powers
+
+
+def _steps(seconds: float, dt: float, what: str) -> int:
+    n = int(round(seconds / dt))
+    if not math.isclose(n * dt, seconds, rel_tol=1e-9, abs_tol=1e-12):
+        raise DesignError(f"{what} = {seconds:g} s is not a whole number of dt = {dt:g} s steps")
+    return n
+
+
+def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], packings: Packings,
+                 *, duration: float = 1.5, burn_in: float = 0.5, horizon: int = 100,
+                 n_segments: int = 8, separation: bool | None = None) -> DesignStudy:
+    """Build a :class:`DesignStudy` of ``cfg``'s jar and motion over ``packings``.
+
+    Args:
+        surrogate: :func:`load_surrogate`'s model (its balls and dt must be ``cfg``'s).
+        cfg: the design point (jar, motion, rollout settings).
+        names: design parameters (:data:`sgn_jax.design.PARAMETER_UNITS`).
+        packings: :func:`make_packings` of the same balls (any motion: the packings are
+            anchored in the jar frame).
+        duration: seconds of surrogate rollout per packing (> burn_in).
+        burn_in: seconds before the measurement starts.
+        horizon: steps of each gradient horizon (docs/design.md for the choice).
+        n_segments: gradient horizons per packing, spread over the measurement interval.
+        separation: the ball-ball separation (default: ``cfg``'s ``[rollout] pp_separation``).
+    """
+    model_cfg = surrogate.config
+    for section, field in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
+        a = getattr(getattr(model_cfg, section), field)
+        b = getattr(getattr(cfg, section), field)
+        if not math.isclose(float(a), float(b), rel_tol=1e-12):
+            raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
+                              f"design config has {b}")
+    if packings.windows.positions.shape[-2] != cfg.balls.count:
+        raise DesignError("the packings have a different number of balls from the config")
+    if not duration > burn_in >= 0:
+        raise DesignError(f"need duration > burn_in >= 0 s, got duration {duration:g}, burn_in "
+                          f"{burn_in:g}")
+    dt = float(cfg.dem.dt)
+    n_burn = _steps(burn_in, dt, "burn_in")
+    n_measure = _steps(duration - burn_in, dt, "duration - burn_in")
+    if n_measure % n_segments:
+        raise DesignError(f"the measurement interval ({n_measure} steps) must split into "
+                          f"n_segments = {n_segments} equal parts")
+    # Window-level features come from the model's graph rules; the jar and motion from cfg.
+    spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
+                                  n_particles=cfg.balls.count)
+    motion = motion_from_config(cfg.motion)
+    jar = jar_params_from_config(cfg.jar)
+    names = check_parameters(names, motion, jar)
+    rollout = cfg.rollout
+    use_sep = rollout.pp_separation if separation is None else bool(separation)
+    base_motion = motion_from_config(packings.config.motion)
+    if type(base_motion) is not type(motion):
+        # Packings made under another motion kind are re-anchored to this motion at t0.
+        base_motion = motion
+    ensemble = make_ensemble_power(
+        spec, model_predictor(surrogate.model), names, motion, jar, packings.t0,
+        n_burn=n_burn, n_measure=n_measure, horizon=horizon, n_segments=n_segments,
+        snap_back=rollout.snap_back, phi_sb=model_cfg.graph.phi_sb,
+        snap_velocity=rollout.snap_velocity,
+        pp_max_overlap=rollout.pp_max_overlap if use_sep else None)
+    windows = _reanchor(packings, base_motion, motion, dt)
+    args = (jax.device_put(surrogate.params), jax.device_put(surrogate.norm_stats),
+            jax.device_put(windows))
+    power = ensemble.power
+
+    def power_of_theta(theta: Any) -> jax.Array:
+        return power(jnp.asarray(theta, jnp.float64), *args)
+
+    return DesignStudy(names=names, theta0=parameter_values(names, motion, jar),
+                       power=power_of_theta, ensemble=ensemble, duration=float(duration),
+                       burn_in=float(burn_in), _args=args)
+
+
+def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float) -> Window:
+    """The packings' windows moved to ``motion`` (jar-frame positions kept; host side)."""
+    move = jax.jit(jax.vmap(lambda w: anchored_window(w, jnp.asarray(packings.t0, jnp.float64),
+                                                      made_under, motion, dt)[0]))
+    return jax.device_get(move(packings.windows))
+
+
+def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
+    """``cfg`` with the design parameters set to ``theta`` (for DEM runs at a design point).
+
+    ``motion.scale`` multiplies the amplitude / every harmonic coefficient.
+    """
+    motion = motion_from_config(cfg.motion)
+    jar = jar_params_from_config(cfg.jar)
+    names = check_parameters(names, motion, jar)
+    motion, jar = apply_parameters(names, jnp.asarray(theta, jnp.float64), motion, jar)
+    m = cfg.motion
+    if m.kind == "circle":
+        cfg = replace_section(cfg, "motion", rpm=float(motion.rpm),
+                              amplitude=float(motion.amplitude), phase=float(motion.phase))
+    elif m.kind == "harmonic":
+        sin_c, cos_c = np.asarray(motion.sin_coeffs), np.asarray(motion.cos_coeffs)
+        lists = {}
+        for axis, letter in enumerate("xyz"):
+            for name, coeffs in (("sin", sin_c), ("cos", cos_c)):
+                old = getattr(m, f"{letter}_{name}")
+                lists[f"{letter}_{name}"] = (tuple(float(v) for v in coeffs[:, axis])
+                                             if old or np.any(coeffs[:, axis]) else ())
+        cfg = replace_section(cfg, "motion", base_frequency_hz=float(motion.base_frequency_hz),
+                              **lists)
+    if any(n.startswith("jar.") for n in names):
+        cfg = replace_section(cfg, "jar", radius=float(jar.radius),
+                              straight_length=float(jar.straight_length),
+                              height=float(jar.height), post_radius=float(jar.post_radius))
+    return cfg
+
+
+__all__ = [
+    "DesignStudy",
+    "Packings",
+    "design_config",
+    "design_study",
+    "load_config",
+    "load_surrogate",
+    "make_packings",
+]

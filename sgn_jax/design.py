@@ -1,0 +1,430 @@
+"""Design sensitivities: the ensemble-mean dissipation power as a differentiable function of named
+design parameters (jar motion, jar shape), with a gradient estimator built for chaotic systems.
+
+Pure JAX core: no config, no files (the host side is :mod:`sgn_jax.api`). Three pieces:
+
+1. **Named design parameters** (:data:`PARAMETER_UNITS`, :func:`apply_parameters`): a flat vector
+   ``theta`` (D,) of values for names such as ``motion.rpm``, ``motion.amplitude``,
+   ``motion.base_frequency_hz``, ``motion.x_sin[0]``, ``motion.scale`` (multiplies the whole
+   displacement: the circle's amplitude or every harmonic coefficient), ``jar.straight_length``,
+   ``jar.radius``, ``jar.height``, ``jar.post_radius``; applied to a motion pytree and a
+   :class:`sgn_jax.geometry.JarParams` pytree. The jar is queried through its exact analytic SDF
+   (:func:`sgn_jax.rollout.analytic_jar_query`), so jar-shape derivatives are exact
+   derivatives of the wall distances the network sees (the SDF grid the model was trained with
+   agrees with it to 3.8 um, docs/geometry.md), with no grid to resample per evaluation.
+
+2. **The anchored ensemble state.** A packing is a window of ball positions at time ``t``. When
+   ``theta`` changes the motion, the balls keep their positions *in the jar frame* and the jar's
+   phase at ``t`` is held (``t`` is remapped so that ``f(theta) * t`` is unchanged): a frequency
+   change acts from ``t`` on, instead of teleporting the jar by the accumulated phase
+   ``2 pi t df`` (the "gradient" of a long rollout with respect to rpm is dominated by that
+   artefact: 1.7 mm of jar displacement per rpm after one second).
+
+3. **The estimator** (:func:`make_ensemble_power`; docs/design.md). The charge is chaotic: the
+   derivative of one long trajectory grows like exp(lambda t) and says nothing about the
+   derivative of its time average. The ensemble-mean power over the measurement interval is
+   estimated by the forward rollouts; its derivative by the mean, over packings and over
+   ``n_segments`` segment starts spread through the measurement interval, of the derivative of
+   the energy dissipated in a short horizon of ``horizon`` steps from the (anchored,
+   stop-gradient) state at the segment start, divided by the horizon's duration: a truncated-
+   horizon ("response within a correlation time") estimator. It neglects how ``theta`` shifts
+   the distribution of states over times longer than the horizon (a bias that
+   ``experiments/design/verify_gradients.py`` measures against ensemble finite differences)
+   and in exchange has a variance that does not grow with the rollout length.
+   ``jax.value_and_grad`` of the returned function gives (power, this estimate) through a
+   ``jax.custom_vjp``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgn_jax.errors import SGNJaxError
+from sgn_jax.geometry import JarParams
+from sgn_jax.graph import GraphSpec, Window
+from sgn_jax.motion import CircleMotion, HarmonicMotion, Motion, frequency_hz, offset, velocity
+from sgn_jax.rollout import (
+    Predictor,
+    RolloutState,
+    analytic_jar_query,
+    make_rollout_advance,
+)
+
+F64 = jnp.float64
+
+
+class DesignError(SGNJaxError, ValueError):
+    """Bad design-study input (unknown parameter, wrong sizes) or a gradient that is not finite."""
+
+
+# --------------------------------------------------------------------------------------------
+# Named design parameters
+
+PARAMETER_UNITS = {
+    "motion.rpm": "rpm",
+    "motion.amplitude": "m",
+    "motion.phase": "rad",
+    "motion.base_frequency_hz": "Hz",
+    "motion.scale": "1",
+    "jar.radius": "m",
+    "jar.straight_length": "m",
+    "jar.height": "m",
+    "jar.post_radius": "m",
+}
+"""Unit of each fixed-name design parameter; harmonic coefficients ``motion.{x,y,z}_{sin,cos}[k]``
+(k = 0 is the first harmonic, as in the config lists) are in m."""
+
+_COEFF = re.compile(r"^motion\.([xyz])_(sin|cos)\[(\d+)\]$")
+_CIRCLE_ONLY = ("motion.rpm", "motion.amplitude", "motion.phase")
+
+
+def parameter_unit(name: str) -> str:
+    """The unit of a design parameter (``DesignError`` for an unknown name)."""
+    if name in PARAMETER_UNITS:
+        return PARAMETER_UNITS[name]
+    if _COEFF.match(name):
+        return "m"
+    raise DesignError(f"unknown design parameter {name!r}; known: {sorted(PARAMETER_UNITS)} and "
+                      "harmonic coefficients like 'motion.x_sin[0]'")
+
+
+def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tuple[str, ...]:
+    """Validate ``names`` against the motion kind and the jar; returns them as a tuple."""
+    names = tuple(names)
+    if not names:
+        raise DesignError("give at least one design parameter, e.g. 'motion.rpm'")
+    if len(set(names)) != len(names):
+        raise DesignError(f"design parameters repeat: {list(names)}")
+    for name in names:
+        parameter_unit(name)
+        if name in _CIRCLE_ONLY and not isinstance(motion, CircleMotion):
+            raise DesignError(f"{name} needs a circle motion, the config's motion is "
+                              f"{type(motion).__name__}; use motion.base_frequency_hz, "
+                              "motion.scale or a harmonic coefficient")
+        if name == "motion.base_frequency_hz" and not isinstance(motion, HarmonicMotion):
+            raise DesignError(f"{name} needs a harmonic motion; for a circle use motion.rpm")
+        match = _COEFF.match(name)
+        if match:
+            if not isinstance(motion, HarmonicMotion):
+                raise DesignError(f"{name} needs a harmonic motion")
+            k = int(match.group(3))
+            if k >= np.shape(motion.sin_coeffs)[0]:
+                raise DesignError(f"{name}: the motion has {np.shape(motion.sin_coeffs)[0]} "
+                                  "harmonics (k counts from 0)")
+        if name == "motion.scale" and not isinstance(motion, CircleMotion | HarmonicMotion):
+            raise DesignError("motion.scale needs a circle or harmonic motion")
+        if name == "jar.post_radius" and not jar.has_post:
+            raise DesignError("jar.post_radius needs a jar with a post (post_radius > 0 in the "
+                              "config); a post cannot grow from zero radius differentiably")
+    return names
+
+
+def parameter_values(names: Sequence[str], motion: Motion, jar: JarParams) -> np.ndarray:
+    """The current values (D,) of ``names`` (``motion.scale`` is 1 by definition)."""
+    values = []
+    for name in names:
+        match = _COEFF.match(name)
+        if name == "motion.scale":
+            values.append(1.0)
+        elif match:
+            axis, kind, k = "xyz".index(match.group(1)), match.group(2), int(match.group(3))
+            coeffs = motion.sin_coeffs if kind == "sin" else motion.cos_coeffs
+            values.append(float(np.asarray(coeffs)[k, axis]))
+        elif name.startswith("motion."):
+            values.append(float(np.asarray(getattr(motion, name.split(".", 1)[1]))))
+        else:
+            values.append(float(np.asarray(getattr(jar, name.split(".", 1)[1]))))
+    return np.asarray(values, dtype=np.float64)
+
+
+def apply_parameters(names: Sequence[str], theta: jax.Array, motion: Motion, jar: JarParams
+                     ) -> tuple[Motion, JarParams]:
+    """``(motion, jar)`` with the parameters ``names`` set to ``theta`` (D,) (traceable)."""
+    theta = jnp.asarray(theta, F64)
+    for i, name in enumerate(names):
+        value = theta[i]
+        match = _COEFF.match(name)
+        if name == "motion.scale":
+            if isinstance(motion, CircleMotion):
+                motion = motion.replace(amplitude=motion.amplitude * value)
+            else:
+                motion = motion.replace(sin_coeffs=motion.sin_coeffs * value,
+                                        cos_coeffs=motion.cos_coeffs * value)
+        elif match:
+            axis, kind, k = "xyz".index(match.group(1)), match.group(2), int(match.group(3))
+            field = "sin_coeffs" if kind == "sin" else "cos_coeffs"
+            coeffs = jnp.asarray(getattr(motion, field), F64).at[k, axis].set(value)
+            motion = motion.replace(**{field: coeffs})
+        elif name.startswith("motion."):
+            motion = motion.replace(**{name.split(".", 1)[1]: value})
+        else:
+            jar = jar.replace(**{name.split(".", 1)[1]: value})
+    return motion, jar
+
+
+# --------------------------------------------------------------------------------------------
+# Anchoring a state to a changed motion
+
+
+def anchored_window(window: Window, t_now: jax.Array, base_motion: Motion, motion: Motion,
+                    dt: float) -> tuple[Window, jax.Array]:
+    """``window`` (made under ``base_motion``, newest sample at ``t_now``) moved to ``motion``.
+
+    Returns the window and the effective time of its newest sample, ``t_eff =
+    stop_gradient(f(theta) t_now) / f(theta)``: equal to ``t_now`` at the base point, with the
+    jar's phase held. Ball positions keep their jar-frame values (stop-gradient): the jar state
+    of the slots and the lab positions follow the new motion, the packing does not.
+    """
+    w = jnp.shape(window.offsets)[0]
+    f = frequency_hz(motion)
+    t_eff = jax.lax.stop_gradient(f * t_now) / f
+    rel = dt * jnp.arange(-w, 1, dtype=F64)                   # the W+1 position slots
+    base_offsets = offset(base_motion, jnp.asarray(t_now, F64) + rel)
+    jar_frame = jax.lax.stop_gradient(window.positions - base_offsets[:, None, :])
+    new_offsets = offset(motion, t_eff + rel)
+    window = window.replace(
+        positions=jar_frame + new_offsets[:, None, :],
+        offsets=new_offsets[1:],
+        offset_velocities=velocity(motion, t_eff + rel[1:]),
+        frequency_hz=jnp.asarray(f, F64))
+    return window, t_eff
+
+
+# --------------------------------------------------------------------------------------------
+# The ensemble-mean power and its estimated gradient
+
+
+@flax.struct.dataclass
+class PowerEstimate:
+    """What :func:`make_ensemble_power`'s ``estimate`` returns (K packings, G segments, D params).
+
+    Attributes:
+        power_W: (K,) mean dissipation power of each packing over the measurement interval (W).
+        gradient: (K, G, D) truncated-horizon derivative of the power at each segment start
+            (W per unit of each parameter).
+        horizon_energy_J: (K, G) energy dissipated in each gradient horizon (J).
+    """
+
+    power_W: jax.Array
+    gradient: jax.Array
+    horizon_energy_J: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class EnsemblePower:
+    """The jittable functions of one design study (see :func:`make_ensemble_power`).
+
+    ``power(theta, params, stats, windows)`` -> () W, ensemble mean; ``jax.value_and_grad``
+    w.r.t. ``theta`` returns the truncated-horizon gradient estimate. ``estimate(...)`` ->
+    :class:`PowerEstimate` (per packing and segment, for standard errors). ``forward(...)`` ->
+    (K,) powers without any gradient work (for finite differences and curves).
+    """
+
+    power: Callable[..., jax.Array]
+    estimate: Callable[..., PowerEstimate]
+    forward: Callable[..., jax.Array]
+    names: tuple[str, ...]
+    n_burn: int
+    n_measure: int
+    horizon: int
+    n_segments: int
+
+
+def _zero_cotangent(x: Any) -> Any:
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.inexact):
+        return jnp.zeros_like(x)
+    return np.zeros(x.shape, dtype=jax.dtypes.float0)
+
+
+def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[str],
+                        base_motion: Motion, base_jar: JarParams, t0: float, *,
+                        n_burn: int, n_measure: int, horizon: int = 100, n_segments: int = 8,
+                        snap_back: bool = True, phi_sb: float = -0.0049,
+                        snap_velocity: str = "keep", pp_max_overlap: float | None = None,
+                        checkpoint_steps: int = 100) -> EnsemblePower:
+    """Build the ensemble-mean power of a design study and its gradient estimator.
+
+    Args:
+        spec: the surrogate's :class:`GraphSpec`.
+        predictor: ``predictor(params, stats, graph, step)`` (:func:`model_predictor`).
+        names: the D design parameters (:func:`check_parameters`).
+        base_motion, base_jar: the design point's motion and jar; ``theta`` replaces ``names``.
+        t0: time (s since the start of motion) of the packings' newest window sample.
+        n_burn: steps rolled out before the measurement starts (the state settles).
+        n_measure: steps of the measurement interval (power = energy / (n_measure dt)); a
+            multiple of ``n_segments``.
+        horizon: steps of each gradient horizon (<= n_measure / n_segments).
+        n_segments: gradient segments per packing, one at the start of each of the
+            ``n_segments`` equal parts of the measurement interval.
+        snap_back, phi_sb, snap_velocity, pp_max_overlap: the rollout's settings
+            (:func:`sgn_jax.rollout.make_rollout`).
+        checkpoint_steps: ``jax.checkpoint`` chunk of the differentiated horizons.
+
+    Returns:
+        an :class:`EnsemblePower`. Its functions take ``(theta (D,), params, stats, windows)``
+        with ``windows`` a :class:`Window` batched over K packings (leading axis), made under
+        ``base_motion`` and ending at ``t0``.
+    """
+    names = check_parameters(names, base_motion, base_jar)
+    n_burn, n_measure, horizon, n_segments = int(n_burn), int(n_measure), int(horizon), int(
+        n_segments)
+    if n_burn < 0 or n_measure < 1 or n_segments < 1 or horizon < 1:
+        raise DesignError(f"need n_burn >= 0, n_measure >= 1, n_segments >= 1, horizon >= 1; got "
+                          f"{n_burn}, {n_measure}, {n_segments}, {horizon}")
+    if n_measure % n_segments:
+        raise DesignError(f"the measurement interval ({n_measure} steps) must split into "
+                          f"{n_segments} equal segments")
+    stride = n_measure // n_segments
+    if horizon > stride:
+        raise DesignError(f"gradient horizon {horizon} steps is longer than a segment "
+                          f"({stride} steps = measurement / n_segments); shorten it")
+    dt = float(spec.dt)
+    options = dict(snap_back=snap_back, phi_sb=phi_sb, snap_velocity=snap_velocity,
+                   query=analytic_jar_query, pp_max_overlap=pp_max_overlap, jit=False)
+    burn = (make_rollout_advance(spec, predictor, n_burn, n_burn, **options)
+            if n_burn else None)
+    segment_run = make_rollout_advance(spec, predictor, stride, stride, **options)
+    # Frames of c steps inside a horizon, each a jax.checkpoint chunk: reverse mode stores one
+    # carry per chunk instead of every step's residuals.
+    chunk = _divisor_at_most(horizon, checkpoint_steps)
+    horizon_run = make_rollout_advance(spec, predictor, horizon, chunk, checkpoint_steps=chunk,
+                                       **options)
+    t0 = float(t0)
+
+    def design(theta):
+        return apply_parameters(names, theta, base_motion, base_jar)
+
+    def one_forward(theta, params, stats, window0):
+        """Power (W) of one packing and the states at the segment starts."""
+        motion, jar = design(theta)
+        window, t_eff = anchored_window(window0, jnp.asarray(t0, F64), base_motion, motion, dt)
+        state = RolloutState(window=window, step=jnp.zeros((), jnp.int32),
+                             energy=jnp.zeros((), F64))
+        if burn is not None:
+            state = burn(params, stats, state, motion, jar, t_eff).final
+        state = state.replace(energy=jnp.zeros((), F64))
+
+        def segment(carry, _):
+            result = segment_run(params, stats, carry, motion, jar, t_eff)
+            return result.final, carry
+
+        final, starts = jax.lax.scan(segment, state, None, length=n_segments)
+        return final.energy / (n_measure * dt), starts, t_eff
+
+    def one_horizon_energy(theta, params, stats, start, t_eff0):
+        """Energy (J) dissipated in ``horizon`` steps from ``start`` under ``theta``'s design,
+        the state anchored (jar frame, jar phase) at the segment start."""
+        motion, jar = design(theta)
+        theta0 = jax.lax.stop_gradient(theta)
+        base_at_theta0, _ = design(theta0)
+        t_now = t_eff0 + start.step.astype(F64) * dt
+        window, t_eff = anchored_window(start.window, t_now, base_at_theta0, motion, dt)
+        state = RolloutState(window=window, step=jnp.zeros((), jnp.int32),
+                             energy=jnp.zeros((), F64))
+        return horizon_run(params, stats, state, motion, jar, t_eff).final.energy
+
+    horizon_grad = jax.value_and_grad(one_horizon_energy)
+
+    def forward(theta, params, stats, windows):
+        powers, _, _ = jax.vmap(one_forward, in_axes=(None, None, None, 0))(
+            theta, params, stats, windows)
+        return powers
+
+    def segment_gradients(theta, params, stats, starts, t_eff):
+        """(K, G) energies and (K, G, D) power derivatives at the segment starts."""
+        per_start = jax.vmap(horizon_grad, in_axes=(None, None, None, 0, None))
+        per_packing = jax.vmap(per_start, in_axes=(None, None, None, 0, 0))
+        energy, grad = per_packing(theta, params, stats, starts, t_eff)
+        return energy, grad / (horizon * dt)
+
+    def estimate(theta, params, stats, windows):
+        theta = jnp.asarray(theta, F64)
+        powers, starts, t_eff = jax.vmap(one_forward, in_axes=(None, None, None, 0))(
+            theta, params, stats, windows)
+        energy, grad = segment_gradients(theta, params, stats, starts, t_eff)
+        return PowerEstimate(power_W=powers, gradient=grad, horizon_energy_J=energy)
+
+    @jax.custom_vjp
+    def power(theta, params, stats, windows):
+        return jnp.mean(forward(theta, params, stats, windows))
+
+    def power_fwd(theta, params, stats, windows):
+        theta = jnp.asarray(theta, F64)
+        powers, starts, t_eff = jax.vmap(one_forward, in_axes=(None, None, None, 0))(
+            theta, params, stats, windows)
+        return jnp.mean(powers), (theta, params, stats, windows, starts, t_eff)
+
+    def power_bwd(residuals, g):
+        theta, params, stats, windows, starts, t_eff = residuals
+        _, grad = segment_gradients(theta, params, stats, starts, t_eff)
+        zeros = jax.tree_util.tree_map(_zero_cotangent, (params, stats, windows))
+        return (g * jnp.mean(grad, axis=(0, 1)), *zeros)
+
+    power.defvjp(power_fwd, power_bwd)
+    return EnsemblePower(power=jax.jit(power), estimate=jax.jit(estimate),
+                         forward=jax.jit(forward), names=names, n_burn=n_burn,
+                         n_measure=n_measure, horizon=horizon, n_segments=n_segments)
+
+
+def _divisor_at_most(n: int, limit: int) -> int:
+    """The largest divisor of ``n`` that is <= ``limit`` (a jax.checkpoint chunk length)."""
+    for d in range(min(n, max(1, limit)), 0, -1):
+        if n % d == 0:
+            return d
+    return 1
+
+
+def summarize_estimate(est: PowerEstimate, names: Sequence[str]) -> dict[str, Any]:
+    """Ensemble means and standard errors of an estimate (host side, numpy).
+
+    The standard error of the gradient is taken over the packings' own means (segments of one
+    packing are correlated, packings are independent). Raises :class:`DesignError` if any
+    power or gradient is not finite, naming the packing, segment and parameter.
+    """
+    power = np.asarray(est.power_W, np.float64)
+    grad = np.asarray(est.gradient, np.float64)
+    k = power.shape[0]
+    bad_power = np.flatnonzero(~np.isfinite(power))
+    if bad_power.size:
+        raise DesignError(f"the rollout of packing {int(bad_power[0])} gave a non-finite power "
+                          "(the surrogate diverged); check the model's envelope and the "
+                          "outside/overflow counts with `sgn-jax rollout`")
+    if not np.all(np.isfinite(grad)):
+        p, s, d = (int(i[0]) for i in np.nonzero(~np.isfinite(grad)))
+        raise DesignError(
+            f"the gradient of {names[d]} is not finite at packing {p}, segment {s}: a contact "
+            "response in the horizon overflowed; use a shorter gradient horizon")
+    per_packing = grad.mean(axis=1)                             # (K, D)
+    se = per_packing.std(axis=0, ddof=1) / np.sqrt(k) if k > 1 else np.full(len(names), np.nan)
+    return {
+        "power_W": float(power.mean()),
+        "power_se_W": float(power.std(ddof=1) / np.sqrt(k)) if k > 1 else float("nan"),
+        "power_per_packing_W": power.tolist(),
+        "gradient": {n: float(v) for n, v in zip(names, per_packing.mean(axis=0), strict=True)},
+        "gradient_se": {n: float(v) for n, v in zip(names, se, strict=True)},
+        "gradient_per_packing": {n: per_packing[:, i].tolist() for i, n in enumerate(names)},
+    }
+
+
+__all__ = [
+    "DesignError",
+    "EnsemblePower",
+    "PARAMETER_UNITS",
+    "PowerEstimate",
+    "anchored_window",
+    "apply_parameters",
+    "check_parameters",
+    "make_ensemble_power",
+    "parameter_unit",
+    "parameter_values",
+    "summarize_estimate",
+]
