@@ -34,6 +34,13 @@ import numpy as np
 from sgn_jax.checkpoint import TrainedModel, load_trained_model
 from sgn_jax.config import Config, builtin_config_path, replace_section
 from sgn_jax.config import load_config as _load_config_file
+from sgn_jax.dem.driver import (
+    initial_state,
+    run_dem,
+    settle_sample_count,
+    setup_from_config,
+)
+from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.demo import resolve_checkpoint
 from sgn_jax.design import (
     DesignError,
@@ -42,13 +49,13 @@ from sgn_jax.design import (
     apply_parameters,
     check_parameters,
     make_ensemble_power,
+    parameter_unit,
     parameter_values,
     summarize_estimate,
 )
-from sgn_jax.dem.driver import run_dem
 from sgn_jax.geometry import jar_params_from_config
 from sgn_jax.graph import Window, graph_spec_from_config
-from sgn_jax.motion import Motion, motion_from_config
+from sgn_jax.motion import Motion, motion_from_config, offset
 from sgn_jax.rollout import initial_window, model_predictor
 
 
@@ -233,6 +240,13 @@ def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float)
     return jax.device_get(move(packings.windows))
 
 
+def parameter_values_of(cfg: Config, names: Sequence[str]) -> np.ndarray:
+    """The values (D,) of design parameters ``names`` in ``cfg`` (``motion.scale`` is 1)."""
+    motion = motion_from_config(cfg.motion)
+    jar = jar_params_from_config(cfg.jar)
+    return parameter_values(check_parameters(names, motion, jar), motion, jar)
+
+
 def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     """``cfg`` with the design parameters set to ``theta`` (for DEM runs at a design point).
 
@@ -263,12 +277,109 @@ def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     return cfg
 
 
+# --------------------------------------------------------------------------------------------
+# DEM ensembles at design points (the ground truth of a design study)
+
+_SURROGATE_KINDS = tuple(DISSIPATION_KINDS.index(k) for k in ("normal", "tangential"))
+
+
+def _jar_key(cfg: Config) -> tuple:
+    j = cfg.jar
+    return (j.kind, j.radius, j.straight_length, j.height, j.post_radius, j.stl_path)
+
+
+@dataclasses.dataclass
+class DEMEnsemble:
+    """Runs the DEM of many design points over the same packings, settling each packing once.
+
+    The settled packing depends on the jar, the balls and the seed, not on the motion (the jar
+    rests during settling); a motion whose start offset differs is given the packing translated
+    with the jar. ``powers(cfg, seeds, duration, burn_in)`` returns the per-seed mean power of
+    normal + tangential damping (ball-ball + ball-wall; the surrogate's target) over
+    ``(burn_in, duration]`` seconds of motion, in W. One process; run one per core for speed.
+    """
+
+    chunk_samples: int = 1000
+    _settled: dict = dataclasses.field(default_factory=dict)
+    _samplers: dict = dataclasses.field(default_factory=dict)
+
+    def _sampler(self, setup: Any) -> Any:
+        key = (setup.spec, setup.substeps, setup.pp_capacity, _jar_key(setup.cfg))
+        if key not in self._samplers:
+            self._samplers[key] = make_sampler(setup.spec, setup.jar.wall_fn, setup.substeps,
+                                               setup.pp_capacity)
+        return self._samplers[key]
+
+    def _run(self, setup: Any, state: Any, n_samples: int) -> tuple[Any, list[dict]]:
+        run = self._sampler(setup)
+        out = []
+        while n_samples > 0:
+            n = min(self.chunk_samples, n_samples)
+            state, samples = run(setup.params, state, n)
+            out.append(jax.device_get(samples))
+            n_samples -= n
+        return state, out
+
+    def settled(self, cfg: Config, seed: int) -> Any:
+        """The settled DEM state of ``cfg``'s jar and balls for ``seed`` (cached in memory),
+        in the lab frame of ``cfg``'s motion at t = 0."""
+        setup = setup_from_config(cfg)
+        key = (_jar_key(cfg), cfg.balls, cfg.material, cfg.dem.settle_time, cfg.dem.dt,
+               cfg.dem.dt_dem_max, int(seed))
+        if key not in self._settled:
+            state = initial_state(setup, int(seed))
+            state, _ = self._run(setup, state, settle_sample_count(setup))
+            state = reset_ledger_totals(state)
+            self._settled[key] = (jax.device_get(state),
+                                  np.asarray(offset(setup.params.motion, 0.0)))
+        state, offset0 = self._settled[key]
+        shift = np.asarray(offset(setup.params.motion, 0.0)) - offset0
+        return state.replace(pos=state.pos + shift, offset=state.offset + shift)
+
+    def power(self, cfg: Config, seed: int, duration: float, burn_in: float) -> dict[str, Any]:
+        """One packing's mean power (W) over ``(burn_in, duration]`` s and its run checks."""
+        setup = setup_from_config(cfg)
+        dt = float(cfg.dem.dt)
+        n_total = _steps(duration, dt, "duration")
+        n_burn = _steps(burn_in, dt, "burn_in")
+        state = self.settled(cfg, seed)
+        _, chunks = self._run(setup, state, n_total)
+        diss_pp = np.concatenate([c["diss_pp"] for c in chunks])
+        diss_pw = np.concatenate([c["diss_pw"] for c in chunks])
+        cumulative = (diss_pp[:, list(_SURROGATE_KINDS)].sum(axis=1)
+                      + diss_pw[:, list(_SURROGATE_KINDS)].sum(axis=1))
+        start = cumulative[n_burn - 1] if n_burn > 0 else 0.0
+        energy = float(cumulative[-1] - start)
+        pos = np.concatenate([c["pos"] for c in chunks])
+        off = np.concatenate([c["offset"] for c in chunks])
+        phi = np.asarray(jax.vmap(jax.vmap(lambda x: setup.jar.sdf_fn(setup.jar.geometry, x)))(
+            jnp.asarray(pos - off[:, None, :])))
+        if not np.all(np.isfinite(pos)) or np.any(phi > 0):
+            raise DesignError(f"the DEM run of seed {seed} left the jar or went non-finite "
+                              f"(max phi {float(np.nanmax(phi)):.3g} m)")
+        return {"seed": int(seed), "power_W": energy / ((n_total - n_burn) * dt),
+                "energy_J": energy, "max_phi_m": float(phi.max()),
+                "mean_pp_contacts": float(np.mean(np.concatenate(
+                    [c["n_pp_contacts"] for c in chunks])))}
+
+
+def ensemble_mean(values: Sequence[float]) -> tuple[float, float]:
+    """Mean and its standard error (ddof 1) of a list of per-packing values."""
+    arr = np.asarray(values, np.float64)
+    se = float(arr.std(ddof=1) / np.sqrt(arr.size)) if arr.size > 1 else float("nan")
+    return float(arr.mean()), se
+
+
 __all__ = [
+    "DEMEnsemble",
     "DesignStudy",
     "Packings",
     "design_config",
     "design_study",
+    "ensemble_mean",
     "load_config",
     "load_surrogate",
     "make_packings",
+    "parameter_unit",
+    "parameter_values_of",
 ]

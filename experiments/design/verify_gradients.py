@@ -1,0 +1,287 @@
+"""Check the surrogate's design gradients against DEM ensemble central differences.
+
+At each design point (the standard case, a circle near the envelope's fast edge, Motion 1) and
+for three parameters (the motion's frequency, its amplitude, the jar's straight length), the
+DEM runs the same 8 packings at theta - h, theta and theta + h; the central difference of the
+ensemble-mean power, with its standard error, is set beside the surrogate's estimated gradient
+(sgn_jax.api.design_study) and the surrogate's own ensemble central difference.
+
+    python experiments/design/verify_gradients.py dem --workers 2      # DEM, resumable (~30 min)
+    python experiments/design/verify_gradients.py surrogate            # surrogate gradients
+    python experiments/design/verify_gradients.py report               # table + plots
+
+Outputs go to runs/design/ (DEM lines in dem/worker*.jsonl, appended and fsynced per run so a
+killed job resumes; surrogate.json; report.md; one plot per point and parameter).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import sgn_jax.api as sj
+
+OUT = Path("runs/design")
+SEEDS = tuple(range(20, 28))  # never used for training (standard-case training used 0-3)
+DURATION, BURN_IN = 1.5, 0.5  # s of motion; power averaged over (BURN_IN, DURATION]
+
+POINTS: dict[str, dict] = {
+    "standard": {"config": "emax_300rpm", "set": {},
+                 "steps": {"motion.rpm": 50.0, "motion.amplitude": 0.003,
+                           "jar.straight_length": 0.005}},
+    "edge": {"config": "emax_300rpm", "set": {"motion.rpm": 450.0, "motion.amplitude": 0.018},
+             "steps": {"motion.rpm": 50.0, "motion.amplitude": 0.002,
+                       "jar.straight_length": 0.005}},
+    "motion1": {"config": "motion1", "set": {},
+                "steps": {"motion.base_frequency_hz": 0.8, "motion.scale": 0.08,
+                          "jar.straight_length": 0.005}},
+}
+# Priority order of the DEM work: the standard rpm difference is the headline check.
+ORDER = [("standard", "motion.rpm"), ("standard", None), ("standard", "motion.amplitude"),
+         ("standard", "jar.straight_length"), ("edge", "motion.rpm"), ("edge", None),
+         ("motion1", "motion.base_frequency_hz"), ("motion1", None),
+         ("edge", "motion.amplitude"), ("motion1", "motion.scale"),
+         ("edge", "jar.straight_length"), ("motion1", "jar.straight_length")]
+
+
+def point_config(name: str):
+    """The config of a design point (its base config with the point's settings)."""
+    point = POINTS[name]
+    cfg = sj.load_config(point["config"])
+    if point["set"]:
+        cfg = sj.design_config(cfg, list(point["set"]), list(point["set"].values()))
+    return cfg
+
+
+def variant_config(point: str, param: str | None, side: int):
+    cfg = point_config(point)
+    if param is None or side == 0:
+        return cfg
+    study_names = [param]
+    base = sj.parameter_values_of(cfg, study_names)[0]
+    return sj.design_config(cfg, study_names, [base + side * POINTS[point]["steps"][param]])
+
+
+def dem_jobs() -> list[tuple[str, str | None, int, int]]:
+    jobs = []
+    for point, param in ORDER:
+        for seed in SEEDS:
+            if param is None:
+                jobs.append((point, None, 0, seed))
+            else:
+                jobs.extend([(point, param, -1, seed), (point, param, 1, seed)])
+    return jobs
+
+
+def job_key(job) -> str:
+    point, param, side, seed = job
+    return f"{point}|{param}|{side}|{seed}"
+
+
+def done_keys() -> set[str]:
+    keys = set()
+    for path in (OUT / "dem").glob("worker*.jsonl"):
+        for line in path.read_text().splitlines():
+            try:
+                keys.add(json.loads(line)["key"])
+            except (ValueError, KeyError):
+                continue  # a line cut by a kill: that run is redone
+    return keys
+
+
+def cmd_dem_worker(index: int, of: int) -> None:
+    jobs = [j for i, j in enumerate(dem_jobs()) if i % of == index]
+    done = done_keys()
+    todo = [j for j in jobs if job_key(j) not in done]
+    ensemble = sj.DEMEnsemble()
+    path = OUT / "dem" / f"worker{index}.jsonl"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    for n, job in enumerate(todo, 1):
+        point, param, side, seed = job
+        cfg = variant_config(point, param, side)
+        t0 = time.perf_counter()
+        result = ensemble.power(cfg, seed, DURATION, BURN_IN)
+        result.update(key=job_key(job), point=point, param=param, side=side,
+                      wall_s=time.perf_counter() - t0)
+        with open(path, "a") as fh:
+            fh.write(json.dumps(result) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        rate = (time.perf_counter() - t_start) / n
+        print(f"[worker {index}] {n}/{len(todo)} {job_key(job)}: {result['power_W']:.4f} W, "
+              f"{result['wall_s']:.1f} s; ETA {rate * (len(todo) - n) / 60:.1f} min", flush=True)
+
+
+def cmd_dem(workers: int) -> None:
+    procs = []
+    for i in range(workers):
+        cmd = [sys.executable, __file__, "dem-worker", "--index", str(i), "--of", str(workers)]
+        if workers > 1 and os.path.exists("/usr/bin/taskset"):
+            cmd = ["taskset", "-c", str(i % os.cpu_count()), *cmd]
+        procs.append(subprocess.Popen(cmd))
+    codes = [p.wait() for p in procs]
+    if any(codes):
+        sys.exit(f"a DEM worker failed: exit codes {codes}")
+
+
+def load_dem() -> dict[tuple, list[float]]:
+    table: dict[tuple, dict[int, float]] = {}
+    for path in sorted((OUT / "dem").glob("worker*.jsonl")):
+        for line in path.read_text().splitlines():
+            try:
+                r = json.loads(line)
+            except ValueError:
+                continue
+            side = int(r["side"])
+            key = (r["point"], None if side == 0 else r["param"], side)
+            table.setdefault(key, {})[int(r["seed"])] = float(r["power_W"])
+    return {k: [v[s] for s in sorted(v)] for k, v in table.items()}
+
+
+def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int) -> None:
+    model = sj.load_surrogate(checkpoint)
+    results = {}
+    path = OUT / "surrogate.json"
+    if path.exists():
+        results = json.loads(path.read_text())
+    for point in POINTS:
+        if point in results:
+            continue
+        cfg = point_config(point)
+        names = list(POINTS[point]["steps"])
+        t0 = time.perf_counter()
+        packings = sj.make_packings(cfg, SEEDS)
+        t_pack = time.perf_counter() - t0
+        study = sj.design_study(model, cfg, names, packings, duration=DURATION,
+                                burn_in=BURN_IN, horizon=horizon, n_segments=segments)
+        t0 = time.perf_counter()
+        est = study.estimate()
+        t_est = time.perf_counter() - t0
+        fd = {}
+        for i, name in enumerate(names):
+            h = POINTS[point]["steps"][name]
+            sides = {}
+            for side in (-1, 1):
+                theta = study.theta0.copy()
+                theta[i] += side * h
+                sides[side] = study.powers(theta).tolist()
+            diff = (np.asarray(sides[1]) - np.asarray(sides[-1])) / (2 * h)
+            fd[name] = {"h": h, "minus_W": sides[-1], "plus_W": sides[1],
+                        "gradient": float(diff.mean()),
+                        "gradient_se": float(diff.std(ddof=1) / np.sqrt(diff.size))}
+        results[point] = {"theta0": study.theta0.tolist(), "names": names, "estimate": est,
+                          "surrogate_fd": fd, "packings_s": t_pack, "estimate_s": t_est,
+                          "horizon": horizon, "segments": segments}
+        OUT.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(results, indent=1))
+        print(json.dumps({point: {"gradient": est["gradient"],
+                                  "fd": {n: v["gradient"] for n, v in fd.items()}}}), flush=True)
+
+
+def cmd_report() -> None:
+    import matplotlib  # deferred: plotting only
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dem = load_dem()
+    surr = json.loads((OUT / "surrogate.json").read_text()) if (OUT / "surrogate.json").exists() \
+        else {}
+    rows = ["| point | parameter | h | DEM P(-h) W | DEM P(+h) W | DEM central diff (SE) | "
+            "surrogate gradient (SE) | surrogate central diff (SE) | sign | within max(30 %, 2 SE) |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    out = {}
+    for point, spec in POINTS.items():
+        for name, h in spec["steps"].items():
+            minus, plus = dem.get((point, name, -1)), dem.get((point, name, 1))
+            if not minus or not plus or len(minus) != len(plus):
+                continue
+            diff = (np.asarray(plus) - np.asarray(minus)) / (2 * h)
+            g_dem, se_dem = sj.ensemble_mean(diff)
+            s = surr.get(point, {})
+            g_s = s.get("estimate", {}).get("gradient", {}).get(name)
+            se_s = s.get("estimate", {}).get("gradient_se", {}).get(name)
+            fd = s.get("surrogate_fd", {}).get(name, {})
+            sign = within = None
+            if g_s is not None:
+                sign = bool(np.sign(g_s) == np.sign(g_dem))
+                within = bool(abs(g_s - g_dem) <= max(0.3 * abs(g_dem), 2 * se_dem))
+            out[f"{point}|{name}"] = dict(dem=g_dem, dem_se=se_dem, n=len(diff), surrogate=g_s,
+                                          surrogate_se=se_s, surrogate_fd=fd.get("gradient"),
+                                          sign=sign, within=within)
+            f = lambda v: "-" if v is None else f"{v:.4g}"  # noqa: E731
+            rows.append(f"| {point} | {name} | {h:g} | {np.mean(minus):.4f} | {np.mean(plus):.4f}"
+                        f" | {g_dem:.4g} ({se_dem:.2g}) | {f(g_s)} ({f(se_s)}) | "
+                        f"{f(fd.get('gradient'))} ({f(fd.get('gradient_se'))}) | {sign} | "
+                        f"{within} |")
+            fig, ax = plt.subplots(figsize=(5, 3.6))
+            centre = dem.get((point, None, 0))
+            x0 = s.get("theta0", [None] * 3)[s["names"].index(name)] if s else None
+            if x0 is None:
+                x0 = sj.parameter_values_of(point_config(point), [name])[0]
+            xs = [x0 - h, x0 + h]
+            ys = [np.mean(minus), np.mean(plus)]
+            es = [np.std(minus, ddof=1) / np.sqrt(len(minus)),
+                  np.std(plus, ddof=1) / np.sqrt(len(plus))]
+            if centre:
+                xs.insert(1, x0)
+                ys.insert(1, np.mean(centre))
+                es.insert(1, np.std(centre, ddof=1) / np.sqrt(len(centre)))
+            ax.errorbar(xs, ys, yerr=es, fmt="o-", color="k", capsize=3,
+                        label="DEM ensemble mean (+-SE)")
+            if s:
+                p0 = s["estimate"]["power_W"]
+                sx = [x0 - h, x0, x0 + h]
+                sy = [np.mean(fd["minus_W"]), p0, np.mean(fd["plus_W"])] if fd else None
+                if sy:
+                    ax.plot(sx, sy, "s--", color="tab:blue", label="surrogate ensemble mean")
+                if g_s is not None:
+                    ax.plot([x0 - h, x0 + h], [p0 - g_s * h, p0 + g_s * h], "-",
+                            color="tab:red", label="surrogate gradient (tangent)")
+            ax.set_xlabel(f"{name} [{sj.parameter_unit(name)}]")
+            ax.set_ylabel("mean dissipation power [W]")
+            ax.set_title(f"{point}: power vs {name}\n(8 packings, power over {BURN_IN}-"
+                         f"{DURATION} s)", fontsize=9)
+            ax.legend(fontsize=7)
+            fig.tight_layout()
+            fig.savefig(OUT / f"{point}_{name.replace('.', '_')}.png", dpi=110)
+            plt.close(fig)
+    (OUT / "report.md").write_text("\n".join(rows) + "\n")
+    (OUT / "report.json").write_text(json.dumps(out, indent=1))
+    print("\n".join(rows))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    d = sub.add_parser("dem")
+    d.add_argument("--workers", type=int, default=2)
+    w = sub.add_parser("dem-worker")
+    w.add_argument("--index", type=int, required=True)
+    w.add_argument("--of", type=int, required=True)
+    s = sub.add_parser("surrogate")
+    s.add_argument("--checkpoint", default=None)
+    s.add_argument("--horizon", type=int, default=100)
+    s.add_argument("--segments", type=int, default=8)
+    sub.add_parser("report")
+    args = p.parse_args()
+    if args.cmd == "dem":
+        cmd_dem(args.workers)
+    elif args.cmd == "dem-worker":
+        cmd_dem_worker(args.index, args.of)
+    elif args.cmd == "surrogate":
+        cmd_surrogate(args.checkpoint, args.horizon, args.segments)
+    else:
+        cmd_report()
+
+
+if __name__ == "__main__":
+    main()
