@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from types import SimpleNamespace
@@ -100,7 +101,7 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
 
     Each packing: the DEM places the balls from the seed, settles them with the jar at rest
     (``[dem] settle_time``), then runs ``W`` samples of the config's motion; the window ends at
-    ``t0 = W dt``.
+    ``t0 = W dt``. ``log`` is called after each packing.
     """
     seeds = tuple(int(s) for s in seeds)
     if not seeds:
@@ -111,11 +112,11 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
     dt = float(cfg.dem.dt)
     windows = []
     for i, seed in enumerate(seeds):
-        log(f"packing {i + 1}/{len(seeds)} (seed {seed})")
         run = run_dem(cfg, duration=w * dt, seed=seed, progress=progress)
         traj = SimpleNamespace(pos=run.arrays["pos"], offset=run.arrays["offset"],
                                offset_vel=run.arrays["offset_vel"])
         windows.append(initial_window(traj, w, w))
+        log(f"packing {i + 1}/{len(seeds)} (seed {seed})")
     stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *windows)
     return Packings(windows=stacked, t0=w * dt, seeds=seeds, config=cfg)
 
@@ -277,6 +278,79 @@ def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     return cfg
 
 
+def default_step(name: str, value: float) -> float:
+    """A finite-difference / curve step for a parameter: 10 % of its value (1 mm, 0.1 rad or
+    0.1 where the value is 0)."""
+    if value != 0:
+        return 0.1 * abs(float(value))
+    return {"m": 1e-3, "rad": 0.1}.get(parameter_unit(name), 0.1)
+
+
+def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
+                burn_in: float = 0.5, packings: int = 8, first_seed: int = 100,
+                checkpoint: str | Path | None = None, horizon: int = 100, n_segments: int = 8,
+                curve: bool = True, steps: dict[str, float] | None = None,
+                separation: bool | None = None,
+                progress: Callable[[str], None] = lambda stage: None) -> dict[str, Any]:
+    """The design sensitivity of ``cfg``: ensemble-mean power, its gradient, standard errors.
+
+    Packings come from DEM seeds ``first_seed .. first_seed + packings - 1`` (held-out seeds by
+    default). With ``curve``, the surrogate's ensemble power is also evaluated at
+    ``theta +- h`` per parameter (``steps`` or :func:`default_step`), which gives the
+    surrogate's own central difference beside the gradient estimate. ``progress(stage)`` is
+    called after every packing and every evaluation. Returns a JSON-ready dict (SI units; the
+    gradient in W per unit of each parameter).
+    """
+    if packings < 2:
+        raise DesignError(f"packings must be >= 2 (a standard error needs two), got {packings}")
+    if first_seed < 0:
+        raise DesignError(f"first_seed must be >= 0, got {first_seed}")
+    t_start = time.perf_counter()
+    model = load_surrogate(checkpoint)
+    seeds = range(first_seed, first_seed + packings)
+    pk = make_packings(cfg, seeds, log=progress)
+    t_packings = time.perf_counter() - t_start
+    study = design_study(model, cfg, names, pk, duration=duration, burn_in=burn_in,
+                         horizon=horizon, n_segments=n_segments, separation=separation)
+    t0 = time.perf_counter()
+    result = study.estimate()
+    progress("estimate")
+    t_estimate = time.perf_counter() - t0
+    result.update(names=list(study.names), theta0=study.theta0.tolist(),
+                  units={n: parameter_unit(n) for n in study.names}, seeds=list(seeds),
+                  duration_s=duration, burn_in_s=burn_in, horizon_steps=horizon,
+                  n_segments=n_segments, separation=bool(cfg.rollout.pp_separation
+                                                         if separation is None else separation))
+    curves = {}
+    t0 = time.perf_counter()
+    if curve:
+        for i, name in enumerate(study.names):
+            h = float((steps or {}).get(name, default_step(name, study.theta0[i])))
+            points = {}
+            for side in (-1, 1):
+                theta = study.theta0.copy()
+                theta[i] += side * h
+                powers = study.powers(theta)
+                points[side] = powers
+                progress(f"curve {name} {side:+d}h")
+            diff = (points[1] - points[-1]) / (2 * h)
+            curves[name] = {
+                "h": h, "theta": [float(study.theta0[i] - h), float(study.theta0[i]),
+                                  float(study.theta0[i] + h)],
+                "power_W": [float(points[-1].mean()), result["power_W"],
+                            float(points[1].mean())],
+                "power_se_W": [ensemble_mean(points[-1])[1], result["power_se_W"],
+                               ensemble_mean(points[1])[1]],
+                "central_difference": ensemble_mean(diff)[0],
+                "central_difference_se": ensemble_mean(diff)[1],
+            }
+    result["curves"] = curves
+    result["timing_s"] = {"packings": t_packings, "estimate": t_estimate,
+                          "curves": time.perf_counter() - t0,
+                          "total": time.perf_counter() - t_start}
+    return result
+
+
 # --------------------------------------------------------------------------------------------
 # DEM ensembles at design points (the ground truth of a design study)
 
@@ -375,6 +449,7 @@ __all__ = [
     "DesignStudy",
     "Packings",
     "design_config",
+    "default_step",
     "design_study",
     "ensemble_mean",
     "load_config",
@@ -382,4 +457,5 @@ __all__ = [
     "make_packings",
     "parameter_unit",
     "parameter_values_of",
+    "sensitivity",
 ]

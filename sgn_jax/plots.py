@@ -299,10 +299,50 @@ def plot_run(comparison: Any, prediction: Any, reference: Any, out_dir: str | Pa
     return paths
 
 
+def plot_sensitivity(result: Mapping[str, Any], path: str | Path) -> Path:
+    """Power vs each design parameter around the design point (``sgn_jax.api.sensitivity``).
+
+    One panel per parameter: the surrogate's ensemble-mean power at theta - h, theta, theta + h
+    (error bars: standard error over the packings), and the tangent of the estimated gradient
+    through the design point (shaded: +- its standard error).
+    """
+    names = list(result["names"])
+    fig = _new_figure(4.2 * len(names), 3.6, layout="constrained")
+    axes = fig.subplots(1, len(names), squeeze=False)[0]
+    for ax, i_name in zip(axes, enumerate(names), strict=True):
+        i, name = i_name
+        x0, p0 = float(result["theta0"][i]), float(result["power_W"])
+        unit = result["units"][name]
+        curve = result.get("curves", {}).get(name)
+        h = curve["h"] if curve else 0.1 * (abs(x0) or 1.0)
+        if curve:
+            ax.errorbar(curve["theta"], curve["power_W"], yerr=curve["power_se_W"], fmt="o",
+                        color=_PRED_COLOR, capsize=3, label="surrogate ensemble mean (+-SE)")
+        else:
+            ax.errorbar([x0], [p0], yerr=[result["power_se_W"]], fmt="o", color=_PRED_COLOR,
+                        capsize=3, label="surrogate ensemble mean (+-SE)")
+        g, se = float(result["gradient"][name]), float(result["gradient_se"][name])
+        xs = np.array([x0 - h, x0 + h])
+        ax.plot(xs, p0 + g * (xs - x0), "-", color="tab:red",
+                label=f"gradient {g:.3g} +- {se:.2g} W/{unit}")
+        if np.isfinite(se):
+            ax.fill_between(xs, p0 + (g - se) * (xs - x0), p0 + (g + se) * (xs - x0),
+                            color="tab:red", alpha=0.15, linewidth=0)
+        ax.axvline(x0, color="0.6", linewidth=0.8, linestyle=":")
+        ax.set_xlabel(f"{name} [{unit}]")
+        ax.set_ylabel("mean dissipation power [W]")
+        ax.set_title(f"{name} = {x0:.4g} {unit}", fontsize=9)
+        ax.legend(fontsize=7, loc="best")
+    fig.suptitle(f"Design sensitivity: {len(result['seeds'])} packings, power over "
+                 f"{result['burn_in_s']:g}-{result['duration_s']:g} s", fontsize=10)
+    return _save(fig, path)
+
+
 __all__ = [
     "plot_cumulative_energy",
     "plot_ensemble",
     "plot_position_mse",
     "plot_run",
+    "plot_sensitivity",
     "plot_trajectory_xz",
 ]
