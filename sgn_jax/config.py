@@ -32,7 +32,12 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class CaseConfig:
-    """Identification of the case."""
+    """Identification of the case.
+
+    Attributes:
+        name: short name of the case, written into artifacts, summaries and logs.
+        description: free-text description of the case (optional).
+    """
 
     name: str
     description: str = ""
@@ -47,6 +52,15 @@ class JarConfig:
     of radius ``post_radius``; 0 means no post). ``kind = "stl"``: a closed mesh of the cavity read
     from ``stl_path`` in ``stl_units`` ("m" or "mm"), jar-frame coordinates (floor centre at the
     origin, y up).
+
+    Attributes:
+        kind: "emax" (the parametric stadium cavity) or "stl" (a closed cavity mesh from a file).
+        radius: m, radius of the stadium's semicircular ends (kind "emax").
+        straight_length: m, distance between the semicircle centres along x (kind "emax").
+        height: m, inner height from the floor (y = 0) to the lid (kind "emax").
+        post_radius: m, radius of the solid central post on the y axis, 0 = no post (kind "emax").
+        stl_path: path of the cavity STL, relative to the working directory (kind "stl").
+        stl_units: length unit of the STL coordinates, "m" or "mm" (kind "stl").
     """
 
     kind: str
@@ -88,6 +102,21 @@ class MotionConfig:
       Motion 1 and Motion 2 of SPEC section 2 are harmonic series.
     - ``spline``: a periodic cubic spline through ``points`` (M x 3, m) sampled uniformly over
       ``period`` seconds, points[0] at t = 0.
+
+    Attributes:
+        kind: "circle", "harmonic" or "spline"; a key of another kind is an error.
+        rpm: rev/min, rotation speed of the circle, f = rpm / 60 (circle).
+        amplitude: m, radius A of the circular jar path (circle).
+        phase: rad, phase at t = 0; 0 puts the jar at (0, 0, A) (circle).
+        base_frequency_hz: Hz, fundamental frequency f0 of the harmonic series (harmonic).
+        x_sin: m, sine coefficients of the x offset for harmonics k = 1..K (harmonic).
+        x_cos: m, cosine coefficients of the x offset for harmonics k = 1..K (harmonic).
+        y_sin: m, sine coefficients of the y offset for harmonics k = 1..K (harmonic).
+        y_cos: m, cosine coefficients of the y offset for harmonics k = 1..K (harmonic).
+        z_sin: m, sine coefficients of the z offset for harmonics k = 1..K (harmonic).
+        z_cos: m, cosine coefficients of the z offset for harmonics k = 1..K (harmonic).
+        period: s, duration of one loop through the spline points (spline).
+        points: m, at least 4 offsets [x, y, z] of the periodic spline, points[0] at t = 0 (spline).
     """
 
     kind: str
@@ -145,7 +174,13 @@ class MotionConfig:
 
 @dataclass(frozen=True)
 class BallsConfig:
-    """The grinding balls (all identical)."""
+    """The grinding balls (all identical).
+
+    Attributes:
+        count: number of balls (>= 1).
+        radius: m, ball radius.
+        density: kg/m^3, ball density.
+    """
 
     count: int
     radius: float
@@ -160,7 +195,15 @@ class BallsConfig:
 
 @dataclass(frozen=True)
 class MaterialConfig:
-    """Contact material, the same for ball-ball and ball-wall (SPEC section 2)."""
+    """Contact material, the same for ball-ball and ball-wall (SPEC section 2).
+
+    Attributes:
+        young: Pa, Young's modulus (Hertz-Mindlin stiffness).
+        poisson: Poisson's ratio, dimensionless, in (-1, 0.5).
+        restitution: coefficient of normal restitution, in (0, 1] (sets the contact damping).
+        friction: Coulomb sliding friction coefficient, dimensionless.
+        rolling_friction: rolling friction coefficient mu_r (EDEM type A), dimensionless.
+    """
 
     young: float
     poisson: float
@@ -185,6 +228,20 @@ class DEMConfig:
 
     ``dt`` is the sampling step (s); the solver step is ``dt / k`` with the smallest integer k such
     that ``dt / k <= dt_dem_max`` (SPEC section 2), so that every sample falls on a step.
+
+    Attributes:
+        dt: s, sampling step of the DEM trajectory, also the surrogate's time step.
+        dt_dem_max: s, upper bound of the DEM solver step (the step is dt / k).
+        settle_time: s, settling with the jar at rest at offset(0) before t = 0.
+        duration: s, motion simulated after settling (``sgn-jax dem --duration`` overrides it).
+        seed: seed of the random initial placement of the balls.
+        dtype: "float64" or "float32" for positions, velocities and forces (ledger always float64).
+        clip_attractive: clip the normal contact force at zero (off by default, SPEC section 3).
+        gravity: m/s^2, gravity vector [x, y, z] in the lab frame (y up).
+        chunk_samples: samples per jitted DEM chunk, also the resume checkpoint interval.
+        pp_capacity: slots for touching ball pairs recorded per sample (pp_pairs), 0 = 3 * count.
+        neighbour_capacity: Verlet list capacity in pairs per ball (ceil(capacity * N / 2) pairs).
+        neighbour_skin: m, surface gap within which a ball pair enters the Verlet list.
     """
 
     dt: float = 1e-4
@@ -228,7 +285,12 @@ class DEMConfig:
 
 @dataclass(frozen=True)
 class SDFConfig:
-    """SDF grid sampling for the surrogate (spacing no coarser than 0.5 mm by default)."""
+    """SDF grid sampling for the surrogate (spacing no coarser than 0.5 mm by default).
+
+    Attributes:
+        spacing: m, distance between grid nodes along each axis.
+        margin: m, the grid box is the cavity's bounding box grown by this on every side.
+    """
 
     spacing: float = 0.0005
     margin: float = 0.003
@@ -247,6 +309,13 @@ class GraphConfig:
     ball-wall edges where phi >= ``phi_pw`` (m); rollout snap-back where phi >= ``phi_sb``.
     ``pp_edges_per_particle``: the static capacity of directed ball-ball edges per graph is this
     times the number of balls (an overflow is counted and reported, never silently dropped).
+
+    Attributes:
+        window: velocity slots [v, phi, grad phi] per ball in the node features (>= 1).
+        pp_skin: m, surface gap: a ball-ball edge where centre distance <= 2 R + pp_skin.
+        phi_pw: m, a ball-wall edge where the ball centre's phi >= phi_pw.
+        phi_sb: m, rollout snap-back threshold, phi_pw < phi_sb < 0.
+        pp_edges_per_particle: static directed ball-ball edge slots per graph, per ball.
     """
 
     window: int = 7
@@ -278,6 +347,12 @@ class ModelConfig:
     ``velocity_encoding``: "absolute" (the paper: each slot's velocity, standardised per column)
     or "differences" (older slots enter as ``v_k - v_{k+1}``; same information, trains much
     faster; see docs/sgn.md and ``sgn_jax.normalization.encode_velocities``).
+
+    Attributes:
+        hidden: width of the MLPs' hidden layers and of the node and edge embeddings.
+        mlp_layers: linear layers per MLP (>= 2).
+        interaction_layers: message-passing (interaction) layers (>= 1).
+        velocity_encoding: "absolute" (the paper) or "differences" (see above).
     """
 
     hidden: int = 256
@@ -308,6 +383,19 @@ class TrainConfig:
     Split per trajectory, chronological: windows whose target step ends at t <= ``train_time``
     (s of motion) train; windows lying wholly in (train_time, train_time + val_time] validate.
     Each step packs up to ``batch_size`` graphs under a static edge capacity (docs/sgn.md).
+
+    Attributes:
+        batch_size: graphs (windows) per optimisation step.
+        epochs: passes over the training windows.
+        lr_init: learning rate at the first step.
+        lr_final: learning rate at the last step (exponential decay, 0 < lr_final <= lr_init).
+        node_loss_weight: weight of the per-ball acceleration Huber loss.
+        global_loss_weight: weight of the dissipated-energy Huber loss (0 = no global loss).
+        huber_delta: Huber threshold of paper Eq. 30, in normalised units.
+        noise_std: std of the Gaussian noise on the normalised velocity features.
+        train_time: s of motion; windows whose target step ends at t <= train_time train.
+        val_time: s; windows wholly in (train_time, train_time + val_time] validate.
+        seed: seed of the initial parameters, the shuffling and the noise.
     """
 
     batch_size: int = 2
@@ -352,6 +440,15 @@ class RolloutConfig:
     ``pp_separation``: the ball-ball analogue of the snap-back (not in the paper;
     docs/rollout.md): pairs overlapping by more than ``pp_max_overlap`` (m) after a step are
     moved apart to it, with the velocity rule of ``snap_velocity``.
+
+    Attributes:
+        save_every: rollout steps between saved position frames.
+        chunk_steps: steps per jitted call of the host-level run (a multiple of save_every).
+        checkpoint_steps: steps per jax.checkpoint chunk when differentiating (multiple of save_every).
+        snap_back: move balls with phi >= [graph] phi_sb back to phi_sb along -n after each step.
+        snap_velocity: "keep" (the paper) or "position": the velocity rule of the moves.
+        pp_separation: move ball pairs overlapping by more than pp_max_overlap apart (not the paper).
+        pp_max_overlap: m, largest ball-ball overlap that pp_separation leaves.
     """
 
     save_every: int = 10
@@ -379,7 +476,21 @@ class RolloutConfig:
 
 @dataclass(frozen=True)
 class Config:
-    """A whole experiment config: one attribute per TOML section."""
+    """A whole experiment config: one attribute per TOML section.
+
+    Attributes:
+        case: identification of the case.
+        jar: the milling jar (parametric Emax-like cavity or an STL mesh).
+        motion: the jar's translation over time.
+        balls: the grinding balls.
+        material: contact material of balls and walls.
+        dem: DEM solver settings.
+        sdf: SDF grid sampling for the surrogate.
+        graph: the SGN graph featurizer.
+        model: the SGN network.
+        train: SGN training.
+        rollout: the surrogate rollout.
+    """
 
     case: CaseConfig
     jar: JarConfig
