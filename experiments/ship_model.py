@@ -14,8 +14,10 @@ Replaces the shipped model of CASE with the best checkpoint of the training run 
   of ``experiments/run_experiments.py`` and its command;
 - ``loss.png`` and ``metrics.csv`` of the run.
 
-The new model is loaded back (``sgn_jax.checkpoint.load_trained_model``) before the old one is
-removed, so a failed copy never leaves the package without a model.
+The step's ``sgn_digest.json`` (sha256 of every file) is copied with it, or written if the run
+predates it. The new model is loaded back (``sgn_jax.checkpoint.load_trained_model``, which
+verifies every file) before the old one is removed, so a failed copy never leaves the package
+without a model.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.checkpoint import load_trained_model
+    from sgn_jax.checkpoint import DIGEST_FILE, load_trained_model, write_checkpoint_digest
     from sgn_jax.demo import SHIPPED_MODELS_DIR
     from sgn_jax.io_utils import git_commit, sha256_file, write_json
 
@@ -91,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
     shutil.copytree(steps[0], staging / steps[0].name)
+    if not (staging / steps[0].name / DIGEST_FILE).is_file():  # trained before the file digest
+        write_checkpoint_digest(staging / steps[0].name)
     for name in ("loss.png", "metrics.csv"):
         if (run / name).is_file():
             shutil.copy2(run / name, staging / name)

@@ -1,6 +1,9 @@
 """Orbax checkpoints: exact round trip, optimiser state, clear errors for missing or damaged ones."""
 
 import json
+import re
+import shutil
+import warnings
 from pathlib import Path
 
 import jax
@@ -9,11 +12,15 @@ import pytest
 
 import sgn_jax  # noqa: F401
 from sgn_jax.checkpoint import (
+    DIGEST_FILE,
     CheckpointError,
+    CheckpointIntegrityWarning,
     latest_step,
     load_trained_model,
     restore_checkpoint,
     save_checkpoint,
+    verify_checkpoint_digest,
+    write_checkpoint_digest,
 )
 from sgn_jax.config import builtin_config_path, config_to_dict, load_config, replace_section
 from sgn_jax.graph import GraphSpec, build_graph, windows_from_trajectory
@@ -115,11 +122,16 @@ def _data_files(step_dir: Path, item: str):
                   and p.parent.name == "d" and p.stat().st_size > 0)
 
 
+@pytest.mark.parametrize("legacy", [False, True], ids=["digest", "no_digest"])
 @pytest.mark.parametrize("damage, message", [
     ("flip_bytes", "cannot read checkpoint"), ("truncate", "cannot read checkpoint"),
     ("delete_item", "norm"), ("bad_meta", "corrupt: parameter digest mismatch")])
-def test_damaged_checkpoint_is_refused(setup, tmp_path, damage, message):
+def test_damaged_checkpoint_is_refused(setup, tmp_path, damage, message, legacy):
+    """With the file digest the damaged file is named; without it (a checkpoint written before
+    sgn_digest.json) orbax's read errors and the pytree digests still refuse it."""
     step_dir = _save(setup, tmp_path / "ck")
+    if legacy:
+        (step_dir / DIGEST_FILE).unlink()
     if damage in ("flip_bytes", "truncate"):
         files = _data_files(step_dir, "params")
         assert files, "expected orbax data files under params/"
@@ -131,10 +143,12 @@ def test_damaged_checkpoint_is_refused(setup, tmp_path, damage, message):
                 for i in range(len(data) // 2, len(data), 97):
                     data[i] ^= 0xFF
             path.write_bytes(bytes(data))
+        if not legacy:
+            message = r"is damaged: 1/params/(ocdbt\.process_0/)?d/[0-9a-f]+ "
     elif damage == "delete_item":
-        import shutil
-
         shutil.rmtree(step_dir / "norm")
+        if not legacy:
+            message = r"is damaged: 1/norm/\S+ is missing"
     else:
         meta_files = [p for p in (step_dir / "meta").rglob("*") if p.is_file()
                       and p.suffix != ".txt" and not p.name.startswith("_")]
@@ -142,5 +156,134 @@ def test_damaged_checkpoint_is_refused(setup, tmp_path, damage, message):
         meta = json.loads(meta_files[0].read_text())
         meta["params_digest"] = "0" * 64
         meta_files[0].write_text(json.dumps(meta))
-    with pytest.raises(CheckpointError, match=message):
-        restore_checkpoint(tmp_path / "ck")
+        if not legacy:
+            message = "is damaged: 1/meta/metadata"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore" if legacy else "error")
+        with pytest.raises(CheckpointError, match=message):
+            restore_checkpoint(tmp_path / "ck")
+
+
+# --- file digest (sgn_digest.json): every file of a step, checked before orbax reads it ---
+
+
+@pytest.fixture(scope="module")
+def saved(setup, tmp_path_factory):
+    """One intact checkpoint; tests damage copies of it."""
+    directory = tmp_path_factory.mktemp("saved") / "ck"
+    _save(setup, directory)
+    return directory
+
+
+def _copy(saved, tmp_path):
+    target = tmp_path / "ck"
+    shutil.copytree(saved, target)
+    return target
+
+
+def test_checkpoint_error_is_an_sgn_jax_error():
+    from sgn_jax.errors import SGNJaxError
+
+    assert issubclass(CheckpointError, SGNJaxError) and issubclass(CheckpointError, RuntimeError)
+
+
+def test_intact_checkpoint_is_verified_and_loads(setup, saved, tmp_path):
+    ck = _copy(saved, tmp_path)
+    step_dir = ck / "1"
+    digest = json.loads((step_dir / DIGEST_FILE).read_text())
+    names = set(digest["files"])
+    # orbax's own files are covered, not only the data files
+    for name in ("_CHECKPOINT_METADATA", "meta/metadata", "params/manifest.ocdbt",
+                 "params/_METADATA", "params/ocdbt.process_0/manifest.ocdbt", "norm/_METADATA"):
+        assert name in names, name
+    assert any(n.startswith("params/ocdbt.process_0/d/") for n in names)
+    assert all(len(v["sha256"]) == 64 and v["size"] >= 0 for v in digest["files"].values())
+    # the extra file does not disturb orbax's listing of steps
+    assert latest_step(ck) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        restored = restore_checkpoint(ck)
+    assert restored.step == 1
+    assert verify_checkpoint_digest(step_dir) is True  # restoring wrote nothing into the step
+
+
+def test_shipped_model_verifies():
+    from sgn_jax.demo import shipped_model_dir
+
+    ck = Path(shipped_model_dir())
+    steps = [p for p in ck.iterdir() if p.is_dir() and p.name.isdigit()]
+    assert len(steps) == 1 and (steps[0] / DIGEST_FILE).is_file()
+    assert verify_checkpoint_digest(steps[0]) is True
+
+
+@pytest.mark.parametrize("manifest", ["params/manifest.ocdbt",
+                                      "params/ocdbt.process_0/manifest.ocdbt",
+                                      "norm/ocdbt.process_0/manifest.ocdbt"])
+def test_truncated_manifest_is_named(saved, tmp_path, manifest):
+    ck = _copy(saved, tmp_path)
+    path = ck / "1" / manifest
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError) as info:
+        restore_checkpoint(ck)
+    msg = str(info.value)
+    assert f"1/{manifest} has {len(data) // 2} bytes, expected {len(data)} (truncated)" in msg
+    assert str(ck) in msg and "re-train" in msg
+
+
+def test_flipped_byte_in_data_file_is_named(saved, tmp_path):
+    ck = _copy(saved, tmp_path)
+    path = max(_data_files(ck / "1", "params"), key=lambda p: p.stat().st_size)
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3] ^= 0x01
+    path.write_bytes(bytes(data))
+    rel = path.relative_to(ck).as_posix()
+    with pytest.raises(CheckpointError, match=rf"{rel} does not match its SHA-256 digest"):
+        restore_checkpoint(ck)
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["digest", "no_digest"])
+def test_emptied_meta_is_named(saved, tmp_path, legacy):
+    ck = _copy(saved, tmp_path)
+    if legacy:
+        (ck / "1" / DIGEST_FILE).unlink()
+    (ck / "1" / "meta" / "metadata").write_bytes(b"")
+    expected = ("1/meta/metadata is not valid JSON (empty file)" if legacy
+                else "1/meta/metadata has 0 bytes")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(CheckpointError, match=re.escape(f"{ck} is damaged: {expected}")):
+            restore_checkpoint(ck)
+
+
+def test_extra_file_or_bad_digest_file_is_refused(saved, tmp_path):
+    ck = _copy(saved, tmp_path)
+    (ck / "1" / "params" / "d" / "stray").write_bytes(b"x")
+    with pytest.raises(CheckpointError, match="1/params/d/stray is not part of the checkpoint"):
+        restore_checkpoint(ck)
+    (ck / "1" / "params" / "d" / "stray").unlink()
+    (ck / "1" / DIGEST_FILE).write_text("{")
+    with pytest.raises(CheckpointError, match=f"1/{DIGEST_FILE} is unreadable"):
+        restore_checkpoint(ck)
+
+
+def test_checkpoint_without_digest_loads_with_warning(saved, tmp_path):
+    ck = _copy(saved, tmp_path)
+    (ck / "1" / DIGEST_FILE).unlink()
+    with pytest.warns(CheckpointIntegrityWarning, match="integrity cannot be verified"):
+        restored = restore_checkpoint(ck)
+    assert restored.step == 1
+    write_checkpoint_digest(ck / "1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        restore_checkpoint(ck)
+
+
+def test_damaged_shipped_model_says_reinstall(saved, tmp_path, monkeypatch):
+    import sgn_jax.checkpoint as checkpoint
+
+    ck = _copy(saved, tmp_path)
+    monkeypatch.setattr(checkpoint, "_SHIPPED_MODELS_DIR", tmp_path.resolve())
+    (ck / "1" / "meta" / "metadata").write_bytes(b"")
+    with pytest.raises(CheckpointError, match="re-install the package"):
+        restore_checkpoint(ck)
