@@ -13,9 +13,10 @@ import sys
 from pathlib import Path
 
 from sgn_jax import __version__
+from sgn_jax.errors import SGNJaxError
 
 
-class UserError(Exception):
+class UserError(SGNJaxError):
     """An error caused by the user's input; printed without a traceback."""
 
 
@@ -450,21 +451,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0
-    from sgn_jax.config import ConfigError
-
-    user_errors: tuple[type[BaseException], ...] = (UserError, ConfigError, FileNotFoundError)
-    try:
-        from sgn_jax.geometry import GeometryError
-
-        user_errors += (GeometryError,)
-    except ImportError:
-        pass
-    try:
-        from sgn_jax.dataset import DatasetError
-
-        user_errors += (DatasetError,)
-    except ImportError:
-        pass
+    user_errors = (SGNJaxError, FileNotFoundError)
     try:
         return int(args.handler(args) or 0)
     except user_errors as exc:

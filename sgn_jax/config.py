@@ -16,6 +16,7 @@ All values are SI units (m, s, kg, Pa) unless the field name says otherwise (``r
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import types
 import typing
@@ -23,10 +24,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.io_utils import atomic_write
 
 
-class ConfigError(ValueError):
+class ConfigError(SGNJaxError, ValueError):
     """A config file or dict is malformed: unknown key, missing key or wrong type."""
 
 
@@ -142,6 +144,18 @@ class MotionConfig:
     def __post_init__(self) -> None:
         if self.kind not in MOTION_KINDS:
             raise ConfigError(f"[motion] kind must be one of {MOTION_KINDS}, got {self.kind!r}")
+        if self.kind == "circle":
+            if not (math.isfinite(self.rpm) and self.rpm > 0):
+                raise ConfigError(
+                    f"[motion] rpm must be a finite number > 0, got {self.rpm} (the circle's "
+                    "sense is fixed: x = A sin, z = A cos; a harmonic motion gives the other)")
+            if not (math.isfinite(self.amplitude) and self.amplitude >= 0):
+                raise ConfigError(f"[motion] amplitude must be a finite length >= 0 (m), got "
+                                  f"{self.amplitude}")
+        if self.kind == "harmonic" and not (math.isfinite(self.base_frequency_hz)
+                                            and self.base_frequency_hz > 0):
+            raise ConfigError(f"[motion] base_frequency_hz must be a finite number > 0, got "
+                              f"{self.base_frequency_hz}")
         if self.kind == "harmonic":
             lengths = {len(getattr(self, a)) for a in ("x_sin", "x_cos", "y_sin", "y_cos",
                                                        "z_sin", "z_cos")} - {0}

@@ -40,10 +40,11 @@ from typing import Any
 import numpy as np
 
 from sgn_jax import records
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
 
 
-class DatasetError(ValueError):
+class DatasetError(SGNJaxError, ValueError):
     """A trajectory file or its arrays/meta are malformed; the message says what and how to fix."""
 
 

@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
+
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
 """Where the trained models shipped with the package live (one directory per case)."""
@@ -45,7 +47,7 @@ SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
 ANIMATION_FRAMES = 100
 
 
-class DemoError(ValueError):
+class DemoError(SGNJaxError, ValueError):
     """The demo cannot run with these inputs; the message says why and what to do."""
 
 

@@ -1,5 +1,19 @@
-"""The package's error base class (placeholder until the errors module lands)."""
+"""The package's one error base class.
+
+Every error that sgn-jax raises for bad input or for a run that failed (a config key, a damaged
+checkpoint, a DEM that left the jar, a diverged rollout, ...) derives from :class:`SGNJaxError`,
+so a script can catch them all with one ``except`` and the CLI prints them as one line (exit 2).
+Each module keeps its own subclass (``ConfigError``, ``DEMError``, ``CheckpointError``, ...), which
+also derives from the builtin it used to be (``ValueError`` or ``RuntimeError``).
+"""
 
 
 class SGNJaxError(Exception):
     """Every error the package raises for bad input or a failed run derives from this."""
+
+
+class EnvelopeWarning(UserWarning):
+    """A design or run lies outside what the model or the DEM was validated for (it still runs)."""
+
+
+__all__ = ["EnvelopeWarning", "SGNJaxError"]

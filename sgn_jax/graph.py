@@ -49,6 +49,8 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
+
 # One slot's particle columns: velocity (0..2), phi (3), unit normal (4..6).
 SLOT_DIM = 7
 VELOCITY_COLUMNS_IN_SLOT = (0, 1, 2)
@@ -57,7 +59,7 @@ SDFQuery = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
 """``query(sdf, points_lab (..., 3), offset (3,)) -> (phi (...), unit normal (..., 3))``."""
 
 
-class GraphError(ValueError):
+class GraphError(SGNJaxError, ValueError):
     """Inputs to the featurizer are inconsistent (shapes, capacities, trajectory too short)."""
 
 

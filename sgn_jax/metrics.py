@@ -47,6 +47,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
+
 BED_PAIRS_PER_BALL = 0.75
 """``classify_by="contacts"`` threshold: mean pairs within the edge skin per ball (bed if >=)."""
 
@@ -62,7 +64,7 @@ _OFFSET_WARN_M = 1e-5  # jar offsets of matched frames differ by more: wrong ref
 _PAIR_CHUNK = 4096  # samples per chunk in pairs_within (N^2 distances each)
 
 
-class MetricsError(ValueError):
+class MetricsError(SGNJaxError, ValueError):
     """The prediction and reference cannot be compared; the message says why and what to do."""
 
 

@@ -27,6 +27,8 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
+
 VELOCITY_ENCODINGS = ("absolute", "differences")
 """How the ball velocity columns enter the network (see :func:`encode_velocities`)."""
 
@@ -34,7 +36,7 @@ CONSTANT_RTOL = 1e-6
 """A column with std <= CONSTANT_RTOL * |mean| (or std == 0) counts as constant (std := 1)."""
 
 
-class NormalizationError(ValueError):
+class NormalizationError(SGNJaxError, ValueError):
     """Statistics cannot be computed or applied (wrong shapes, non-finite data)."""
 
 

@@ -51,10 +51,11 @@ from typing import Any
 import numpy as np
 
 from sgn_jax import records
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
 
 
-class PredictionError(ValueError):
+class PredictionError(SGNJaxError, ValueError):
     """A prediction file or its arrays/meta are malformed; the message says what and how to fix."""
 
 

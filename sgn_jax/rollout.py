@@ -61,6 +61,7 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.graph import GraphSpec, SDFQuery, Window, build_graph, slide_window
 from sgn_jax.motion import Motion, frequency_hz, offset, velocity
 
@@ -74,7 +75,7 @@ Predictor = Callable[[Any, Any, jraph.GraphsTuple, jax.Array], tuple[jax.Array, 
 ``accel`` are ignored."""
 
 
-class RolloutError(ValueError):
+class RolloutError(SGNJaxError, ValueError):
     """Bad rollout input (shapes, step counts, start index) or a diverged rollout."""
 
 

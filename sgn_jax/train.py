@@ -41,6 +41,7 @@ import jraph
 import numpy as np
 import optax
 
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.graph import (
     GraphError,
     GraphSpec,
@@ -496,7 +497,7 @@ def plot_losses(history: list[dict[str, Any]], path: Path) -> None:
 # The training loop
 
 
-class TrainingError(RuntimeError):
+class TrainingError(SGNJaxError, RuntimeError):
     """A training run cannot start or continue (inconsistent data, config or output dir)."""
 
 

@@ -48,6 +48,30 @@ from sgn_jax.io_utils import atomic_write
 
 PARTIAL_FORMAT = 1
 
+MIN_CONTACT_STEPS = 20
+"""A run stops when a Hertz contact at the largest relative speed reached would last fewer
+DEM steps than this (sgn_jax.validation applies the same rule to the config before the run)."""
+
+
+class DEMRunError(DEMError):
+    """A run that stopped because its state became invalid (a ball left the jar, a non-finite
+    value, a contact the time step cannot resolve).
+
+    Attributes:
+        time_s: time of motion (s) of the first invalid sample (negative while settling).
+        ball: index of the ball it concerns.
+        cause: ``"outside"``, ``"non-finite"`` or ``"unresolved-contact"``.
+        valid: :class:`DEMRun` of the samples before it (None if there were none), also
+            written to ``valid_path`` when the run had an output file.
+        valid_path: where the valid part was written, or None.
+    """
+
+    def __init__(self, message: str, *, time_s: float, ball: int, cause: str,
+                 valid: Any = None, valid_path: Path | None = None) -> None:
+        super().__init__(message)
+        self.time_s, self.ball, self.cause = time_s, ball, cause
+        self.valid, self.valid_path = valid, valid_path
+
 
 @dataclasses.dataclass(frozen=True)
 class DEMSetup:
@@ -190,6 +214,7 @@ def run_dem(
     progress: bool = True,
     chunk_samples: int | None = None,
     dtype: str | None = None,
+    check: bool = True,
 ) -> DEMRun:
     """Settle and run the DEM of ``cfg``; write the SPEC-4 dataset to ``out_path`` if given.
 
@@ -203,13 +228,28 @@ def run_dem(
         progress: show tqdm bars (simulated time, rate, ETA).
         chunk_samples: samples per jitted chunk (default ``cfg.dem.chunk_samples``).
         dtype: override ``[dem] dtype``.
+        check: refuse a config the DEM cannot represent before any work
+            (:func:`sgn_jax.validation.check_dem_config`; an envelope warning otherwise).
+
+    Raises:
+        DEMRunError: a ball left the jar, a value went non-finite, or a contact became too fast
+            for the time step; it names the time, the ball and the cause, and keeps the valid
+            samples before it (written to ``OUT.valid_part.npz`` when ``out_path`` is given).
     """
     from sgn_jax.dataset import DatasetError, build_meta, save_trajectory
 
     seed = cfg.dem.seed if seed is None else int(seed)
     duration = cfg.dem.duration if duration is None else float(duration)
-    if duration < 0:
-        raise DEMError(f"duration must be >= 0, got {duration}")
+    if not (np.isfinite(duration) and duration > 0):
+        raise DEMError(f"duration = {duration} s: it must be a finite number of seconds > 0 "
+                       "(e.g. 1.0)")
+    if duration < cfg.dem.dt * (1 - 1e-9):
+        raise DEMError(f"duration = {duration:g} s is shorter than one sample (dt = "
+                       f"{cfg.dem.dt:g} s)")
+    if check:
+        from sgn_jax.validation import check_dem_config
+
+        check_dem_config(cfg)
     chunk = int(chunk_samples or cfg.dem.chunk_samples)
     if chunk < 1:
         raise DEMError(f"chunk_samples must be >= 1, got {chunk}")
@@ -240,6 +280,8 @@ def run_dem(
     from sgn_jax.dem.engine import observe
 
     observe_jit = jax.jit(lambda p, s: observe(spec, setup.jar.wall_fn, p, s, setup.pp_capacity))
+    jar = setup.jar
+    sdf = jax.jit(jax.vmap(jax.vmap(lambda x: jar.sdf_fn(jar.geometry, x))))
 
     pdir = partial_dir(out_path) if out_path is not None else None
     fingerprint = _fingerprint(setup, seed)
@@ -286,7 +328,11 @@ def run_dem(
         left = n_settle
         while left > 0:
             n = min(chunk, left)
-            state, _ = run_chunk(state, n)
+            state, samples = run_chunk(state, n)
+            bad = check_samples(setup, samples, sdf)
+            if bad:
+                first = -(left - 1)  # sample index (negative: before t = 0) of the chunk's first
+                raise _stop_invalid(setup, [], samples, bad, first, None, seed)
             left -= n
             steps_run += n * k
             bar.update(round(n * setup.dt, 6))
@@ -321,6 +367,10 @@ def run_dem(
                 f"more than the {setup.pp_capacity} slots of pp_pairs: raise [dem] pp_capacity "
                 "and rerun")
         chunk_wall = time.perf_counter() - t0
+        bad = check_samples(setup, samples, sdf)
+        if bad:
+            bar.close()
+            raise _stop_invalid(setup, chunks, samples, bad, done + 1, out_path, seed)
         motion_wall += chunk_wall
         chunks.append(samples)
         done += n
@@ -353,6 +403,83 @@ def run_dem(
             shutil.rmtree(pdir)
         summary["out"] = str(out_path)
     return DEMRun(arrays=arrays, meta=meta, summary=summary)
+
+
+def _first(mask: np.ndarray) -> tuple[int, int] | None:
+    """(sample, ball) of the first True in a (S, N) mask, or None."""
+    rows = np.flatnonzero(np.any(mask, axis=1))
+    if rows.size == 0:
+        return None
+    return int(rows[0]), int(np.argmax(mask[rows[0]]))
+
+
+def check_samples(setup: DEMSetup, samples: dict[str, np.ndarray], sdf: Any
+                  ) -> tuple[int, int, str, str] | None:
+    """The first invalid sample of a chunk: ``(sample, ball, cause, detail)`` or None.
+
+    Causes, in the order checked per sample: a non-finite position or velocity; a ball whose
+    centre is outside the cavity (phi > 0 in the jar frame); a contact that the DEM step cannot
+    resolve: the Hertz duration at the largest relative speed (any ball pair, or any ball
+    against the wall) below :data:`MIN_CONTACT_STEPS` steps.
+    """
+    from sgn_jax.dem.contact import hertz_contact_time
+
+    pos, vel = samples["pos"], samples["vel"]
+    found: list[tuple[int, int, str, str]] = []
+    bad = ~(np.all(np.isfinite(pos), axis=-1) & np.all(np.isfinite(vel), axis=-1))
+    hit = _first(bad)
+    if hit:
+        found.append((*hit, "non-finite", "its position or velocity is not finite"))
+    ok_rows = ~np.any(bad, axis=1)
+    x_jar = np.where(ok_rows[:, None, None], pos - samples["offset"][:, None, :], 0.0)
+    phi = np.asarray(sdf(jnp.asarray(x_jar)))
+    hit = _first(phi > 0)
+    if hit:
+        found.append((*hit, "outside", f"its centre is {phi[hit] * 1e3:.3g} mm outside the jar "
+                      "wall"))
+    v = np.where(ok_rows[:, None, None], vel, 0.0)
+    v_wall = np.linalg.norm(v - samples["offset_vel"][:, None, :], axis=-1)      # (S, N)
+    v_pair = np.linalg.norm(v[:, :, None, :] - v[:, None, :, :], axis=-1).max(axis=2)
+    laws = {"ball-wall": (setup.params.pw, v_wall), "ball-ball": (setup.params.pp, v_pair)}
+    for name, (law, speed) in laws.items():
+        # t_c(v) < k dt_dem  <=>  v > v_limit (t_c decreases as v^(-1/5))
+        v_limit = float(hertz_contact_time(law, 1.0) / (MIN_CONTACT_STEPS * setup.dt_dem)) ** 5
+        hit = _first(speed > v_limit)
+        if hit:
+            t_c = hertz_contact_time(law, float(speed[hit]))
+            found.append((*hit, "unresolved-contact",
+                          f"a {name} relative speed of {speed[hit]:.4g} m/s, where a Hertz "
+                          f"contact lasts {t_c / setup.dt_dem:.1f} DEM steps (need >= "
+                          f"{MIN_CONTACT_STEPS}): reduce [dem] dt_dem_max or the motion"))
+    return min(found) if found else None
+
+
+def _stop_invalid(setup: DEMSetup, chunks: list[dict[str, np.ndarray]], samples: dict,
+                  bad: tuple[int, int, str, str], first_sample: int, out_path: Any,
+                  seed: int) -> DEMRunError:
+    """The error for an invalid sample; keeps (and writes) the valid samples before it."""
+    from sgn_jax.dataset import build_meta, save_trajectory
+
+    index, ball, cause, detail = bad
+    t_bad = (first_sample + index) * setup.dt
+    head = {k: v[:index] for k, v in samples.items()}
+    kept = [*chunks, head] if index > 0 else list(chunks)
+    if t_bad < 0:
+        kept = []  # stopped while settling: there is no motion to keep
+    valid, valid_path = None, None
+    if kept:
+        arrays = assemble_arrays(setup, kept)
+        meta = build_meta(setup.cfg, seed=seed, extra={
+            "dt_dem": setup.dt_dem, "substeps": setup.substeps,
+            "stopped": {"time_s": t_bad, "ball": ball, "cause": cause}})
+        valid = DEMRun(arrays=arrays, meta=meta, summary={})
+        if out_path is not None and arrays["t"].size >= 2:
+            valid_path = Path(out_path).with_name(Path(out_path).stem + ".valid_part.npz")
+            save_trajectory(valid_path, arrays, meta)
+    where = f"while settling (t = {t_bad:.4g} s)" if t_bad < 0 else f"at t = {t_bad:.6g} s"
+    kept_text = (f"; the {t_bad:.4g} s before it are in {valid_path}" if valid_path else "")
+    return DEMRunError(f"the DEM run stopped {where}: ball {ball}: {detail} [{cause}]{kept_text}",
+                       time_s=t_bad, ball=ball, cause=cause, valid=valid, valid_path=valid_path)
 
 
 def assemble_arrays(setup: DEMSetup, chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

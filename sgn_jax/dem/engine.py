@@ -48,6 +48,7 @@ from sgn_jax.dem.contact import (
     hertz_energy,
     make_contact_law,
 )
+from sgn_jax.errors import SGNJaxError
 
 DISSIPATION_KINDS = ("normal", "tangential", "slip", "rolling", "stiffness")
 PAIR_MODES = ("auto", "nxn", "pairs", "neighbour")
@@ -56,7 +57,7 @@ WallFn = Callable[[Any, jnp.ndarray], tuple[jnp.ndarray, jnp.ndarray]]
 MotionFn = Callable[[Any, jnp.ndarray], jnp.ndarray]
 
 
-class DEMError(ValueError):
+class DEMError(SGNJaxError, ValueError):
     """Bad DEM input (sizes, parameters), with a message that says how to fix it."""
 
 

@@ -14,8 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
 
-class PlacementError(ValueError):
+
+class PlacementError(SGNJaxError, ValueError):
     """The balls cannot be placed (too many, too large, or a jar without room)."""
 
 

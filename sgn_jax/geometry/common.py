@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from sgn_jax.errors import SGNJaxError
 
-class GeometryError(ValueError):
+
+class GeometryError(SGNJaxError, ValueError):
     """Bad geometry input: a non-watertight or inconsistently wound STL, a missing file, an
     empty mesh, or grid parameters that cannot describe a grid."""
 

@@ -1,0 +1,350 @@
+"""Checks at the boundary: what is physically impossible (an error before any work starts) and
+what is merely outside what was validated (a warning), for the DEM and the surrogate.
+
+The rules, each with its reason (docs/validation.md has the table and the numbers):
+
+- **Durations** are > 0 and a whole number of samples ``dt`` (a zero-length run has no power).
+- **Fill**: the balls' solid volume must stay below :data:`RSA_FILL_LIMIT` (38 %) of the
+  cavity's: random sequential insertion, which places the balls, jams near 38 % in 3-D, and no
+  packing of spheres exceeds 74 %.
+- **Contact resolution** (impossible motions): a ball hit by the wall meets it at up to
+  ``v_impact = 2 v_jar,max + sqrt(2 g H)`` (the jar's peak speed reversed, plus a fall through
+  the jar's height). At that speed the Hertz contact must last at least
+  :data:`MIN_CONTACT_STEPS` DEM steps and its peak overlap stay below
+  :data:`MAX_OVERLAP_FRACTION` of the ball radius (Hertz is a small-strain law). A motion that
+  breaks either is refused, with the largest admissible speed (for a circle: the largest rpm
+  at the config's amplitude).
+- **DEM envelope** (a warning): the DEM was validated (no escapes, energy ledger) up to a peak
+  jar speed of :data:`DEM_VALIDATED_PEAK_SPEED` (2000 rpm at 17 mm).
+- **Surrogate envelope** (a warning): a model promises what it was trained on
+  (:func:`model_envelope`); outside it the answer may be wrong (docs/results.md section 4).
+
+Pure functions of a :class:`sgn_jax.config.Config`; they never read files.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgn_jax.config import Config, ConfigError
+from sgn_jax.errors import EnvelopeWarning
+
+RSA_FILL_LIMIT = 0.38
+"""Largest solid fraction of the cavity that random sequential insertion reaches (3-D jamming)."""
+
+MIN_CONTACT_STEPS = 20
+"""A Hertz contact at the largest impact speed must last at least this many DEM steps."""
+
+MAX_OVERLAP_FRACTION = 0.10
+"""The Hertz peak overlap at the largest impact speed must stay below this fraction of R."""
+
+DEM_VALIDATED_PEAK_SPEED = 3.6
+"""m/s: peak jar speed of the fastest validated DEM case (2000 rpm at 17 mm, no escapes)."""
+
+HERTZ_TIME = 2.87
+"""t_c = 2.87 (m*^2 / (R* Y*^2 v))^(1/5) (sgn_jax.dem.contact.hertz_contact_time)."""
+
+
+def check_duration(value: float | None, what: str = "--duration", *, dt: float | None = None,
+                   allow_none: bool = False) -> float | None:
+    """``value`` as a float, or ConfigError if it is not a positive, finite number of seconds
+    (and, with ``dt``, at least one sample long)."""
+    if value is None:
+        if allow_none:
+            return None
+        raise ConfigError(f"{what} is required (seconds of motion, > 0)")
+    v = float(value)
+    if not math.isfinite(v) or v <= 0:
+        raise ConfigError(f"{what} = {value} s: it must be a finite number of seconds > 0 "
+                          "(e.g. 1.0)")
+    if dt is not None and v < dt * (1 - 1e-9):
+        raise ConfigError(f"{what} = {value} s is shorter than one sample (dt = {dt:g} s); "
+                          f"use at least {dt:g} s")
+    return v
+
+
+def check_count(value: int, what: str, minimum: int = 1) -> int:
+    """``value`` as an int >= ``minimum`` or ConfigError naming it."""
+    if int(value) != value or int(value) < minimum:
+        raise ConfigError(f"{what} = {value}: it must be an integer >= {minimum}")
+    return int(value)
+
+
+# --------------------------------------------------------------------------------------------
+# Motion peaks
+
+
+@dataclass(frozen=True)
+class MotionPeaks:
+    """Peak jar speed (m/s) and acceleration (m/s^2) over one period of a motion."""
+
+    speed: float
+    acceleration: float
+    period: float
+
+
+def motion_peaks(motion_cfg: Any, samples: int = 2048) -> MotionPeaks:
+    """Peak jar speed and acceleration of a ``[motion]`` config over one period."""
+    from sgn_jax.motion import acceleration, frequency_hz, motion_from_config, velocity
+
+    motion = motion_from_config(motion_cfg)
+    f = float(frequency_hz(motion))
+    if not math.isfinite(f) or f <= 0:
+        raise ConfigError(f"[motion] its frequency is {f} Hz; it must be > 0")
+    t = jnp.linspace(0.0, 1.0 / f, samples, endpoint=False, dtype=jnp.float64)
+    with jax.default_device(jax.devices("cpu")[0]):
+        v = np.asarray(velocity(motion, t))
+        a = np.asarray(acceleration(motion, t))
+    return MotionPeaks(speed=float(np.max(np.linalg.norm(v, axis=-1))),
+                       acceleration=float(np.max(np.linalg.norm(a, axis=-1))), period=1.0 / f)
+
+
+# --------------------------------------------------------------------------------------------
+# Physical checks of a config
+
+
+def _contact_laws(cfg: Config) -> dict[str, Any]:
+    from sgn_jax.dem.contact import make_contact_law
+
+    r = cfg.balls.radius
+    m = cfg.balls.density * 4.0 / 3.0 * math.pi * r**3
+    mat = cfg.material
+    common = dict(young=mat.young, poisson=mat.poisson, restitution=mat.restitution,
+                  friction=mat.friction, rolling_friction=mat.rolling_friction)
+    return {"ball-ball": make_contact_law(radius_1=r, mass_1=m, radius_2=r, mass_2=m, **common),
+            "ball-wall": make_contact_law(radius_1=r, mass_1=m, **common)}
+
+
+def hertz_peak_overlap(law: Any, speed: float) -> float:
+    """Peak overlap (m) of an undamped Hertz impact at ``speed``:
+    (15 m* v^2 / (16 Y* sqrt(R*)))^(2/5)."""
+    return (15 * law.mass_eff * speed**2 / (16 * law.young_eff * math.sqrt(law.radius_eff))
+            ) ** 0.4
+
+
+def max_resolved_impact_speed(cfg: Config) -> tuple[float, str]:
+    """The largest impact speed (m/s) the DEM of ``cfg`` resolves, and the rule that sets it.
+
+    Both rules invert in closed form: t_c(v) >= MIN_CONTACT_STEPS dt_dem gives
+    v <= m*^2 / (R* Y*^2 (MIN_CONTACT_STEPS dt_dem / 2.87)^5); delta(v) <= f R gives
+    v^2 <= 16 Y* sqrt(R*) (f R)^(5/2) / (15 m*).
+    """
+    dt_dem = cfg.dem.dt_dem
+    best = (math.inf, "")
+    for name, law in _contact_laws(cfg).items():
+        v_time = law.mass_eff**2 / (law.radius_eff * law.young_eff**2
+                                    * (MIN_CONTACT_STEPS * dt_dem / HERTZ_TIME) ** 5)
+        overlap = MAX_OVERLAP_FRACTION * cfg.balls.radius
+        v_overlap = math.sqrt(16 * law.young_eff * math.sqrt(law.radius_eff) * overlap**2.5
+                              / (15 * law.mass_eff))
+        if v_time < best[0]:
+            best = (v_time, f"a {name} contact must last >= {MIN_CONTACT_STEPS} DEM steps "
+                            f"(dt_dem = {dt_dem:.3g} s)")
+        if v_overlap < best[0]:
+            best = (v_overlap, f"the {name} Hertz overlap must stay below "
+                               f"{MAX_OVERLAP_FRACTION:.0%} of the ball radius")
+    return best
+
+
+def impact_speed(cfg: Config, peak_jar_speed: float) -> float:
+    """Estimated largest impact speed (m/s): 2 v_jar + sqrt(2 g H)."""
+    g = float(np.linalg.norm(cfg.dem.gravity))
+    return 2 * peak_jar_speed + math.sqrt(2 * g * max(cfg.jar.height, 0.0))
+
+
+def check_fill(cfg: Config) -> float:
+    """Solid fraction of the balls in the cavity; ConfigError above :data:`RSA_FILL_LIMIT`."""
+    if cfg.jar.kind != "emax":
+        return float("nan")  # an STL cavity's volume needs the mesh; placement will say
+    from sgn_jax.geometry import jar_params_from_config, jar_volume
+
+    volume = float(jar_volume(jar_params_from_config(cfg.jar)))
+    solid = cfg.balls.count * 4.0 / 3.0 * math.pi * cfg.balls.radius**3
+    fraction = solid / volume
+    if fraction > RSA_FILL_LIMIT:
+        most = int(RSA_FILL_LIMIT * volume / (4.0 / 3.0 * math.pi * cfg.balls.radius**3))
+        raise ConfigError(
+            f"[balls] count = {cfg.balls.count} balls of radius {cfg.balls.radius:g} m fill "
+            f"{fraction:.0%} of the jar's {volume * 1e6:.1f} ml; random insertion places at most "
+            f"{RSA_FILL_LIMIT:.0%} (here about {most} balls): use count <= {most}, smaller "
+            "balls or a larger jar")
+    return fraction
+
+
+def check_motion(cfg: Config) -> list[str]:
+    """ConfigError if the DEM cannot resolve the contacts this motion drives; a list of
+    warnings (strings) when it lies beyond the validated DEM envelope."""
+    peaks = motion_peaks(cfg.motion)
+    v_impact = impact_speed(cfg, peaks.speed)
+    v_max, rule = max_resolved_impact_speed(cfg)
+    if not math.isfinite(peaks.speed) or v_impact > v_max:
+        g = float(np.linalg.norm(cfg.dem.gravity))
+        jar_max = max((v_max - math.sqrt(2 * g * cfg.jar.height)) / 2, 0.0)
+        m = cfg.motion
+        if m.kind == "circle" and m.amplitude > 0:
+            allowed = (f"at amplitude {m.amplitude:g} m, rpm <= "
+                       f"{jar_max / (2 * math.pi * m.amplitude) * 60:.4g}")
+        else:
+            allowed = (f"scale the displacement by <= {jar_max / peaks.speed:.3g}"
+                       if peaks.speed > 0 else "a slower motion")
+        remedy = (", or a smaller [dem] dt_dem_max" if "DEM steps" in rule
+                  else ", or stiffer balls ([material] young)")
+        raise ConfigError(
+            f"[motion] {_describe_motion(cfg.motion)} drives the jar at up to "
+            f"{peaks.speed:.4g} m/s (peak acceleration {peaks.acceleration:.3g} m/s^2): balls "
+            f"would hit the wall at about {v_impact:.4g} m/s, but {rule} only up to "
+            f"{v_max:.4g} m/s, so the DEM cannot represent this motion. Allowed: peak jar speed "
+            f"<= {jar_max:.4g} m/s ({allowed}){remedy}")
+    notes = []
+    if peaks.speed > DEM_VALIDATED_PEAK_SPEED:
+        notes.append(
+            f"[motion] peak jar speed {peaks.speed:.3g} m/s is beyond the DEM's validated "
+            f"range (<= {DEM_VALIDATED_PEAK_SPEED} m/s: 2000 rpm at 17 mm, docs/dem.md); the run "
+            "checks itself for escapes and unresolved contacts")
+    return notes
+
+
+def _describe_motion(m: Any) -> str:
+    if m.kind == "circle":
+        return f"circle rpm = {m.rpm:g}, amplitude = {m.amplitude:g} m"
+    if m.kind == "harmonic":
+        return f"harmonic base_frequency_hz = {m.base_frequency_hz:g}"
+    return f"spline period = {m.period:g} s"
+
+
+def check_dem_config(cfg: Config, *, warn: bool = True) -> list[str]:
+    """All physical checks of a DEM run of ``cfg`` (raises ConfigError); returns the
+    envelope notes, also issued as :class:`EnvelopeWarning` when ``warn``."""
+    check_fill(cfg)
+    notes = check_motion(cfg)
+    if warn:
+        for note in notes:
+            warnings.warn(note, EnvelopeWarning, stacklevel=2)
+    return notes
+
+
+# --------------------------------------------------------------------------------------------
+# The surrogate's envelope
+
+
+@dataclass(frozen=True)
+class ModelEnvelope:
+    """The motions and jars a trained model promises to cover.
+
+    ``circle_rpm`` / ``circle_amplitude`` (min, max) for circles, ``harmonic_base_hz`` and
+    ``harmonic_max_axis_amplitude`` (m, sum of |coefficients| per axis) for harmonic orbits
+    (None: that kind is not covered); ``jar``: the (radius, straight_length, height,
+    post_radius) of the trained jar, or None for any jar.
+    """
+
+    circle_rpm: tuple[float, float] | None = None
+    circle_amplitude: tuple[float, float] | None = None
+    harmonic_base_hz: tuple[float, float] | None = None
+    harmonic_max_axis_amplitude: float | None = None
+    jar: tuple[float, float, float, float] | None = None
+    source: str = ""
+
+
+def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> ModelEnvelope:
+    """The envelope a model states in its checkpoint meta (key ``envelope``), or else the one
+    point it was trained at: its training config's motion (within 1 %) and jar."""
+    jar = model_config.jar
+    jar_key = (jar.radius, jar.straight_length, jar.height, jar.post_radius)
+    stated = (meta or {}).get("envelope")
+    if stated:
+        def pair(key):
+            return tuple(stated[key]) if stated.get(key) is not None else None
+
+        return ModelEnvelope(circle_rpm=pair("circle_rpm"),
+                             circle_amplitude=pair("circle_amplitude"),
+                             harmonic_base_hz=pair("harmonic_base_hz"),
+                             harmonic_max_axis_amplitude=stated.get("harmonic_max_axis_amplitude"),
+                             jar=None if stated.get("any_jar") else jar_key,
+                             source="the model's stated envelope")
+    m = model_config.motion
+    if m.kind == "circle":
+        return ModelEnvelope(circle_rpm=(m.rpm * 0.99, m.rpm * 1.01),
+                             circle_amplitude=(m.amplitude * 0.99, m.amplitude * 1.01),
+                             jar=jar_key, source="the single motion the model was trained on")
+    return ModelEnvelope(jar=jar_key, source="the single motion the model was trained on")
+
+
+def _axis_amplitudes(m: Any) -> list[float]:
+    return [sum(abs(c) for c in getattr(m, f"{a}_sin")) + sum(abs(c) for c in getattr(m, f"{a}_cos"))
+            for a in "xyz"]
+
+
+def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
+    """Why ``cfg``'s motion and jar lie outside ``envelope`` (empty list: inside)."""
+    notes = []
+    m = cfg.motion
+
+    def outside(value, bounds, what):
+        if bounds is None:
+            notes.append(f"{what} = {value:g}: the model covers no {m.kind} motion")
+        elif not bounds[0] <= value <= bounds[1]:
+            notes.append(f"{what} = {value:g} is outside the model's range "
+                         f"[{bounds[0]:g}, {bounds[1]:g}]")
+
+    if m.kind == "circle":
+        outside(m.rpm, envelope.circle_rpm, "[motion] rpm")
+        if envelope.circle_rpm is not None:
+            outside(m.amplitude, envelope.circle_amplitude, "[motion] amplitude (m)")
+    elif m.kind == "harmonic":
+        outside(m.base_frequency_hz, envelope.harmonic_base_hz, "[motion] base_frequency_hz")
+        limit = envelope.harmonic_max_axis_amplitude
+        if envelope.harmonic_base_hz is not None and limit is not None:
+            worst = max(_axis_amplitudes(m))
+            if worst > limit * (1 + 1e-9):
+                notes.append(f"[motion] harmonic amplitude per axis {worst:g} m exceeds the "
+                             f"model's {limit:g} m")
+    else:
+        notes.append(f"[motion] kind = {m.kind!r}: the model covers no {m.kind} motion")
+    if envelope.jar is not None:
+        j = cfg.jar
+        key = (j.radius, j.straight_length, j.height, j.post_radius)
+        if cfg.jar.kind != "emax" or not np.allclose(key, envelope.jar, rtol=1e-6, atol=1e-9):
+            notes.append(f"[jar] {key} (radius, straight_length, height, post_radius, m) differs "
+                         f"from the trained jar {envelope.jar}")
+    if notes:
+        notes.append(f"the model's envelope is {envelope.source}; outside it its powers and "
+                     "gradients are extrapolations (docs/validation.md)")
+    return notes
+
+
+def warn_outside_envelope(cfg: Config, model_config: Config, meta: dict[str, Any] | None = None
+                          ) -> list[str]:
+    """Issue an :class:`EnvelopeWarning` per note of :func:`envelope_notes`; returns them."""
+    notes = envelope_notes(cfg, model_envelope(model_config, meta))
+    for note in notes:
+        warnings.warn(f"outside the surrogate's envelope: {note}", EnvelopeWarning, stacklevel=2)
+    return notes
+
+
+__all__ = [
+    "DEM_VALIDATED_PEAK_SPEED",
+    "MAX_OVERLAP_FRACTION",
+    "MIN_CONTACT_STEPS",
+    "ModelEnvelope",
+    "MotionPeaks",
+    "RSA_FILL_LIMIT",
+    "check_count",
+    "check_dem_config",
+    "check_duration",
+    "check_fill",
+    "check_motion",
+    "envelope_notes",
+    "hertz_peak_overlap",
+    "impact_speed",
+    "max_resolved_impact_speed",
+    "model_envelope",
+    "motion_peaks",
+    "warn_outside_envelope",
+]
