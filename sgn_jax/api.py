@@ -32,12 +32,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.cache import enable_compilation_cache
 from sgn_jax.checkpoint import TrainedModel, load_trained_model
-from sgn_jax.config import Config, builtin_config_path, replace_section
-from sgn_jax.config import load_config as _load_config_file
+from sgn_jax.config import Config, replace_section, resolve_config
 from sgn_jax.dem.driver import (
     initial_state,
+    load_settled,
     run_dem,
+    save_settled,
     settle_sample_count,
     setup_from_config,
 )
@@ -59,14 +61,14 @@ from sgn_jax.graph import Window, graph_spec_from_config
 from sgn_jax.motion import Motion, motion_from_config, offset
 from sgn_jax.rollout import initial_window, model_predictor
 
+# A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
+# SGN_JAX_NO_CACHE=1).
+enable_compilation_cache()
+
 
 def load_config(name_or_path: str | Path) -> Config:
     """A built-in config by name (``"emax_300rpm"``, ``"motion1"``, ...) or a TOML file."""
-    text = str(name_or_path)
-    path = Path(text)
-    if path.suffix == ".toml" or "/" in text or path.exists():
-        return _load_config_file(path)
-    return _load_config_file(builtin_config_path(text))
+    return resolve_config(name_or_path)
 
 
 def load_surrogate(checkpoint: str | Path | None = None, which: str = "best") -> TrainedModel:
@@ -395,14 +397,17 @@ class DEMEnsemble:
         return state, out
 
     def settled(self, cfg: Config, seed: int) -> Any:
-        """The settled DEM state of ``cfg``'s jar and balls for ``seed`` (cached in memory),
-        in the lab frame of ``cfg``'s motion at t = 0."""
+        """The settled DEM state of ``cfg``'s jar and balls for ``seed`` (cached in memory and
+        in the user cache, :mod:`sgn_jax.cache`), in the lab frame of ``cfg``'s motion at t = 0."""
         setup = setup_from_config(cfg)
         key = (_jar_key(cfg), cfg.balls, cfg.material, cfg.dem.settle_time, cfg.dem.dt,
                cfg.dem.dt_dem_max, int(seed))
         if key not in self._settled:
-            state = initial_state(setup, int(seed))
-            state, _ = self._run(setup, state, settle_sample_count(setup))
+            state = load_settled(setup, int(seed))
+            if state is None:
+                state = initial_state(setup, int(seed))
+                state, _ = self._run(setup, state, settle_sample_count(setup))
+                save_settled(setup, int(seed), state)
             state = reset_ledger_totals(state)
             self._settled[key] = (jax.device_get(state),
                                   np.asarray(offset(setup.params.motion, 0.0)))

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from sgn_jax import __version__
+from sgn_jax.cache import enable_compilation_cache
 from sgn_jax.errors import SGNJaxError
 
 
@@ -31,17 +32,17 @@ def _add_jar(sub: argparse._SubParsersAction) -> None:
         description="Build the jar of CFG as a watertight mesh, write it as STL and print one "
         "JSON line with volume_ml, watertight and the analytic volume.",
     )
-    p.add_argument("--config", required=True, help="experiment config (TOML)")
+    p.add_argument("--config", required=True, help="experiment config: a TOML file or a built-in name (emax_300rpm, motion1, motion2, emax_post_motion1)")
     p.add_argument("--out", required=True, help="output STL file (m units)")
     p.set_defaults(handler=_cmd_jar)
 
 
 def _cmd_jar(args: argparse.Namespace) -> int:
-    from sgn_jax.config import load_config
+    from sgn_jax.config import resolve_config
     from sgn_jax.geometry import jar_mesh_from_config, mesh_report
     from sgn_jax.io_utils import atomic_write
 
-    cfg = load_config(args.config)
+    cfg = resolve_config(args.config)
     mesh = jar_mesh_from_config(cfg.jar)
     with atomic_write(args.out, "wb") as fh:
         mesh.export(fh, file_type="stl")
@@ -112,7 +113,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "[model] and [train] settings, and write metrics.jsonl/.csv, loss.png and orbax "
         "checkpoints (checkpoints/latest, checkpoints/best) to OUT. Prints a JSON summary.",
     )
-    p.add_argument("--config", required=True, help="experiment config (TOML)")
+    p.add_argument("--config", required=True, help="experiment config: a TOML file or a built-in name (emax_300rpm, motion1, motion2, emax_post_motion1)")
     p.add_argument("--data", required=True,
                    help="trajectory file(s) (.npz, SPEC 4), comma-separated")
     p.add_argument("--out", required=True, help="run directory")
@@ -126,7 +127,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from sgn_jax.checkpoint import CheckpointError
-    from sgn_jax.config import load_config
+    from sgn_jax.config import resolve_config
     from sgn_jax.dataset import load_trajectory
     from sgn_jax.graph import GraphError
     from sgn_jax.train import TrainingError, train
@@ -136,7 +137,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     paths = [p.strip() for p in args.data.split(",") if p.strip()]
     if not paths:
         raise UserError("--data needs at least one trajectory file")
-    cfg = load_config(args.config)
+    cfg = resolve_config(args.config)
     trajectories = [load_trajectory(p) for p in paths]
     log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
     try:
@@ -162,7 +163,7 @@ def _add_dem(sub: argparse._SubParsersAction) -> None:
         "OUT.partial/; rerunning the same command resumes from there. Prints one JSON line: "
         "wall time, steps/s, dissipation by kind, ledger residual, balls outside the jar.",
     )
-    p.add_argument("--config", required=True, help="experiment config (TOML)")
+    p.add_argument("--config", required=True, help="experiment config: a TOML file or a built-in name (emax_300rpm, motion1, motion2, emax_post_motion1)")
     p.add_argument("--duration", type=float, default=None,
                    help="seconds of motion (default: [dem] duration)")
     p.add_argument("--out", required=True, help="output trajectory (.npz)")
@@ -179,12 +180,12 @@ def _add_dem(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_dem(args: argparse.Namespace) -> int:
-    from sgn_jax.config import load_config
+    from sgn_jax.config import resolve_config
     from sgn_jax.dem.driver import run_dem
     from sgn_jax.dem.engine import DEMError
     from sgn_jax.dem.placement import PlacementError
 
-    cfg = load_config(args.config)
+    cfg = resolve_config(args.config)
     try:
         result = run_dem(cfg, duration=args.duration, out_path=args.out, seed=args.seed,
                          dt_dem=args.dt_dem, dtype=args.dtype, resume=not args.no_resume,
@@ -231,7 +232,7 @@ def _add_rollout(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
     from sgn_jax.checkpoint import CheckpointError, load_trained_model
-    from sgn_jax.config import load_config
+    from sgn_jax.config import resolve_config
     from sgn_jax.dataset import load_trajectory
     from sgn_jax.prediction import PredictionError
     from sgn_jax.rollout import RolloutError, run_rollout
@@ -242,7 +243,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
         trained = load_trained_model(args.checkpoint, which=args.which)
     except CheckpointError as exc:
         raise UserError(str(exc)) from exc
-    override = load_config(args.config) if args.config else None
+    override = resolve_config(args.config) if args.config else None
     traj = load_trajectory(args.init)
     start = trained.config.graph.window if args.start_index is None else args.start_index
     try:
@@ -295,6 +296,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         MetricsWarning,
         compare,
         ensemble_summary,
+        motion_warning_lines,
     )
     from sgn_jax.metrics import headline as run_headline
     from sgn_jax.plots import plot_ensemble, plot_run
@@ -322,6 +324,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         for warning in caught:
             print(f"sgn-jax evaluate: warning: {warning.message}", file=sys.stderr)
         summary = comparison.summary
+        # The motion checks (metrics.motion_warnings): the energy can agree by accident.
+        for line in motion_warning_lines(summary["motion"]["warnings"]):
+            print(f"sgn-jax evaluate: {pred_path}: {line}" if several
+                  else f"sgn-jax evaluate: {line}", file=sys.stderr)
         summary["warnings"] = [str(w.message) for w in caught]
         summary["plots"] = plot_run(comparison, prediction, reference, run_dir)
         write_json(run_dir / "metrics.json", summary)
@@ -451,6 +457,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0
+    enable_compilation_cache()  # sgn_jax.cache: a second run reuses compiled programs
     user_errors = (SGNJaxError, FileNotFoundError)
     try:
         return int(args.handler(args) or 0)

@@ -663,3 +663,15 @@ def builtin_config_path(name: str) -> Path:
         available = sorted(p.stem for p in path.parent.glob("*.toml"))
         raise ConfigError(f"no built-in config {name!r}; available: {available}")
     return path
+
+
+def resolve_config(name_or_path: str | Path) -> Config:
+    """A built-in config by name (``"emax_300rpm"``, ``"motion1"``, ...) or a TOML file by path.
+
+    A text with a ``.toml`` suffix or a ``/``, or naming an existing file, is a path.
+    """
+    text = str(name_or_path)
+    path = Path(text)
+    if path.suffix == ".toml" or "/" in text or path.exists():
+        return load_config(path)
+    return load_config(builtin_config_path(text))

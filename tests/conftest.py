@@ -6,8 +6,13 @@ described once here; each test module runs them against its own loader and error
 """
 
 import json
+import os
 import re
 import zipfile
+
+# The suite never reads or writes the user cache (sgn_jax.cache): every test starts cold and
+# sees the same thing on any machine. Tests of the cache point SGN_JAX_CACHE_DIR at tmp_path.
+os.environ["SGN_JAX_NO_CACHE"] = "1"
 
 import numpy as np
 import pytest

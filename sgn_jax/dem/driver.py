@@ -20,6 +20,7 @@ docs/dem.md) and ``n_pp_contacts`` (the regime indicator of SPEC 7).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import shutil
 import time
@@ -185,6 +186,78 @@ def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
 
 
 # --------------------------------------------------------------------------------------------
+# Settled packings, cached across runs and processes
+
+_DEM_SOURCES = ("engine.py", "contact.py", "placement.py", "walls.py", "driver.py")
+
+
+def _dem_source_digest() -> str:
+    """SHA-256 of the DEM's source files: a cached state is reused only by the same code."""
+    h = hashlib.sha256()
+    for name in _DEM_SOURCES:
+        h.update((Path(__file__).with_name(name)).read_bytes())
+    return h.hexdigest()
+
+
+def settle_key(setup: DEMSetup, seed: int) -> str:
+    """Digest of what a settled state depends on: jar, balls, material, DEM settings (not the
+    duration, chunking or motion: the jar rests while settling), seed and the DEM's code."""
+    from sgn_jax.config import config_to_dict
+
+    cfg = config_to_dict(setup.cfg)
+    dem = {k: v for k, v in cfg["dem"].items() if k not in ("duration", "chunk_samples", "seed")}
+    key = {"jar": cfg["jar"], "balls": cfg["balls"], "material": cfg["material"], "dem": dem,
+           "seed": int(seed), "dt_dem": setup.dt_dem, "pp_capacity": setup.pp_capacity,
+           "pair_mode": setup.spec.resolved_pair_mode, "format": PARTIAL_FORMAT,
+           "code": _dem_source_digest()}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def _translated(state: DEMState, shift: np.ndarray) -> DEMState:
+    return state.replace(pos=state.pos + shift, offset=state.offset + shift,
+                         pairs=state.pairs.replace(ref_pos=state.pairs.ref_pos + shift))
+
+
+def load_settled(setup: DEMSetup, seed: int) -> DEMState | None:
+    """The cached settled state (at t = 0, translated to this motion's start), or None."""
+    from sgn_jax.cache import settled_dir
+    from sgn_jax.motion import offset
+
+    directory = settled_dir()
+    if directory is None:
+        return None
+    path = directory / f"{settle_key(setup, seed)}.npz"
+    if not path.is_file():
+        return None
+    template = init_state(setup.spec, setup.params, np.zeros((setup.spec.n_balls, 3)))
+    try:
+        with np.load(path) as data:
+            state = _tree_from_npz(template, data, str(path))
+            offset0 = np.asarray(data["offset0"])
+    except (OSError, ValueError, KeyError, DEMError):
+        return None  # a damaged or stale entry is settled again (and overwritten)
+    return _translated(state, np.asarray(offset(setup.params.motion, 0.0)) - offset0)
+
+
+def save_settled(setup: DEMSetup, seed: int, state: DEMState) -> Path | None:
+    """Store a settled state (atomically); None when the cache is off or not writable."""
+    from sgn_jax.cache import settled_dir
+    from sgn_jax.motion import offset
+
+    directory = settled_dir()
+    if directory is None:
+        return None
+    path = directory / f"{settle_key(setup, seed)}.npz"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        _save_npz(path, {**_tree_to_npz(jax.device_get(state)),
+                         "offset0": np.asarray(offset(setup.params.motion, 0.0))})
+    except OSError:
+        return None
+    return path
+
+
+# --------------------------------------------------------------------------------------------
 # Run
 
 
@@ -215,6 +288,7 @@ def run_dem(
     chunk_samples: int | None = None,
     dtype: str | None = None,
     check: bool = True,
+    settle_cache: bool = True,
 ) -> DEMRun:
     """Settle and run the DEM of ``cfg``; write the SPEC-4 dataset to ``out_path`` if given.
 
@@ -230,6 +304,9 @@ def run_dem(
         dtype: override ``[dem] dtype``.
         check: refuse a config the DEM cannot represent before any work
             (:func:`sgn_jax.validation.check_dem_config`; an envelope warning otherwise).
+        settle_cache: reuse (and store) the settled packing of this jar, balls, material, DEM
+            settings and seed in the user cache (:mod:`sgn_jax.cache`; off with
+            ``SGN_JAX_NO_CACHE=1``); the motion only translates it.
 
     Raises:
         DEMRunError: a ball left the jar, a value went non-finite, or a contact became too fast
@@ -321,6 +398,15 @@ def run_dem(
 
     steps_run = 0
     settle_wall = 0.0
+    settle_cached = False
+    if state is None and settle_cache:
+        state = load_settled(setup, seed)
+        settle_cached = state is not None
+        if settle_cached:
+            state = reset_ledger_totals(state)
+            chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
+                                                 observe_jit(params, state)))
+            checkpoint(state)
     if state is None:
         state = initial_state(setup, seed)
         bar = _progress(n_settle * setup.dt, "settling", progress)
@@ -340,6 +426,8 @@ def run_dem(
         settle_wall = time.perf_counter() - t0
         if int(state.step) != 0:
             raise DEMError(f"internal: settling ended at step {int(state.step)}, not 0")
+        if settle_cache:
+            save_settled(setup, seed, state)
         state = reset_ledger_totals(state)
         chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
                                              observe_jit(params, state)))
@@ -387,6 +475,7 @@ def run_dem(
         "seed": seed, "duration_s": n_motion * setup.dt, "dt_dem": setup.dt_dem,
         "substeps": k, "wall_time_s": time.perf_counter() - t_wall0,
         "compile_time_s": compile_time, "settle_wall_s": settle_wall,
+        "settle_cached": settle_cached,
         "motion_wall_s": motion_wall, "dem_steps": steps_run,
         "steps_per_s": motion_steps / motion_wall if motion_wall > 0 and motion_steps else None,
         "pair_mode": spec.resolved_pair_mode, "dtype": spec.dtype,
