@@ -1,12 +1,13 @@
 """Animated GIF of the balls in the jar: DEM and surrogate side by side (``sgn-jax demo``).
 
-Layout of each frame (lab frame, metres)::
+Layout of each frame (lab frame; axes in mm)::
 
-    +----------------------+----------------------+
-    | DEM, top view (x-z)  | SGN, top view (x-z)  |     jar cross-section at mid-height
-    +----------------------+----------------------+
-    | DEM, side view (x-y) | SGN, side view (x-y) |     jar cross-section at z = 0 (jar frame)
-    +----------------------+----------------------+
+    t = ... s since the start of motion   E_DEM = ... mJ   E_SGN = ... mJ
+    +-------------------------------+-------------------------------+
+    | DEM (reference): top view     | SGN (surrogate): top view     |  x-z, section at mid-height
+    +-------------------------------+-------------------------------+
+    | DEM (reference): side view    | SGN (surrogate): side view    |  x-y, section at z = 0
+    +-------------------------------+-------------------------------+
 
 The jar outline comes from the jar's own geometry (a plane section of
 :func:`sgn_jax.geometry.jar_mesh_from_config`, so STL jars and the central post are drawn as
@@ -32,6 +33,15 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sgn_jax.io_utils import atomic_write
+
+# Layout of the GIF's figure (inches): tick labels and axis titles around the four panels.
+_MARGIN_LEFT_IN, _MARGIN_RIGHT_IN, _GAP_X_IN = 0.5, 0.1, 0.5
+_HEADER_IN, _MARGIN_BOTTOM_IN, _GAP_Y_IN = 0.62, 0.34, 0.5
+
+
+def _mm(value: float, _position: Any = None) -> str:
+    """Tick label of a coordinate in metres, written in mm."""
+    return f"{1e3 * value:.0f}"
 
 
 class JarSections(NamedTuple):
@@ -101,10 +111,13 @@ def write_comparison_gif(
     *,
     captions: Sequence[str] | None = None,
     fps: float = 10.0,
-    width_px: int = 640,
+    width_px: int = 760,
     progress: bool = True,
 ) -> Path:
     """Write the side-by-side animation (DEM left, SGN right; top and side views) as a GIF.
+
+    Every panel is titled with its source (DEM or SGN) and view and has axes in mm; the
+    figure's title gives the time of the frame (and the captions).
 
     Args:
         path: output ``.gif``.
@@ -125,6 +138,7 @@ def write_comparison_gif(
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle
+    from matplotlib.ticker import FuncFormatter
     from PIL import Image
     from tqdm.auto import tqdm
 
@@ -164,31 +178,45 @@ def write_comparison_gif(
     y_lim = (sections.lower[1] + offsets[:, 1].min() - margin,
              sections.upper[1] + offsets[:, 1].max() + margin)
     x_span, z_span, y_span = (b - a for a, b in (x_lim, z_lim, y_lim))
-    width_in = 6.4
-    # Two columns of x_span; the rows are z_span and y_span tall; room for titles.
-    height_in = width_in * (z_span + y_span) / (2 * x_span) + 0.7
+    # Layout in inches: two columns of x_span wide panels (rows z_span and y_span tall, equal
+    # aspect), margins for the tick labels and axis titles, a header for the title lines.
+    width_in = 7.0
+    left, right, gap_x = _MARGIN_LEFT_IN, _MARGIN_RIGHT_IN, _GAP_X_IN
+    top, bottom, gap_y = _HEADER_IN, _MARGIN_BOTTOM_IN, _GAP_Y_IN
+    panel_w = 0.5 * (width_in - left - right - gap_x)
+    heights = (panel_w * z_span / x_span, panel_w * y_span / x_span)
+    height_in = top + heights[0] + gap_y + heights[1] + bottom
     dpi = width_px / width_in
 
     fig = Figure(figsize=(width_in, height_in), dpi=dpi)
     FigureCanvasAgg(fig)
-    grid = fig.add_gridspec(2, 2, height_ratios=[z_span, y_span], left=0.02, right=0.98,
-                            bottom=0.02, top=1.0 - 0.45 / height_in, wspace=0.04, hspace=0.1)
-    title = fig.suptitle("", fontsize=9, y=1.0 - 0.06 / height_in, va="top")
+    title = fig.suptitle("", fontsize=9, y=1.0 - 0.05 / height_in, va="top")
+    fig.text(0.5, 1.0 - 0.27 / height_in, "left: DEM (reference)   right: SGN (surrogate)   "
+             "lab frame, mm; one colour per ball, the same in all panels", fontsize=7,
+             ha="center", va="top", color="0.3")
     # Per panel: axes, positions, the two drawn coordinates, the depth coordinate (what is
     # nearer the viewer is drawn on top: larger y seen from above, larger z seen from the
     # front), outline, its segments, the circles.
     panels = []
-    for column, (label, positions) in enumerate((("DEM", pos_dem), ("SGN", pos_sgn))):
+    for column, (label, positions) in enumerate((("DEM (reference)", pos_dem),
+                                                  ("SGN (surrogate)", pos_sgn))):
         for row, (view, coords, depth, segments, lims) in enumerate((
-                ("top view x-z", (0, 2), 1, sections.top, (x_lim, z_lim)),
-                ("side view x-y", (0, 1), 2, sections.side, (x_lim, y_lim)))):
-            ax = fig.add_subplot(grid[row, column])
+                ("top view, section at mid-height", (0, 2), 1, sections.top, (x_lim, z_lim)),
+                ("side view, section at z = 0", (0, 1), 2, sections.side, (x_lim, y_lim)))):
+            x0 = left + column * (panel_w + gap_x)
+            y0 = bottom + (heights[1] + gap_y if row == 0 else 0.0)
+            ax = fig.add_axes((x0 / width_in, y0 / height_in, panel_w / width_in,
+                               heights[row] / height_in))
             ax.set_xlim(*lims[0])
             ax.set_ylim(*lims[1])
             ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            ax.set_title(f"{label}, {view}", fontsize=8, pad=2)
+            ax.xaxis.set_major_formatter(FuncFormatter(_mm))
+            ax.yaxis.set_major_formatter(FuncFormatter(_mm))
+            ax.tick_params(labelsize=6, length=2, pad=1)
+            ax.set_xlabel("x (mm)", fontsize=7, labelpad=1)
+            ax.set_ylabel(("z (mm)", "y (mm)")[row], fontsize=7, labelpad=1)
+            ax.set_title(f"{label}: {view}", fontsize=8, pad=2,
+                         fontweight="bold" if row == 0 else "normal")
             outline = LineCollection(segments, colors="dimgrey", linewidths=1.2, zorder=3)
             ax.add_collection(outline)
             circles = []
@@ -210,7 +238,7 @@ def write_comparison_gif(
             for circle, centre, r in zip(circles, positions[f], rank, strict=True):
                 circle.set_center((centre[a], centre[b]))
                 circle.set_zorder(2.0 + 1e-3 * r)
-        text = f"t = {t[f]:.3f} s"
+        text = f"t = {t[f]:.3f} s since the start of motion"
         if captions is not None:
             text += "   " + captions[f]
         title.set_text(text)

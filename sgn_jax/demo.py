@@ -10,7 +10,8 @@
    ``[graph] window`` W) a rollout of ``duration`` seconds (S = duration / dt steps) with the
    trained SGN (the shipped model by default), written to ``OUT/prediction.npz``;
 3. the comparison of :func:`sgn_jax.metrics.compare` (cumulative dissipated energy, position
-   MSE_t, balls outside the jar, edge overflow, regime indicators), the wall-time speed ratio
+   MSE_t, balls outside the jar, edge overflow, regime indicators, the motion checks), the
+   wall-time speed ratio
    (DEM seconds per simulated second / surrogate seconds per simulated second, compile time
    and settling apart), ``OUT/summary.json``, the plots of :func:`sgn_jax.plots.plot_run` and
    ``OUT/animation.gif`` (:mod:`sgn_jax.animation`).
@@ -18,6 +19,14 @@
 The energy compared is the surrogate's target, the DEM's normal + tangential damping (ball-ball
 and ball-wall) summed over the rollout's interval (t_W, t_W + duration]; the DEM's total
 dissipation of all kinds (with Coulomb slip and rolling friction) is reported beside it.
+
+The energy can agree by accident (a surrogate whose balls run too fast, pile against a wall and
+sink into each other dissipated within 1 % of the DEM), so beside it the report prints the
+motion checks of :func:`sgn_jax.metrics.motion_checks`, each with the DEM's value next to the
+surrogate's: mean ball speed in the jar frame, ball-steps snapped back to the wall, deepest
+ball-ball overlap and the MSE_t plateau against the DEM's chaos floor. Each check out of the
+DEM's range prints a ``WARNING:`` line, followed by one saying that the energy agreement alone
+should not be trusted (docs/rollout.md, "The demo's honesty lines").
 
 One trajectory is one sample of a multistable system (SPEC section 7): the demo shows the
 method working; accuracy claims about dissipation belong to ensembles (``sgn-jax evaluate``
@@ -39,6 +48,13 @@ from typing import Any
 import numpy as np
 
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.metrics import (
+    MOTION_MSE_FLOOR_MAX_RATIO,
+    MOTION_OVERLAP_MAX_M,
+    MOTION_SNAPPED_FRACTION_MAX,
+    MOTION_SPEED_TOLERANCE,
+    motion_warning_lines,
+)
 
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
@@ -151,7 +167,9 @@ def run_demo(
 
     Returns:
         the summary (also written to ``OUT/summary.json``): ``energy``, ``position``,
-        ``speed``, ``dem``, ``surrogate``, ``checks``, ``regime``, ``files``, ``wall_time_s``.
+        ``speed``, ``dem``, ``surrogate``, ``checks``, ``regime``, ``motion_checks`` (list of
+        dicts, :func:`sgn_jax.metrics.motion_checks`), ``motion_warnings`` (messages of the
+        failed checks), ``files``, ``wall_time_s``.
     """
     from sgn_jax.checkpoint import CheckpointError, load_trained_model
     from sgn_jax.dataset import load_trajectory
@@ -298,6 +316,8 @@ def run_demo(
             "state_dem": cmp["regime"]["state_ref"],
             "state_sgn": cmp["regime"]["state_pred"],
         },
+        "motion_checks": cmp["motion"]["checks"],
+        "motion_warnings": cmp["motion"]["warnings"],
         "warnings": [str(w.message) for w in caught],
         "files": files,
     }
@@ -368,6 +388,8 @@ def format_report(summary: dict[str, Any]) -> str:
     e, p, s, c, d, g, r = (summary[k] for k in ("energy", "position", "speed", "checks", "dem",
                                                 "surrogate", "regime"))
     rel = e["relative_error"]
+    checks = summary.get("motion_checks") or []
+    motion_warnings = summary.get("motion_warnings") or []
     out = Path(summary["files"]["summary"]).parent
     names = ", ".join(Path(v).name for k, v in summary["files"].items() if k != "summary")
     lines = [
@@ -384,7 +406,10 @@ def format_report(summary: dict[str, Any]) -> str:
         f"{_fmt(e['dem_J'], '.4g')} J, SGN {_fmt(e['sgn_J'], '.4g')} J, relative error "
         f"{_fmt(None if rel is None else 100 * rel, '.2f')} % (Pearson r "
         f"{_fmt(e['pearson_r'], '.4f')}); DEM with slip and rolling friction "
-        f"{e['dem_all_kinds_J']:.4g} J",
+        f"{e['dem_all_kinds_J']:.4g} J"
+        + (f"; NOT to be trusted alone: {len(motion_warnings)} motion check(s) failed, see "
+           "the WARNING lines" if motion_warnings else ""),
+        *_motion_check_lines(checks),
         f"  positions  MSE_t plateau {_fmt(p['mse_plateau_m2'], '.3g')} m^2, final "
         f"{_fmt(p['mse_final_m2'], '.3g')} m^2",
         f"  speed      DEM {s['dem_s_per_sim_s']:.2f} s vs SGN {s['sgn_s_per_sim_s']:.2f} s per "
@@ -402,7 +427,46 @@ def format_report(summary: dict[str, Any]) -> str:
         f"  total      {summary['wall_time_s']:.1f} s",
     ]
     lines += [f"  warning    {w}" for w in summary["warnings"]]
+    lines += [f"  {line}" for line in motion_warning_lines(motion_warnings)]
     return "\n".join(lines)
+
+
+def _motion_check_lines(checks: list[dict[str, Any]]) -> list[str]:
+    """The "motion checks" block of the report: the DEM's value next to the surrogate's."""
+    if not checks:
+        return []
+    by_name = {c["name"]: c for c in checks}
+    verdict = {True: "ok", False: "OUT OF RANGE", None: "n/a"}
+    lines = ["  motion     checks of the motion, DEM vs SGN (the energy can agree by accident):"]
+    c = by_name.get("jar_speed")
+    if c:
+        off = c.get("relative_difference")
+        lines.append(
+            f"    jar-frame ball speed  DEM {_fmt(c['dem'], '.3f')} m/s, SGN "
+            f"{_fmt(c['sgn'], '.3f')} m/s ({_fmt(None if off is None else 100 * off, '+.0f')} "
+            f"%; limit +-{100 * MOTION_SPEED_TOLERANCE:g} %): {verdict[c['ok']]}")
+    c = by_name.get("snapped")
+    if c:
+        count = c.get("sgn_ball_steps")
+        lines.append(
+            f"    snapped to the wall   DEM 0 (no snap), SGN "
+            f"{_fmt(None if c['sgn'] is None else 100 * c['sgn'], '.2f')} % of ball-steps "
+            f"({_fmt(count, ',d')} of {_fmt(c.get('ball_steps'), ',d')}; limit "
+            f"{100 * MOTION_SNAPPED_FRACTION_MAX:g} %): {verdict[c['ok']]}")
+    c = by_name.get("overlap")
+    if c:
+        lines.append(
+            f"    deepest ball overlap  DEM {_fmt(c['dem'], ',.0f')} um, SGN "
+            f"{_fmt(c['sgn'], ',.0f')} um (limit {1e6 * MOTION_OVERLAP_MAX_M:g} um): "
+            f"{verdict[c['ok']]}")
+    c = by_name.get("mse_plateau")
+    if c:
+        lines.append(
+            f"    MSE_t plateau         DEM chaos floor {c['dem']:.1e} m^2 (same packing, dt vs "
+            f"dt/2), unrelated packings {c['dem_unrelated_packings']:.1e} m^2; SGN "
+            f"{_fmt(c['sgn'], '.2e')} m^2 = {_fmt(c.get('ratio_to_unrelated'), '.2f')}x the "
+            f"unrelated level (limit < {MOTION_MSE_FLOOR_MAX_RATIO:g}x): {verdict[c['ok']]}")
+    return lines
 
 
 __all__ = [

@@ -19,6 +19,12 @@ Pure numpy. The pieces (each usable alone):
   mean dissipation power.
 - :func:`compare` -> :class:`Comparison` (full-length curves for plots and the summary),
   :func:`evaluate` -> JSON-able dict, :func:`ensemble_summary` over runs (SPEC 7).
+- motion checks (is the energy agreement right for the right reason?):
+  :func:`deepest_pair_overlap`, :func:`motion_checks` (the DEM's value next to the surrogate's:
+  jar-frame speed, snapped ball-steps, deepest ball-ball overlap, MSE_t plateau against the
+  DEM's chaos floor), :func:`motion_warnings` (one ``WARNING:`` line per check out of the DEM's
+  range, thresholds in the ``MOTION_*`` constants) and :func:`motion_checks_of` (the checks
+  of a :func:`compare` summary, which stores them as ``motion``).
 
 State classification (SPEC 7, "bed" vs "agitated"): by default (``classify_by="speed"``) a run
 is "agitated" when the mean ball speed in the jar frame, from finite differences of the saved
@@ -58,6 +64,44 @@ module docstring."""
 
 CLASSIFIERS = ("speed", "contacts", "power")
 """The state rules of :func:`classify_state`."""
+
+# --------------------------------------------------------------------------------------------
+# Motion checks: the constants (one place; docs/rollout.md "The demo's honesty lines")
+
+MSE_FLOOR_SAME_PACKING_M2 = 5.6e-4
+"""The DEM's own chaos floor, standard case: MSE_t plateau between two DEM runs of the same
+packing (seed 4) at dt and at dt/2 (median over the second half of 5 s). Source: docs/results.md
+section 3 ("The MSE_t plateau"), ``experiments/mse_baseline.py`` (``runs/mse_chaos.json``)."""
+
+MSE_FLOOR_UNRELATED_M2 = 8.2e-4
+"""MSE_t plateau between two unrelated DEM packings of the standard case, balls matched by index
+(mean of 4 pairs, 7.0-8.8e-4). A surrogate at or above it tracks the DEM no better than an
+independent run: its positions carry no information beyond the jar's size. Source:
+docs/results.md section 3, ``experiments/mse_baseline.py`` (``runs/mse_baseline.json``)."""
+
+DEM_DEEPEST_OVERLAP_M = 62e-6
+"""Deepest ball-ball overlap of the DEM in a 10-s run of the standard case (docs/results.md,
+``experiments/diagnose_contacts.py``), for orientation."""
+
+MOTION_SPEED_TOLERANCE = 0.20
+"""Warn when the surrogate's mean jar-frame ball speed differs from the DEM's by more than this
+fraction of the DEM's."""
+
+MOTION_SNAPPED_FRACTION_MAX = 0.01
+"""Warn when more than this fraction of the surrogate's ball-steps were snapped back to the wall
+(the DEM never needs it)."""
+
+MOTION_OVERLAP_MAX_M = 0.5e-3
+"""Warn when the surrogate's deepest ball-ball overlap exceeds this (m); the DEM's is ~62 um."""
+
+MOTION_MSE_FLOOR_MAX_RATIO = 1.0
+"""Warn when the surrogate's MSE_t plateau is at or above this multiple of
+:data:`MSE_FLOOR_UNRELATED_M2`."""
+
+ENERGY_TRUST_WARNING = (
+    "the energy agreement alone should not be trusted: the surrogate's motion is outside the "
+    "DEM's range (see the warnings above), so a small energy error is right by accident")
+"""The line that follows the motion warnings when any fired."""
 
 _ALIGN_TOL_FRACTION = 0.1  # match times within dt / 10
 _OFFSET_WARN_M = 1e-5  # jar offsets of matched frames differ by more: wrong reference or motion
@@ -158,6 +202,30 @@ def pairs_within(pos: np.ndarray, cutoff: float) -> np.ndarray:
         counts[start:start + chunk.shape[0]] = np.sum((d2 <= cutoff * cutoff) & upper,
                                                       axis=(1, 2))
     return counts
+
+
+def deepest_pair_overlap(pos: np.ndarray, radius: float) -> np.ndarray:
+    """Deepest ball-ball overlap per frame: max over pairs i < j of 2 R - |x_i - x_j| (m).
+
+    Args:
+        pos: (T, N, 3) ball centres (m); radius: ball radius R (m).
+    Returns:
+        (T,) float64; negative where no pair touches (then minus the narrowest gap), NaN for
+        fewer than two balls.
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    if pos.ndim != 3 or pos.shape[-1] != 3:
+        raise MetricsError(f"deepest_pair_overlap needs (T, N, 3) positions, got {pos.shape}")
+    n_balls = pos.shape[1]
+    if n_balls < 2:
+        return np.full(pos.shape[0], np.nan)
+    i, j = np.triu_indices(n_balls, k=1)
+    deepest = np.empty(pos.shape[0])
+    for start in range(0, pos.shape[0], _PAIR_CHUNK):
+        chunk = pos[start:start + _PAIR_CHUNK]
+        distance = np.linalg.norm(chunk[:, i, :] - chunk[:, j, :], axis=-1)
+        deepest[start:start + chunk.shape[0]] = 2.0 * radius - distance.min(axis=1)
+    return deepest
 
 
 def kinetic_energy_fd(t: np.ndarray, pos: np.ndarray, ball_mass: float
@@ -398,7 +466,8 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
             :func:`default_threshold`).
     Returns:
         :class:`Comparison`; its ``summary`` keys: prediction, reference, overlap, position,
-        energy, outside, overflow, snapped, regime, offset_max_abs_diff_m, spec_checks.
+        energy, outside, overflow, snapped, regime, motion (:func:`motion_checks` and
+        :func:`motion_warnings`), offset_max_abs_diff_m, spec_checks.
     """
     if threshold is None:
         threshold = default_threshold(classify_by)
@@ -515,6 +584,22 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
     outside = _count_stats(prediction.n_outside, t_step, "ball_steps")
     overflow = _count_stats(prediction.overflow, t_step, "edges")
     snapped = _count_stats(prediction.n_snapped, t_step, "ball_steps")
+    # ---- motion checks (is the energy agreement right for the right reason?)
+    if f_idx.size and n_balls >= 2:  # deepest over the run, 0 if no pair ever touches
+        overlap_pred = _num(np.maximum(0.0, np.max(deepest_pair_overlap(pred_pos[f_idx],
+                                                                         ball_radius))))
+        overlap_ref = _num(np.maximum(0.0, np.max(deepest_pair_overlap(reference.pos[fr_idx],
+                                                                        ball_radius))))
+    else:
+        overlap_pred = overlap_ref = None
+    checks = motion_checks(
+        jar_speed_dem_m_s=regime["jar_speed_ref_mean_m_s"],
+        jar_speed_sgn_m_s=regime["jar_speed_pred_mean_m_s"],
+        snapped_ball_steps=snapped["total_ball_steps"], ball_steps=n_steps * n_balls,
+        overlap_dem_m=overlap_ref, overlap_sgn_m=overlap_pred,
+        mse_plateau_m2=None if position is None else position["mse_plateau_m2"])
+    motion = {"checks": checks, "warnings": motion_warnings(checks),
+              "overlap_frames": "the compared frames (every save_every steps)"}
     summary = {
         "prediction": {
             "path": prediction.path,
@@ -535,6 +620,7 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
         "overflow": overflow,
         "snapped": snapped,
         "regime": regime,
+        "motion": motion,
         "offset_max_abs_diff_m": offset_diff,
         "spec_checks": {
             "no_balls_outside": outside["total_ball_steps"] == 0,
@@ -565,7 +651,122 @@ def headline(summary: Mapping[str, Any]) -> dict[str, Any]:
         "state_pred": summary["regime"]["state_pred"],
         "state_ref": summary["regime"]["state_ref"],
         "reference_covers_prediction": summary["overlap"]["complete"],
+        "motion_warnings": list((summary.get("motion") or {}).get("warnings") or []),
     }
+
+
+# --------------------------------------------------------------------------------------------
+# Motion checks
+
+
+def _fraction_off(sgn: float | None, dem: float | None) -> float | None:
+    if sgn is None or dem is None or not dem > 0:
+        return None
+    return (sgn - dem) / dem
+
+
+def motion_checks(*, jar_speed_dem_m_s: float | None, jar_speed_sgn_m_s: float | None,
+                  snapped_ball_steps: int | None, ball_steps: int | None,
+                  overlap_dem_m: float | None, overlap_sgn_m: float | None,
+                  mse_plateau_m2: float | None) -> list[dict[str, Any]]:
+    """The motion checks of one run: the DEM's value next to the surrogate's (pure function).
+
+    Args:
+        jar_speed_dem_m_s, jar_speed_sgn_m_s: mean ball speed in the jar frame (m/s) at the
+            same frame times (:func:`jar_frame_speed`).
+        snapped_ball_steps: the surrogate's ball-steps moved by the snap-back; ball_steps:
+            steps x balls of the rollout.
+        overlap_dem_m, overlap_sgn_m: deepest ball-ball overlap over the run (m, >= 0;
+            :func:`deepest_pair_overlap`).
+        mse_plateau_m2: the surrogate's MSE_t plateau (m^2).
+    Returns:
+        one JSON-able dict per check, in a fixed order (jar_speed, snapped, overlap,
+        mse_plateau): ``name``, ``what``, ``unit``, ``dem``, ``sgn`` (in ``unit``),
+        ``limit`` (what is out of range), ``ok`` (True, False, or None when a value is
+        missing), and per check the numbers its warning quotes. None values stay None.
+    """
+    speed_off = _fraction_off(_num(jar_speed_sgn_m_s), _num(jar_speed_dem_m_s))
+    fraction = (None if snapped_ball_steps is None or not ball_steps
+                else int(snapped_ball_steps) / int(ball_steps))
+    overlap_sgn = None if _num(overlap_sgn_m) is None else 1e6 * float(overlap_sgn_m)
+    overlap_dem = None if _num(overlap_dem_m) is None else 1e6 * float(overlap_dem_m)
+    plateau = _num(mse_plateau_m2)
+    ratio = None if plateau is None else plateau / MSE_FLOOR_UNRELATED_M2
+    return [
+        {"name": "jar_speed", "what": "mean ball speed in the jar frame", "unit": "m/s",
+         "dem": _num(jar_speed_dem_m_s), "sgn": _num(jar_speed_sgn_m_s),
+         "relative_difference": speed_off,
+         "limit": f"differs from the DEM's by more than {100 * MOTION_SPEED_TOLERANCE:g} %",
+         "ok": None if speed_off is None else abs(speed_off) <= MOTION_SPEED_TOLERANCE},
+        {"name": "snapped", "what": "fraction of ball-steps snapped back to the wall",
+         "unit": "fraction", "dem": 0.0, "sgn": fraction,
+         "sgn_ball_steps": None if snapped_ball_steps is None else int(snapped_ball_steps),
+         "ball_steps": None if ball_steps is None else int(ball_steps),
+         "limit": f"more than {100 * MOTION_SNAPPED_FRACTION_MAX:g} % (the DEM needs no snap)",
+         "ok": None if fraction is None else fraction <= MOTION_SNAPPED_FRACTION_MAX},
+        {"name": "overlap", "what": "deepest ball-ball overlap over the run", "unit": "um",
+         "dem": overlap_dem, "sgn": overlap_sgn,
+         "limit": f"above {1e6 * MOTION_OVERLAP_MAX_M:g} um (the DEM's is ~"
+                  f"{1e6 * DEM_DEEPEST_OVERLAP_M:g} um)",
+         "ok": None if overlap_sgn is None else overlap_sgn <= 1e6 * MOTION_OVERLAP_MAX_M},
+        {"name": "mse_plateau", "what": "MSE_t plateau against the DEM's chaos floor",
+         "unit": "m^2", "dem": MSE_FLOOR_SAME_PACKING_M2, "sgn": plateau,
+         "dem_unrelated_packings": MSE_FLOOR_UNRELATED_M2, "ratio_to_unrelated": ratio,
+         "limit": f"at or above {MOTION_MSE_FLOOR_MAX_RATIO:g}x the unrelated-packings level "
+                  f"{MSE_FLOOR_UNRELATED_M2:.1e} m^2 (the DEM's own floor: same packing at dt "
+                  f"vs dt/2, {MSE_FLOOR_SAME_PACKING_M2:.1e} m^2; standard case)",
+         "ok": None if ratio is None else ratio < MOTION_MSE_FLOOR_MAX_RATIO},
+    ]
+
+
+def motion_warnings(checks: Sequence[Mapping[str, Any]]) -> list[str]:
+    """One message per failed check of :func:`motion_checks` (``ok`` is False), in order.
+
+    Print each as ``WARNING: <message>``, then :data:`ENERGY_TRUST_WARNING` when any fired
+    (:func:`motion_warning_lines` does both).
+    """
+    messages = []
+    for check in checks:
+        if check.get("ok") is not False:
+            continue
+        name, dem, sgn = check["name"], check["dem"], check["sgn"]
+        if name == "jar_speed":
+            messages.append(
+                f"the surrogate's balls move at {sgn:.3f} m/s in the jar frame, the DEM's at "
+                f"{dem:.3f} m/s ({100 * check['relative_difference']:+.0f} %; limit +-"
+                f"{100 * MOTION_SPEED_TOLERANCE:g} %): the charge is in a different state")
+        elif name == "snapped":
+            messages.append(
+                f"{check['sgn_ball_steps']:,} of {check['ball_steps']:,} ball-steps "
+                f"({100 * sgn:.1f} %) were snapped back to the wall (limit "
+                f"{100 * MOTION_SNAPPED_FRACTION_MAX:g} %; the DEM needs none): the network "
+                "pushes balls into the wall")
+        elif name == "overlap":
+            dem_text = "n/a" if dem is None else f"{dem:.0f} um"
+            messages.append(
+                f"balls of the surrogate overlap by up to {sgn:,.0f} um (DEM {dem_text}; limit "
+                f"{1e6 * MOTION_OVERLAP_MAX_M:g} um): balls sink into each other")
+        elif name == "mse_plateau":
+            messages.append(
+                f"the MSE_t plateau {sgn:.2e} m^2 is {check['ratio_to_unrelated']:.2f}x the "
+                f"level of two unrelated DEM packings ({MSE_FLOOR_UNRELATED_M2:.1e} m^2): the "
+                "positions carry no information beyond the jar's size")
+        else:
+            messages.append(f"{check.get('what', name)} out of range: {check.get('limit')}")
+    return messages
+
+
+def motion_warning_lines(messages: Sequence[str]) -> list[str]:
+    """``WARNING: <message>`` per message, then the energy-trust line; [] when none."""
+    if not messages:
+        return []
+    return [f"WARNING: {m}" for m in messages] + [f"WARNING: {ENERGY_TRUST_WARNING}"]
+
+
+def motion_checks_of(summary: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The motion checks stored in a :func:`compare` / :func:`evaluate` summary ([] for a
+    summary written before they existed)."""
+    return list((summary.get("motion") or {}).get("checks") or [])
 
 
 # --------------------------------------------------------------------------------------------
@@ -713,7 +914,15 @@ __all__ = [
     "AGITATED_SPEED_M_S",
     "BED_PAIRS_PER_BALL",
     "CLASSIFIERS",
+    "DEM_DEEPEST_OVERLAP_M",
+    "ENERGY_TRUST_WARNING",
     "MIN_ENSEMBLE_RUNS",
+    "MOTION_MSE_FLOOR_MAX_RATIO",
+    "MOTION_OVERLAP_MAX_M",
+    "MOTION_SNAPPED_FRACTION_MAX",
+    "MOTION_SPEED_TOLERANCE",
+    "MSE_FLOOR_SAME_PACKING_M2",
+    "MSE_FLOOR_UNRELATED_M2",
     "Alignment",
     "Comparison",
     "CoverageWarning",
@@ -722,12 +931,17 @@ __all__ = [
     "align",
     "classify_state",
     "compare",
+    "deepest_pair_overlap",
     "default_threshold",
     "ensemble_summary",
     "evaluate",
     "headline",
     "jar_frame_speed",
     "kinetic_energy_fd",
+    "motion_checks",
+    "motion_checks_of",
+    "motion_warning_lines",
+    "motion_warnings",
     "mse_plateau",
     "pairs_within",
     "pearson_r",

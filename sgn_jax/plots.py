@@ -9,7 +9,8 @@ and returns the path.
   error in a second panel (Fig. 8); the prediction may run on past the reference.
 - :func:`plot_ensemble`: per-run dissipation power, predicted vs DEM, and power vs contact
   count (the two SPEC 7 states).
-- :func:`plot_trajectory_xz`: a top view (x-z) of the balls at one frame, with the jar outline.
+- :func:`plot_trajectory_xz`: a top view (x-z) of the balls at one frame, with the jar outline
+  and a legend (SGN balls, DEM balls, the line joining the same ball of both, the jar).
 - :func:`plot_run`: all single-run figures from a ``sgn_jax.metrics.Comparison``.
 """
 
@@ -224,7 +225,12 @@ def _stadium_outline(jar: Any, offset_xz: tuple[float, float]) -> tuple[np.ndarr
 def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offset: Any = None,
                        jar: Any = None, ball_radius: float = 0.005,
                        title: str | None = None) -> Path:
-    """Top view (x horizontal, z vertical) of the balls at one frame.
+    """Top view (x horizontal, z vertical) of the balls at one frame, with a legend.
+
+    Drawn: the surrogate's balls (filled blue discs); with ``ref_pos``, the DEM's balls at the
+    same time (open black circles) and a grey line from each SGN ball to the same ball (by
+    index) of the DEM, whose length is that ball's position error; for an Emax jar its
+    stadium cross-section (and post) at the jar offset. The legend under the axes says so.
 
     Args:
         pos: (N, 3) predicted positions (m); ref_pos: (N, 3) DEM positions at the same time,
@@ -232,13 +238,18 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
         offset: (3,) jar offset (m) at that time; jar: a ``sgn_jax.config.JarConfig`` with
             kind "emax" to draw the cavity outline (and post); ball_radius: m.
     """
+    from matplotlib.lines import Line2D
+
     pos = np.asarray(pos, dtype=np.float64)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"pos must be (N, 3) positions of one frame, got {pos.shape}")
     offset_xz = (0.0, 0.0) if offset is None else (float(offset[0]), float(offset[2]))
-    fig = _new_figure(6.4, 4.4, layout="constrained")
+    fig = _new_figure(6.4, 4.6, layout="constrained")
     ax = fig.add_subplot()
-    if jar is not None and getattr(jar, "kind", None) == "emax":
+    handles = [Line2D([], [], ls="none", marker="o", ms=9, mfc=_PRED_COLOR, mec=_PRED_COLOR,
+                      alpha=0.6, label=f"SGN ball ({len(pos)})")]
+    emax = jar is not None and getattr(jar, "kind", None) == "emax"
+    if emax:
         x, z = _stadium_outline(jar, offset_xz)
         ax.plot(x, z, color="dimgrey", lw=1.5)
         if float(jar.post_radius) > 0:
@@ -251,11 +262,19 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
         for p, r in zip(pos, ref_pos, strict=True):
             ax.add_patch(Circle((r[0], r[2]), ball_radius, fill=False, ec=_REF_COLOR, lw=0.8))
             ax.plot([p[0], r[0]], [p[2], r[2]], color="grey", lw=0.5)
+        handles += [
+            Line2D([], [], ls="none", marker="o", ms=9, mfc="none", mec=_REF_COLOR,
+                   label="DEM ball, same time"),
+            Line2D([], [], color="grey", lw=0.8,
+                   label="same ball, SGN to DEM (length: its position error)")]
+    if emax:
+        handles.append(Line2D([], [], color="dimgrey", lw=1.5,
+                              label="jar cross-section (at its offset)"))
     for p in pos:
         ax.add_patch(Circle((p[0], p[2]), ball_radius, color=_PRED_COLOR, alpha=0.6))
     points = pos if ref_pos is None else np.concatenate([pos, ref_pos])
     extent = ball_radius * 1.5
-    if jar is not None and getattr(jar, "kind", None) == "emax":
+    if emax:
         extent = max(extent, float(jar.radius) * 1.1)
         x_span = 0.5 * float(jar.straight_length) + 1.1 * float(jar.radius)
         ax.set_xlim(offset_xz[0] - x_span, offset_xz[0] + x_span)
@@ -264,11 +283,16 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
         ax.set_xlim(points[:, 0].min() - extent, points[:, 0].max() + extent)
         ax.set_ylim(points[:, 2].min() - extent, points[:, 2].max() + extent)
     ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("z (m)")
+    ax.set_xlabel("x (m), lab frame")
+    ax.set_ylabel("z (m), lab frame")
     legend = "filled: SGN" + ("; open: DEM" if ref_pos is not None else "")
     ax.set_title(title or f"Top view ({legend})", fontsize=10)
     ax.grid(True, alpha=0.3)
+    caption = "balls projected along the vertical (y) onto the x-z plane"
+    if ref_pos is not None:
+        caption += "; SGN and DEM balls matched by index"
+    fig.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=8, frameon=False,
+               title=caption, title_fontsize=8)
     return _save(fig, path)
 
 

@@ -155,6 +155,59 @@ def test_demo_prints_the_headline_numbers(demo):
     assert (f"SGN {regime['jar_speed_sgn_m_s']:.3f} m/s ({regime['state_sgn']})") in text
 
 
+def test_demo_reports_motion_checks(demo):
+    """Beside the energy: the motion checks (DEM next to SGN) in the report and summary.json."""
+    text, summary = demo["stdout"], demo["summary"]
+    checks = {c["name"]: c for c in summary["motion_checks"]}
+    assert list(checks) == ["jar_speed", "snapped", "overlap", "mse_plateau"]
+    for check in checks.values():
+        assert {"dem", "sgn", "unit", "limit", "ok"} <= set(check)
+    regime = summary["regime"]
+    assert checks["jar_speed"]["dem"] == regime["jar_speed_dem_m_s"]
+    assert checks["jar_speed"]["sgn"] == regime["jar_speed_sgn_m_s"]
+    assert checks["snapped"]["sgn_ball_steps"] == summary["surrogate"]["snapped_ball_steps"]
+    assert checks["snapped"]["ball_steps"] == STEPS * 24
+    assert 0 <= checks["overlap"]["dem"] < 500  # um; the DEM's deepest is ~62 um
+    assert checks["mse_plateau"]["sgn"] == summary["position"]["mse_plateau_m2"]
+    assert "motion     checks of the motion, DEM vs SGN" in text
+    assert f"jar-frame ball speed  DEM {regime['jar_speed_dem_m_s']:.3f} m/s, SGN " \
+           f"{regime['jar_speed_sgn_m_s']:.3f} m/s" in text
+    assert "snapped to the wall   DEM 0 (no snap), SGN" in text
+    assert f"deepest ball overlap  DEM {checks['overlap']['dem']:,.0f} um" in text
+    assert "MSE_t plateau         DEM chaos floor 5.6e-04 m^2 (same packing, dt vs dt/2), " \
+           "unrelated packings 8.2e-04 m^2" in text
+    # one WARNING line per failed check, then the energy-trust line; none if all passed
+    failed = [c for c in checks.values() if c["ok"] is False]
+    assert len(summary["motion_warnings"]) == len(failed)
+    warning_lines = [line for line in text.splitlines() if "WARNING:" in line]
+    assert len(warning_lines) == (len(failed) + 1 if failed else 0)
+    for message in summary["motion_warnings"]:
+        assert f"WARNING: {message}" in text
+
+
+def test_report_warns_when_the_motion_is_off(demo):
+    """The user's case: energy within 1 % while the motion is wrong: the report says so."""
+    from sgn_jax.demo import format_report
+    from sgn_jax.metrics import ENERGY_TRUST_WARNING, motion_checks, motion_warnings
+
+    checks = motion_checks(jar_speed_dem_m_s=0.27, jar_speed_sgn_m_s=0.50,
+                           snapped_ball_steps=118_702, ball_steps=240_000, overlap_dem_m=62e-6,
+                           overlap_sgn_m=9.99e-3, mse_plateau_m2=1.25e-3)
+    summary = dict(demo["summary"], motion_checks=checks, motion_warnings=motion_warnings(checks))
+    summary["energy"] = dict(summary["energy"], relative_error=0.0087)
+    text = format_report(summary)
+    assert "relative error 0.87 %" in text
+    assert "NOT to be trusted alone: 4 motion check(s) failed" in text
+    lines = text.splitlines()
+    warnings = [line.strip() for line in lines if "WARNING:" in line]
+    assert len(warnings) == 5 and warnings[-1] == f"WARNING: {ENERGY_TRUST_WARNING}"
+    assert lines[-1].strip() == warnings[-1]  # the last thing printed
+    assert "SGN 0.500 m/s (+85 %; limit +-20 %): OUT OF RANGE" in text
+    assert "SGN 49.46 % of ball-steps (118,702 of 240,000; limit 1 %): OUT OF RANGE" in text
+    assert "DEM 62 um, SGN 9,990 um (limit 500 um): OUT OF RANGE" in text
+    assert "SGN 1.25e-03 m^2 = 1.52x the unrelated level (limit < 1x): OUT OF RANGE" in text
+
+
 def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, capsys):
     import sgn_jax.demo as demo_module
     from sgn_jax.cli import main

@@ -205,6 +205,112 @@ def test_jar_frame_speed_known_answer():
     assert jar_frame_speed(t[:1], pos[:1], offset[:1]).shape == (0,)
 
 
+def test_deepest_pair_overlap_known_answer():
+    from sgn_jax.metrics import deepest_pair_overlap
+
+    pos = np.zeros((3, 3, 3))
+    pos[:, 2] = [0.1, 0.0, 0.0]  # a third ball far away
+    pos[0, 1] = [0.0095, 0.0, 0.0]  # 9.5 mm apart: 0.5 mm overlap for R = 5 mm
+    pos[1, 1] = [0.0, 0.012, 0.0]  # 12 mm apart: a 2 mm gap
+    pos[2, 1] = [0.0, 0.0, 0.0]  # coincident: overlap 2 R
+    np.testing.assert_allclose(deepest_pair_overlap(pos, RADIUS), [5e-4, -2e-3, 1e-2],
+                               atol=1e-15)
+    # the deepest pair wins, whichever pair it is
+    pos[0, 2] = [0.0095 + 0.009, 0.0, 0.0]  # 1 mm overlap with ball 1
+    assert deepest_pair_overlap(pos[:1], RADIUS)[0] == pytest.approx(1e-3, abs=1e-15)
+    assert np.isnan(deepest_pair_overlap(pos[:, :1], RADIUS)).all()
+    with pytest.raises(MetricsError, match=r"\(T, N, 3\)"):
+        deepest_pair_overlap(pos[0], RADIUS)
+
+
+GOOD_MOTION = {"jar_speed_dem_m_s": 0.27, "jar_speed_sgn_m_s": 0.30, "snapped_ball_steps": 10,
+               "ball_steps": 240_000, "overlap_dem_m": 62e-6, "overlap_sgn_m": 80e-6,
+               "mse_plateau_m2": 6e-4}
+
+
+def test_motion_checks_pass_within_the_dem_range():
+    from sgn_jax.metrics import motion_checks, motion_warning_lines, motion_warnings
+
+    checks = motion_checks(**GOOD_MOTION)
+    assert [c["name"] for c in checks] == ["jar_speed", "snapped", "overlap", "mse_plateau"]
+    assert all(c["ok"] is True for c in checks)
+    assert motion_warnings(checks) == [] and motion_warning_lines([]) == []
+    by_name = {c["name"]: c for c in checks}
+    assert by_name["jar_speed"]["dem"] == 0.27 and by_name["jar_speed"]["sgn"] == 0.30
+    assert by_name["overlap"]["dem"] == pytest.approx(62.0) and by_name["overlap"]["unit"] == "um"
+    assert by_name["mse_plateau"]["dem"] == metrics.MSE_FLOOR_SAME_PACKING_M2
+    assert by_name["mse_plateau"]["ratio_to_unrelated"] == pytest.approx(6e-4 / 8.2e-4)
+    json.dumps(checks, allow_nan=False)
+    # exactly at the limits is still in range (the MSE limit is "at or above": out)
+    edge = dict(GOOD_MOTION, jar_speed_sgn_m_s=0.27 * 1.2, snapped_ball_steps=2_400,
+                overlap_sgn_m=0.5e-3)
+    assert motion_warnings(motion_checks(**edge)) == []
+    # missing values: not judged, no warning
+    missing = motion_checks(jar_speed_dem_m_s=None, jar_speed_sgn_m_s=0.5,
+                            snapped_ball_steps=None, ball_steps=None, overlap_dem_m=None,
+                            overlap_sgn_m=float("nan"), mse_plateau_m2=None)
+    assert [c["ok"] for c in missing] == [None] * 4 and motion_warnings(missing) == []
+
+
+def test_motion_warnings_fire_one_per_problem():
+    """The user's report: 0.50 vs 0.27 m/s, 118,702 of 240,000 ball-steps snapped, balls
+    sinking into each other, MSE plateau 1.25e-3 m^2, with the energy within 1 %."""
+    from sgn_jax.metrics import (
+        ENERGY_TRUST_WARNING,
+        motion_checks,
+        motion_warning_lines,
+        motion_warnings,
+    )
+
+    bad = motion_checks(jar_speed_dem_m_s=0.27, jar_speed_sgn_m_s=0.50,
+                        snapped_ball_steps=118_702, ball_steps=240_000, overlap_dem_m=62e-6,
+                        overlap_sgn_m=9.99e-3, mse_plateau_m2=1.25e-3)
+    assert [c["ok"] for c in bad] == [False] * 4
+    messages = motion_warnings(bad)
+    assert len(messages) == 4
+    assert "0.500 m/s" in messages[0] and "0.270 m/s" in messages[0] and "+85 %" in messages[0]
+    assert "118,702 of 240,000 ball-steps (49.5 %)" in messages[1]
+    assert "9,990 um" in messages[2] and "62 um" in messages[2]
+    assert "1.52x" in messages[3] and "no information beyond the jar's size" in messages[3]
+    lines = motion_warning_lines(messages)
+    assert len(lines) == 5 and all(line.startswith("WARNING: ") for line in lines)
+    assert lines[-1] == f"WARNING: {ENERGY_TRUST_WARNING}"
+    assert "energy agreement alone should not be trusted" in lines[-1]
+    # each check fires alone; too slow counts like too fast; MSE at the level itself fires
+    for change, name in ((dict(jar_speed_sgn_m_s=0.20), "jar_speed"),
+                         (dict(snapped_ball_steps=2_401), "snapped"),
+                         (dict(overlap_sgn_m=0.51e-3), "overlap"),
+                         (dict(mse_plateau_m2=metrics.MSE_FLOOR_UNRELATED_M2), "mse_plateau")):
+        checks = motion_checks(**dict(GOOD_MOTION, **change))
+        assert [c["name"] for c in checks if c["ok"] is False] == [name]
+        assert len(motion_warnings(checks)) == 1
+
+
+def test_compare_reports_motion_checks(tmp_path, reference):
+    pred = make_prediction(tmp_path, reference)
+    motion = compare(pred, reference).summary["motion"]
+    assert [c["ok"] for c in motion["checks"]] == [True] * 4 and motion["warnings"] == []
+    by_name = {c["name"]: c for c in motion["checks"]}
+    # no pair of the synthetic charge touches (closest gap 1 mm): deepest overlap 0 for both
+    assert by_name["overlap"]["dem"] == 0.0 and by_name["overlap"]["sgn"] == 0.0
+    assert by_name["jar_speed"]["sgn"] == pytest.approx(by_name["jar_speed"]["dem"], rel=1e-12)
+    assert by_name["snapped"]["ball_steps"] == 200 * N_BALLS
+
+    # balls 0 and 1 of the surrogate on top of each other, every ball snapped every step
+    arrays, _ = prediction_from_trajectory(reference, 50, 200, save_every=10)
+    pos = arrays["pos"].copy()
+    pos[:, 1] = pos[:, 0] + np.array([0.001, 0.0, 0.0])  # 1 mm apart: 9 mm overlap
+    bad = make_prediction(tmp_path, reference, name="bad.npz", pos=pos,
+                          n_snapped=np.full(200, N_BALLS))
+    summary = compare(bad, reference).summary
+    failed = [c["name"] for c in summary["motion"]["checks"] if c["ok"] is False]
+    assert failed == ["snapped", "overlap"]
+    assert {c["name"]: c for c in summary["motion"]["checks"]}["overlap"]["sgn"] == \
+        pytest.approx(9000.0)
+    assert metrics.headline(summary)["motion_warnings"] == summary["motion"]["warnings"]
+    assert len(summary["motion"]["warnings"]) == 2
+
+
 def test_speed_rule_reads_positions_not_energy(tmp_path, reference):
     """The default state rule gives the same state for predictions that differ in energy only,
     and the same jar-frame speed for the prediction and its perfect reference."""
@@ -382,6 +488,29 @@ def test_cli_evaluate_end_to_end(tmp_path, reference, capsys):
     for name in ("position_mse", "cumulative_energy", "trajectory_xz"):
         png = out / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_cli_evaluate_prints_motion_warnings(tmp_path, reference, capsys):
+    make_prediction(tmp_path, reference, name="good.npz")
+    code = cli.main(["evaluate", "--prediction", str(tmp_path / "good.npz"), "--reference",
+                     str(reference.path), "--out", str(tmp_path / "good")])
+    captured = capsys.readouterr()
+    assert code == 0 and "WARNING" not in captured.err
+    assert json.loads(captured.out)["motion_warnings"] == []
+
+    make_prediction(tmp_path, reference, name="snapped.npz", n_snapped=np.full(200, N_BALLS))
+    code = cli.main(["evaluate", "--prediction", str(tmp_path / "snapped.npz"), "--reference",
+                     str(reference.path), "--out", str(tmp_path / "snapped")])
+    captured = capsys.readouterr()
+    assert code == 0
+    lines = [line for line in captured.err.splitlines() if "WARNING:" in line]
+    assert len(lines) == 2
+    assert "800 of 800 ball-steps (100.0 %) were snapped" in lines[0]
+    assert "energy agreement alone should not be trusted" in lines[1]
+    assert len(captured.out.strip().splitlines()) == 1  # stdout stays one JSON line
+    assert len(json.loads(captured.out)["motion_warnings"]) == 1
+    saved = json.loads((tmp_path / "snapped" / "metrics.json").read_text())
+    assert saved["motion"]["warnings"] == json.loads(captured.out)["motion_warnings"]
 
 
 def test_cli_evaluate_ensemble_and_errors(tmp_path, reference, capsys):
