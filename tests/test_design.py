@@ -1,0 +1,138 @@
+"""Design studies (sgn_jax.design, sgn_jax.api): named parameters, the ensemble-mean power and
+its gradient estimator, errors, and `sgn-jax sensitivity` end to end (shipped model)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import sgn_jax.api as sj
+from sgn_jax.cli import main
+from sgn_jax.config import replace_section, save_config
+from sgn_jax.design import DesignError, summarize_estimate
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    # The standard case with a short settling, so that a packing costs seconds.
+    return replace_section(sj.load_config("emax_300rpm"), "dem", settle_time=0.02)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return sj.load_surrogate()
+
+
+@pytest.fixture(scope="module")
+def packings(cfg):
+    return sj.make_packings(cfg, seeds=[0, 1])
+
+
+def test_packings_hold_one_window_per_seed(cfg, packings):
+    w = cfg.graph.window
+    assert len(packings) == 2
+    assert packings.windows.positions.shape == (2, w + 1, cfg.balls.count, 3)
+    assert packings.t0 == pytest.approx(w * cfg.dem.dt)
+
+
+def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packings):
+    """With no burn-in and one gradient horizon covering the whole measurement interval, the
+    truncated-horizon estimator differentiates exactly the power that ``powers`` computes: it
+    must agree with the ensemble central difference of that power. The horizon is 5 steps:
+    over 20 steps the surrogate's power is already not smooth in rpm (edges appear and vanish;
+    central differences with h = 5, 0.5, 0.05 rpm give 1.3e-4, 8.2e-5, 5.2e-5 W/rpm), which is
+    why the estimator averages many short horizons (docs/design.md)."""
+    n = 5
+    study = sj.design_study(model, cfg, ["motion.rpm", "motion.amplitude"], packings,
+                            duration=n * cfg.dem.dt, burn_in=0.0, horizon=n, n_segments=1)
+    power, grad = jax.value_and_grad(study.power)(study.theta0)
+    assert np.isfinite(float(power)) and np.all(np.isfinite(np.asarray(grad)))
+    np.testing.assert_allclose(float(power), study.powers().mean(), rtol=1e-9)
+    for i, h in enumerate((0.5, 2e-5)):
+        plus, minus = study.theta0.copy(), study.theta0.copy()
+        plus[i] += h
+        minus[i] -= h
+        fd = (study.powers(plus).mean() - study.powers(minus).mean()) / (2 * h)
+        assert abs(float(grad[i])) > 0
+        assert float(grad[i]) == pytest.approx(fd, rel=0.05), (study.names[i], fd, grad[i])
+
+
+def test_estimate_matches_value_and_grad_and_is_finite(cfg, model, packings):
+    study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.03, burn_in=0.01,
+                            horizon=10, n_segments=2)
+    power, grad = jax.value_and_grad(study.power)(study.theta0)
+    est = study.estimate()
+    assert est["power_W"] == pytest.approx(float(power), rel=1e-9)
+    assert est["gradient"]["motion.rpm"] == pytest.approx(float(grad[0]), rel=1e-6)
+    assert np.isfinite(est["power_se_W"]) and np.isfinite(est["gradient_se"]["motion.rpm"])
+
+
+def test_a_non_finite_gradient_is_an_error_naming_packing_segment_and_parameter():
+    from sgn_jax.design import PowerEstimate
+
+    grad = np.zeros((3, 2, 1))
+    grad[1, 1, 0] = np.nan
+    est = PowerEstimate(power_W=np.ones(3), gradient=grad, horizon_energy_J=np.ones((3, 2)))
+    with pytest.raises(DesignError, match="motion.rpm is not finite at packing 1, segment 1"):
+        summarize_estimate(est, ["motion.rpm"])
+    est = PowerEstimate(power_W=np.array([1.0, np.inf, 1.0]), gradient=np.zeros((3, 2, 1)),
+                        horizon_energy_J=np.ones((3, 2)))
+    with pytest.raises(DesignError, match="packing 1 gave a non-finite power"):
+        summarize_estimate(est, ["motion.rpm"])
+
+
+@pytest.mark.parametrize("names,kwargs,match", [
+    (["motion.speed"], {}, "unknown design parameter"),
+    (["jar.post_radius"], {}, "needs a jar with a post"),
+    (["motion.x_sin[0]"], {}, "needs a harmonic motion"),
+    (["motion.rpm", "motion.rpm"], {}, "repeat"),
+    (["motion.rpm"], {"duration": 0.01, "burn_in": 0.01}, "duration > burn_in"),
+    (["motion.rpm"], {"duration": 0.03005, "burn_in": 0.01}, "whole number"),
+    (["motion.rpm"], {"duration": 0.03, "burn_in": 0.01, "n_segments": 3}, "equal parts"),
+])
+def test_bad_design_input_is_refused_before_work(cfg, model, packings, names, kwargs, match):
+    kwargs = {"duration": 0.03, "burn_in": 0.01, "horizon": 10, "n_segments": 2, **kwargs}
+    with pytest.raises(DesignError, match=match):
+        sj.design_study(model, cfg, names, packings, **kwargs)
+
+
+def test_design_config_round_trips_the_parameters(cfg):
+    names = ["motion.rpm", "motion.amplitude", "jar.straight_length"]
+    theta = [350.0, 0.015, 0.03]
+    moved = sj.design_config(cfg, names, theta)
+    np.testing.assert_allclose(sj.parameter_values_of(moved, names), theta)
+    m1 = sj.load_config("motion1")
+    names = ["motion.base_frequency_hz", "motion.x_sin[0]"]
+    theta = [5.5, 0.004]
+    np.testing.assert_allclose(sj.parameter_values_of(sj.design_config(m1, names, theta), names),
+                               theta)
+
+
+def test_cli_sensitivity_prints_json_and_writes_plot(cfg, tmp_path):
+    config_path = tmp_path / "case.toml"
+    save_config(cfg, config_path)
+    out = tmp_path / "sens"
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(["sensitivity", "--config", str(config_path), "--param", "motion.rpm",
+                     "--duration", "0.03", "--burn-in", "0.01", "--packings", "2",
+                     "--horizon", "10", "--segments", "2", "--out", str(out), "--no-progress"])
+    assert code == 0
+    line = json.loads(stdout.getvalue().strip().splitlines()[-1])
+    assert set(line) >= {"power_W", "power_se_W", "gradient"}
+    assert np.isfinite(line["power_W"]) and np.isfinite(line["gradient"]["motion.rpm"])
+    assert (out / "sensitivity.png").stat().st_size > 0
+    saved = json.loads((out / "sensitivity.json").read_text())
+    assert saved["gradient"] == line["gradient"]
+    assert len(saved["curves"]["motion.rpm"]["power_W"]) == 3
+
+
+def test_cli_sensitivity_refuses_bad_input(tmp_path, capsys):
+    assert main(["sensitivity", "--config", "emax_300rpm", "--param", "motion.rpm",
+                 "--packings", "1", "--out", str(tmp_path)]) == 2
+    assert "packings must be >= 2" in capsys.readouterr().err
