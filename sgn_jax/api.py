@@ -60,6 +60,7 @@ from sgn_jax.geometry import jar_params_from_config
 from sgn_jax.graph import Window, graph_spec_from_config
 from sgn_jax.motion import Motion, motion_from_config, offset
 from sgn_jax.rollout import initial_window, model_predictor
+from sgn_jax.validation import warn_outside_envelope
 
 # A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
 # SGN_JAX_NO_CACHE=1).
@@ -194,6 +195,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         if not math.isclose(float(a), float(b), rel_tol=1e-12):
             raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
                               f"design config has {b}")
+    warn_outside_envelope(cfg, model_cfg, surrogate.meta)
     if packings.windows.positions.shape[-2] != cfg.balls.count:
         raise DesignError("the packings have a different number of balls from the config")
     if not duration > burn_in >= 0:

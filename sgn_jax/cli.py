@@ -10,11 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from sgn_jax import __version__
 from sgn_jax.cache import enable_compilation_cache
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.validation import check_duration, warn_outside_envelope
 
 
 class UserError(SGNJaxError):
@@ -239,11 +241,14 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
 
     if args.save_every is not None and args.save_every < 1:
         raise UserError(f"--save-every must be >= 1, got {args.save_every}")
+    check_duration(args.duration, "--duration")
     try:
         trained = load_trained_model(args.checkpoint, which=args.which)
     except CheckpointError as exc:
         raise UserError(str(exc)) from exc
     override = resolve_config(args.config) if args.config else None
+    if override is not None:
+        warn_outside_envelope(override, trained.config, trained.meta)
     traj = load_trajectory(args.init)
     start = trained.config.graph.window if args.start_index is None else args.start_index
     try:
@@ -410,6 +415,13 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
     from sgn_jax.io_utils import write_json
     from sgn_jax.plots import plot_sensitivity
 
+    check_duration(args.duration, "--duration")
+    if not (args.burn_in >= 0 and args.burn_in < args.duration):
+        raise UserError(f"--burn-in = {args.burn_in} s must be in [0, --duration = "
+                        f"{args.duration} s)")
+    if args.packings < 2:
+        raise UserError(f"--packings = {args.packings}: packings must be >= 2 (a standard "
+                        "error needs two)")
     cfg = api.load_config(args.config)
     total = args.packings + 1 + (0 if args.no_curve else 2 * len(args.param))
     separation = {"config": None, "on": True, "off": False}[args.separation]
@@ -451,6 +463,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warnings_as_lines(command: str) -> None:
+    """Envelope and data warnings as one ``sgn-jax CMD: warning: ...`` line each on stderr
+    (not Python's file:line form), every time they occur."""
+    from sgn_jax.errors import EnvelopeWarning
+
+    def show(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
+        print(f"sgn-jax {command}: warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = show
+    warnings.simplefilter("always", EnvelopeWarning)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -458,6 +482,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     enable_compilation_cache()  # sgn_jax.cache: a second run reuses compiled programs
+    _show_warnings_as_lines(args.command)
     user_errors = (SGNJaxError, FileNotFoundError)
     try:
         return int(args.handler(args) or 0)

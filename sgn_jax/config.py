@@ -673,5 +673,8 @@ def resolve_config(name_or_path: str | Path) -> Config:
     text = str(name_or_path)
     path = Path(text)
     if path.suffix == ".toml" or "/" in text or path.exists():
+        if not path.is_file():
+            raise ConfigError(f"config file {text!r} does not exist; pass a TOML file or the "
+                              "name of a built-in config (e.g. emax_300rpm)")
         return load_config(path)
     return load_config(builtin_config_path(text))

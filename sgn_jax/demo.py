@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from sgn_jax.config import resolve_config
+from sgn_jax.dem.driver import run_dem
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.metrics import (
     MOTION_MSE_FLOOR_MAX_RATIO,
@@ -55,6 +57,7 @@ from sgn_jax.metrics import (
     MOTION_SPEED_TOLERANCE,
     motion_warning_lines,
 )
+from sgn_jax.validation import check_dem_config, warn_outside_envelope
 
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
@@ -108,20 +111,6 @@ def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
         "(its checkpoints/best is used) or a checkpoint directory")
 
 
-def resolve_config(name_or_path: str | Path) -> Any:
-    """A built-in config by name (``emax_300rpm``) or a TOML file by path."""
-    from sgn_jax.config import builtin_config_path, load_config
-
-    text = str(name_or_path)
-    path = Path(text)
-    if path.suffix == ".toml" or path.exists() or "/" in text:
-        if not path.is_file():
-            raise DemoError(f"config file {text!r} does not exist; pass a TOML file or the "
-                            "name of a built-in config (e.g. emax_300rpm)")
-        return load_config(path)
-    return load_config(builtin_config_path(text))
-
-
 def _check_compatible(case_cfg: Any, model_cfg: Any, checkpoint: Path) -> None:
     """The DEM of ``case_cfg`` must produce what the model was trained on (balls, dt)."""
     for section, name in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
@@ -173,7 +162,6 @@ def run_demo(
     """
     from sgn_jax.checkpoint import CheckpointError, load_trained_model
     from sgn_jax.dataset import load_trajectory
-    from sgn_jax.dem.driver import run_dem
     from sgn_jax.io_utils import write_json
     from sgn_jax.metrics import MetricsWarning, compare, position_mse
     from sgn_jax.plots import plot_run
@@ -182,8 +170,8 @@ def run_demo(
 
     t_start = time.perf_counter()
     out = Path(out_dir)
-    if not duration > 0:
-        raise DemoError(f"--duration must be > 0 s, got {duration}")
+    if not (math.isfinite(duration) and duration > 0):
+        raise DemoError(f"--duration must be a finite number of seconds > 0, got {duration}")
     if animation_frames < 2:
         raise DemoError(f"animation_frames must be >= 2, got {animation_frames}")
     case_cfg = resolve_config(config)
@@ -193,6 +181,8 @@ def run_demo(
     except CheckpointError as exc:
         raise DemoError(str(exc)) from exc
     _check_compatible(case_cfg, trained.config, ckpt)
+    check_dem_config(case_cfg)
+    warn_outside_envelope(case_cfg, trained.config, trained.meta)
 
     dt = float(case_cfg.dem.dt)
     window = int(trained.config.graph.window)
@@ -476,7 +466,6 @@ __all__ = [
     "format_report",
     "has_checkpoint",
     "resolve_checkpoint",
-    "resolve_config",
     "run_demo",
     "shipped_model_dir",
 ]

@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 import sgn_jax  # noqa: F401  (x64)
-from sgn_jax.config import builtin_config_path, config_to_dict, load_config, replace_section
+from sgn_jax.config import (
+    ConfigError,
+    builtin_config_path,
+    config_to_dict,
+    load_config,
+    replace_section,
+)
 
 WINDOW = 7
 STEPS = 100  # 0.01 s of rollout
@@ -243,7 +249,7 @@ def test_bad_inputs_are_refused_before_the_dem(tiny, tmp_path):
         run_demo(tmp_path / "b", checkpoint=tiny["run"], config=other, duration=0.01)
     with pytest.raises(DemoError, match="does not exist"):
         run_demo(tmp_path / "c", checkpoint=tmp_path / "nothing", config=tiny["case"])
-    with pytest.raises(DemoError, match="does not exist"):
+    with pytest.raises(ConfigError, match="does not exist"):
         run_demo(tmp_path / "d", checkpoint=tiny["run"], config=tmp_path / "missing.toml")
     assert not any((tmp_path / name).exists() for name in "abcd")
 
