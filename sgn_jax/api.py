@@ -58,7 +58,7 @@ from sgn_jax.design import (
 )
 from sgn_jax.geometry import jar_params_from_config
 from sgn_jax.graph import Window, graph_spec_from_config
-from sgn_jax.motion import Motion, motion_from_config, offset
+from sgn_jax.motion import Motion, frequency_hz, motion_from_config, offset
 from sgn_jax.rollout import initial_window, model_predictor
 from sgn_jax.validation import warn_outside_envelope
 
@@ -113,12 +113,13 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
         raise DesignError(f"seeds must be >= 0, got {list(seeds)}")
     w = int(cfg.graph.window if window is None else window)
     dt = float(cfg.dem.dt)
+    freq = float(frequency_hz(motion_from_config(cfg.motion)))
     windows = []
     for i, seed in enumerate(seeds):
         run = run_dem(cfg, duration=w * dt, seed=seed, progress=progress)
         traj = SimpleNamespace(pos=run.arrays["pos"], offset=run.arrays["offset"],
                                offset_vel=run.arrays["offset_vel"])
-        windows.append(initial_window(traj, w, w))
+        windows.append(initial_window(traj, w, w, freq=freq))
         log(f"packing {i + 1}/{len(seeds)} (seed {seed})")
     stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *windows)
     return Packings(windows=stacked, t0=w * dt, seeds=seeds, config=cfg)
@@ -372,7 +373,7 @@ class DEMEnsemble:
 
     The settled packing depends on the jar, the balls and the seed, not on the motion (the jar
     rests during settling); a motion whose start offset differs is given the packing translated
-    with the jar. ``powers(cfg, seeds, duration, burn_in)`` returns the per-seed mean power of
+    with the jar. ``power(cfg, seed, duration, burn_in)`` returns one seed's mean power of
     normal + tangential damping (ball-ball + ball-wall; the surrogate's target) over
     ``(burn_in, duration]`` seconds of motion, in W. One process; run one per core for speed.
     """

@@ -38,6 +38,7 @@ def test_packings_hold_one_window_per_seed(cfg, packings):
     assert len(packings) == 2
     assert packings.windows.positions.shape == (2, w + 1, cfg.balls.count, 3)
     assert packings.t0 == pytest.approx(w * cfg.dem.dt)
+    np.testing.assert_allclose(packings.windows.frequency_hz, 300.0 / 60.0)  # rpm / 60
 
 
 def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packings):
