@@ -75,8 +75,19 @@ def test_the_api_doc_has_an_example_per_public_entry_point():
         assert f"`{name}`" in headings, f"docs/api.md has no example section for {name}"
 
 
-@pytest.mark.parametrize("code", [c for _, c in API_BLOCKS],
-                         ids=[_slug(h) for h, _ in API_BLOCKS])
+# The two design-study examples take 40-120 s each (compiling the hidden-256 rollout and its
+# gradient); they run with the slow tests (`pytest -m slow`). tests/test_design.py covers the
+# same calls in the default run, and the README example (a design study) stays in it too.
+SLOW_EXAMPLES = {"design_study_and_designstudy", "sensitivity"}
+
+
+def _param(heading: str, code: str):
+    slug = _slug(heading)
+    marks = [pytest.mark.slow] if slug in SLOW_EXAMPLES else []
+    return pytest.param(code, id=slug, marks=marks)
+
+
+@pytest.mark.parametrize("code", [_param(h, c) for h, c in API_BLOCKS])
 def test_api_doc_example_runs(code, tmp_path):
     result = _run(code, tmp_path)
     assert result.stdout.strip(), "the example printed nothing"
