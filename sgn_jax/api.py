@@ -51,6 +51,7 @@ from sgn_jax.design import (
     anchored_window,
     apply_parameters,
     check_parameters,
+    default_step,
     make_ensemble_power,
     parameter_unit,
     parameter_values,
@@ -173,8 +174,10 @@ def _steps(seconds: float, dt: float, what: str) -> int:
 
 
 def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], packings: Packings,
-                 *, duration: float = 1.5, burn_in: float = 0.5, horizon: int = 100,
-                 n_segments: int = 8, separation: bool | None = None) -> DesignStudy:
+                 *, duration: float = 1.5, burn_in: float = 0.5, horizon: int = 10,
+                 n_segments: int = 8, separation: bool | None = None,
+                 estimator: str = "difference", steps: dict[str, float] | None = None
+                 ) -> DesignStudy:
     """Build a :class:`DesignStudy` of ``cfg``'s jar and motion over ``packings``.
 
     Args:
@@ -185,9 +188,15 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
             anchored in the jar frame).
         duration: seconds of surrogate rollout per packing (> burn_in).
         burn_in: seconds before the measurement starts.
-        horizon: steps of each gradient horizon (docs/design.md for the choice).
-        n_segments: gradient horizons per packing, spread over the measurement interval.
+        horizon: steps of each gradient horizon (``estimator="horizon"``; docs/design.md).
+        n_segments: gradient horizons per packing, spread over the measurement interval
+            (``"horizon"``; with ``"difference"`` only the measurement must split into them).
         separation: the ball-ball separation (default: ``cfg``'s ``[rollout] pp_separation``).
+        estimator: ``"difference"`` (default): ``jax.grad`` of ``study.power`` is the ensemble
+            central difference with common packings, step ``steps[name]`` (default
+            :func:`default_step`, 10 % of the value); ``"horizon"``: the truncated-horizon
+            autodiff estimator. docs/design.md measures both against the DEM.
+        steps: difference step per parameter name (SI units), for the names it lists.
     """
     model_cfg = surrogate.config
     for section, field in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
@@ -220,8 +229,16 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     if type(base_motion) is not type(motion):
         # Packings made under another motion kind are re-anchored to this motion at t0.
         base_motion = motion
+    theta0 = parameter_values(names, motion, jar)
+    unknown = sorted(set(steps or {}) - set(names))
+    if unknown:
+        raise DesignError(f"steps given for {unknown}, which are not design parameters here "
+                          f"({list(names)})")
+    fd_steps = [float((steps or {}).get(n, default_step(n, v))) for n, v in zip(names, theta0,
+                                                                                  strict=True)]
     ensemble = make_ensemble_power(
         spec, model_predictor(surrogate.model), names, motion, jar, packings.t0,
+        estimator=estimator, steps=fd_steps if estimator == "difference" else None,
         n_burn=n_burn, n_measure=n_measure, horizon=horizon, n_segments=n_segments,
         snap_back=rollout.snap_back, phi_sb=model_cfg.graph.phi_sb,
         snap_velocity=rollout.snap_velocity,
@@ -234,7 +251,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     def power_of_theta(theta: Any) -> jax.Array:
         return power(jnp.asarray(theta, jnp.float64), *args)
 
-    return DesignStudy(names=names, theta0=parameter_values(names, motion, jar),
+    return DesignStudy(names=names, theta0=theta0,
                        power=power_of_theta, ensemble=ensemble, duration=float(duration),
                        burn_in=float(burn_in), _args=args)
 
@@ -283,28 +300,21 @@ def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     return cfg
 
 
-def default_step(name: str, value: float) -> float:
-    """A finite-difference / curve step for a parameter: 10 % of its value (1 mm, 0.1 rad or
-    0.1 where the value is 0)."""
-    if value != 0:
-        return 0.1 * abs(float(value))
-    return {"m": 1e-3, "rad": 0.1}.get(parameter_unit(name), 0.1)
-
-
 def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
                 burn_in: float = 0.5, packings: int = 8, first_seed: int = 100,
-                checkpoint: str | Path | None = None, horizon: int = 100, n_segments: int = 8,
-                curve: bool = True, steps: dict[str, float] | None = None,
-                separation: bool | None = None,
+                checkpoint: str | Path | None = None, estimator: str = "difference",
+                horizon: int = 10, n_segments: int = 8, curve: bool = True,
+                steps: dict[str, float] | None = None, separation: bool | None = None,
                 progress: Callable[[str], None] = lambda stage: None) -> dict[str, Any]:
     """The design sensitivity of ``cfg``: ensemble-mean power, its gradient, standard errors.
 
-    Packings come from DEM seeds ``first_seed .. first_seed + packings - 1`` (held-out seeds by
-    default). With ``curve``, the surrogate's ensemble power is also evaluated at
-    ``theta +- h`` per parameter (``steps`` or :func:`default_step`), which gives the
-    surrogate's own central difference beside the gradient estimate. ``progress(stage)`` is
-    called after every packing and every evaluation. Returns a JSON-ready dict (SI units; the
-    gradient in W per unit of each parameter).
+    Packings come from DEM seeds ``first_seed .. first_seed + packings - 1`` (never used for
+    training). The gradient is :func:`design_study`'s ``estimator``. ``curve`` adds the
+    surrogate's ensemble power at ``theta +- h`` per parameter (``steps`` or
+    :func:`default_step`): free with the difference estimator (its own evaluations), extra
+    rollouts with the horizon estimator. ``progress(stage)`` is called after every packing and
+    every evaluation. Returns a JSON-ready dict (SI units; the gradient in W per unit of each
+    parameter).
     """
     if packings < 2:
         raise DesignError(f"packings must be >= 2 (a standard error needs two), got {packings}")
@@ -316,39 +326,44 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
     pk = make_packings(cfg, seeds, log=progress)
     t_packings = time.perf_counter() - t_start
     study = design_study(model, cfg, names, pk, duration=duration, burn_in=burn_in,
-                         horizon=horizon, n_segments=n_segments, separation=separation)
+                         horizon=horizon, n_segments=n_segments, separation=separation,
+                         estimator=estimator, steps=steps)
     t0 = time.perf_counter()
     result = study.estimate()
     progress("estimate")
     t_estimate = time.perf_counter() - t0
     result.update(names=list(study.names), theta0=study.theta0.tolist(),
                   units={n: parameter_unit(n) for n in study.names}, seeds=list(seeds),
-                  duration_s=duration, burn_in_s=burn_in, horizon_steps=horizon,
-                  n_segments=n_segments, separation=bool(cfg.rollout.pp_separation
-                                                         if separation is None else separation))
+                  duration_s=duration, burn_in_s=burn_in, estimator=estimator,
+                  horizon_steps=horizon, n_segments=n_segments,
+                  separation=bool(cfg.rollout.pp_separation if separation is None
+                                  else separation))
     curves = {}
     t0 = time.perf_counter()
-    if curve:
-        for i, name in enumerate(study.names):
+    d = len(study.names)
+    sides = np.asarray(result.pop("side_powers_W", []), np.float64)
+    for i, name in enumerate(study.names if curve else ()):
+        if estimator == "difference":
+            h = study.ensemble.steps[i]
+            points = {1: sides[i], -1: sides[d + i]}
+        else:
             h = float((steps or {}).get(name, default_step(name, study.theta0[i])))
             points = {}
             for side in (-1, 1):
                 theta = study.theta0.copy()
                 theta[i] += side * h
-                powers = study.powers(theta)
-                points[side] = powers
+                points[side] = study.powers(theta)
                 progress(f"curve {name} {side:+d}h")
-            diff = (points[1] - points[-1]) / (2 * h)
-            curves[name] = {
-                "h": h, "theta": [float(study.theta0[i] - h), float(study.theta0[i]),
-                                  float(study.theta0[i] + h)],
-                "power_W": [float(points[-1].mean()), result["power_W"],
-                            float(points[1].mean())],
-                "power_se_W": [ensemble_mean(points[-1])[1], result["power_se_W"],
-                               ensemble_mean(points[1])[1]],
-                "central_difference": ensemble_mean(diff)[0],
-                "central_difference_se": ensemble_mean(diff)[1],
-            }
+        diff = (points[1] - points[-1]) / (2 * h)
+        curves[name] = {
+            "h": h, "theta": [float(study.theta0[i] - h), float(study.theta0[i]),
+                              float(study.theta0[i] + h)],
+            "power_W": [float(points[-1].mean()), result["power_W"], float(points[1].mean())],
+            "power_se_W": [ensemble_mean(points[-1])[1], result["power_se_W"],
+                           ensemble_mean(points[1])[1]],
+            "central_difference": ensemble_mean(diff)[0],
+            "central_difference_se": ensemble_mean(diff)[1],
+        }
     result["curves"] = curves
     result["timing_s"] = {"packings": t_packings, "estimate": t_estimate,
                           "curves": time.perf_counter() - t0,

@@ -374,7 +374,8 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
         description="Settle PACKINGS DEM packings (seeds FIRST_SEED..), roll the surrogate out "
         "for DURATION s from each under the config's jar and motion, and estimate the "
         "ensemble-mean dissipation power over (BURN_IN, DURATION] and its gradient with respect "
-        "to each --param (truncated-horizon ensemble estimator, docs/design.md). Writes "
+        "to each --param (default: the ensemble central difference with common packings, "
+        "step --step or 10 %% of the value; docs/design.md). Writes "
         "OUT/sensitivity.json and OUT/sensitivity.png (power vs each parameter around the point "
         "with the gradient's tangent); the last line of stdout is the JSON result: power_W, "
         "power_se_W, gradient (W per unit), gradient_se.",
@@ -393,10 +394,16 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--packings", type=int, default=8, help="DEM packings (default 8)")
     p.add_argument("--first-seed", type=int, default=100,
                    help="first DEM placement seed (default 100: never used for training)")
-    p.add_argument("--horizon", type=int, default=100,
-                   help="steps of each gradient horizon (default 100 = 0.01 s)")
+    p.add_argument("--estimator", choices=("difference", "horizon"), default="difference",
+                   help="gradient estimator (default difference; horizon: truncated-horizon "
+                   "autodiff, docs/design.md)")
+    p.add_argument("--step", action="append", default=[], metavar="NAME=H",
+                   help="difference step of a parameter in its unit, repeatable (default: 10 %% "
+                   "of its value)")
+    p.add_argument("--horizon", type=int, default=10,
+                   help="steps of each gradient horizon (horizon estimator; default 10)")
     p.add_argument("--segments", type=int, default=8,
-                   help="gradient horizons per packing (default 8)")
+                   help="gradient horizons per packing (horizon estimator; default 8)")
     p.add_argument("--checkpoint", default=None,
                    help="training run or checkpoint directory (default: the shipped model)")
     p.add_argument("--separation", choices=("config", "on", "off"), default="config",
@@ -422,8 +429,16 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
     if args.packings < 2:
         raise UserError(f"--packings = {args.packings}: packings must be >= 2 (a standard "
                         "error needs two)")
+    steps = {}
+    for item in args.step:
+        name, _, value = item.partition("=")
+        try:
+            steps[name.strip()] = float(value)
+        except ValueError:
+            raise UserError(f"--step {item!r}: use NAME=H, e.g. motion.rpm=30") from None
     cfg = api.load_config(args.config)
-    total = args.packings + 1 + (0 if args.no_curve else 2 * len(args.param))
+    extra_curves = args.estimator == "horizon" and not args.no_curve
+    total = args.packings + 1 + (2 * len(args.param) if extra_curves else 0)
     separation = {"config": None, "on": True, "off": False}[args.separation]
     with tqdm(total=total, desc="sensitivity", unit="task", disable=args.no_progress,
               dynamic_ncols=True, file=sys.stderr) as bar:
@@ -435,6 +450,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
             cfg, args.param, duration=args.duration, burn_in=args.burn_in,
             packings=args.packings, first_seed=args.first_seed, checkpoint=args.checkpoint,
             horizon=args.horizon, n_segments=args.segments, curve=not args.no_curve,
+            estimator=args.estimator, steps=steps or None,
             separation=separation, progress=progress)
     out = Path(args.out)
     result["plot"] = str(plot_sensitivity(result, out / "sensitivity.png"))

@@ -50,7 +50,8 @@ def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packing
     why the estimator averages many short horizons (docs/design.md)."""
     n = 5
     study = sj.design_study(model, cfg, ["motion.rpm", "motion.amplitude"], packings,
-                            duration=n * cfg.dem.dt, burn_in=0.0, horizon=n, n_segments=1)
+                            duration=n * cfg.dem.dt, burn_in=0.0, horizon=n, n_segments=1,
+                            estimator="horizon")
     power, grad = jax.value_and_grad(study.power)(study.theta0)
     assert np.isfinite(float(power)) and np.all(np.isfinite(np.asarray(grad)))
     np.testing.assert_allclose(float(power), study.powers().mean(), rtol=1e-9)
@@ -63,14 +64,24 @@ def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packing
         assert float(grad[i]) == pytest.approx(fd, rel=0.05), (study.names[i], fd, grad[i])
 
 
-def test_estimate_matches_value_and_grad_and_is_finite(cfg, model, packings):
+@pytest.mark.parametrize("estimator", ["difference", "horizon"])
+def test_estimate_matches_value_and_grad_and_is_finite(cfg, model, packings, estimator):
     study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.03, burn_in=0.01,
-                            horizon=10, n_segments=2)
+                            horizon=10, n_segments=2, estimator=estimator)
     power, grad = jax.value_and_grad(study.power)(study.theta0)
     est = study.estimate()
     assert est["power_W"] == pytest.approx(float(power), rel=1e-9)
     assert est["gradient"]["motion.rpm"] == pytest.approx(float(grad[0]), rel=1e-6)
     assert np.isfinite(est["power_se_W"]) and np.isfinite(est["gradient_se"]["motion.rpm"])
+    if estimator == "difference":
+        # The default estimator is the ensemble central difference with common packings, step
+        # 10 % of the value (30 rpm): the same number as two explicit evaluations.
+        h = 30.0
+        fd = (study.powers(study.theta0 + h) - study.powers(study.theta0 - h)) / (2 * h)
+        # (float32 network: batched and unbatched evaluations round differently at ~1e-8.)
+        assert float(grad[0]) == pytest.approx(fd.mean(), rel=1e-6)
+        np.testing.assert_allclose(est["side_powers_W"][0], study.powers(study.theta0 + h),
+                                   rtol=1e-6)
 
 
 def test_a_non_finite_gradient_is_an_error_naming_packing_segment_and_parameter():
@@ -78,11 +89,12 @@ def test_a_non_finite_gradient_is_an_error_naming_packing_segment_and_parameter(
 
     grad = np.zeros((3, 2, 1))
     grad[1, 1, 0] = np.nan
-    est = PowerEstimate(power_W=np.ones(3), gradient=grad, horizon_energy_J=np.ones((3, 2)))
+    est = PowerEstimate(power_W=np.ones(3), gradient=grad, horizon_energy_J=np.ones((3, 2)),
+                        side_powers_W=np.zeros((0, 3)))
     with pytest.raises(DesignError, match="motion.rpm is not finite at packing 1, segment 1"):
         summarize_estimate(est, ["motion.rpm"])
     est = PowerEstimate(power_W=np.array([1.0, np.inf, 1.0]), gradient=np.zeros((3, 2, 1)),
-                        horizon_energy_J=np.ones((3, 2)))
+                        horizon_energy_J=np.ones((3, 2)), side_powers_W=np.zeros((0, 3)))
     with pytest.raises(DesignError, match="packing 1 gave a non-finite power"):
         summarize_estimate(est, ["motion.rpm"])
 
@@ -95,6 +107,9 @@ def test_a_non_finite_gradient_is_an_error_naming_packing_segment_and_parameter(
     (["motion.rpm"], {"duration": 0.01, "burn_in": 0.01}, "duration > burn_in"),
     (["motion.rpm"], {"duration": 0.03005, "burn_in": 0.01}, "whole number"),
     (["motion.rpm"], {"duration": 0.03, "burn_in": 0.01, "n_segments": 3}, "equal parts"),
+    (["motion.rpm"], {"estimator": "adjoint"}, "estimator must be"),
+    (["motion.rpm"], {"steps": {"motion.amplitude": 1e-3}}, "steps given for"),
+    (["motion.rpm"], {"steps": {"motion.rpm": 0.0}}, "finite and > 0"),
 ])
 def test_bad_design_input_is_refused_before_work(cfg, model, packings, names, kwargs, match):
     kwargs = {"duration": 0.03, "burn_in": 0.01, "horizon": 10, "n_segments": 2, **kwargs}
@@ -130,7 +145,10 @@ def test_cli_sensitivity_prints_json_and_writes_plot(cfg, tmp_path):
     assert (out / "sensitivity.png").stat().st_size > 0
     saved = json.loads((out / "sensitivity.json").read_text())
     assert saved["gradient"] == line["gradient"]
-    assert len(saved["curves"]["motion.rpm"]["power_W"]) == 3
+    curve = saved["curves"]["motion.rpm"]
+    assert len(curve["power_W"]) == 3 and curve["h"] == pytest.approx(30.0)
+    # The default estimator's gradient is the curve's own central difference.
+    assert curve["central_difference"] == pytest.approx(line["gradient"]["motion.rpm"], rel=1e-9)
 
 
 def test_cli_sensitivity_refuses_bad_input(tmp_path, capsys):
