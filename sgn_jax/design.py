@@ -20,19 +20,17 @@ Pure JAX core: no config, no files (the host side is :mod:`sgn_jax.api`). Three 
    ``2 pi t df`` (the "gradient" of a long rollout with respect to rpm is dominated by that
    artefact: 1.7 mm of jar displacement per rpm after one second).
 
-3. **The estimator** (:func:`make_ensemble_power`; docs/design.md). The charge is chaotic: the
-   derivative of one long trajectory grows like exp(lambda t) and says nothing about the
-   derivative of its time average. The ensemble-mean power over the measurement interval is
-   estimated by the forward rollouts; its derivative by the mean, over packings and over
-   ``n_segments`` segment starts spread through the measurement interval, of the derivative of
-   the energy dissipated in a short horizon of ``horizon`` steps from the (anchored,
-   stop-gradient) state at the segment start, divided by the horizon's duration: a truncated-
-   horizon ("response within a correlation time") estimator. It neglects how ``theta`` shifts
-   the distribution of states over times longer than the horizon (a bias that
-   ``experiments/design/verify_gradients.py`` measures against ensemble finite differences)
-   and in exchange has a variance that does not grow with the rollout length.
-   ``jax.value_and_grad`` of the returned function gives (power, this estimate) through a
-   ``jax.custom_vjp``.
+3. **The estimators** (:func:`make_ensemble_power`; docs/design.md). The charge is chaotic: the
+   surrogate's tangent d(state)/d(theta) grows like exp(700 t / s), so the derivative of one
+   long trajectory says nothing about the derivative of its time average. The forward pass
+   rolls every packing out and measures the ensemble-mean power. Its gradient, returned by
+   ``jax.value_and_grad`` through a ``jax.custom_vjp``, is by default (``"difference"``) the
+   ensemble central difference with common packings, ``mean_k (P_k(theta + h e_i) -
+   P_k(theta - h e_i)) / 2h``: the exact derivative of the power smoothed over +-h, the
+   quantity the DEM check measures. ``"horizon"`` is the truncated-horizon alternative: the
+   mean over packings and segment starts of the autodiff derivative of the energy dissipated
+   in ``horizon`` steps from the (anchored, stop-gradient) state at the segment start; it sees
+   only the immediate response (``experiments/design/verify_gradients.py`` measures both).
 """
 
 from __future__ import annotations
