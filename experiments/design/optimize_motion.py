@@ -11,8 +11,8 @@ u in [0, 1]^2 (projected after every Adam step), is
 
     L(theta) = ((P(theta) - P*) / P*)^2 + weight * a_peak(theta) / a_ref,
 
-with P the surrogate's ensemble-mean power (sgn_jax.api.design_study: its truncated-horizon
-gradient) and a_peak = A (2 pi rpm / 60)^2 the circle's peak acceleration (exact). The answer is
+with P the surrogate's ensemble-mean power (sgn_jax.api.design_study: its default gradient, the
+ensemble central difference with common packings at +-10 %) and a_peak = A (2 pi rpm / 60)^2 the circle's peak acceleration (exact). The answer is
 the iterate with the smallest a_peak among those within 5 % of the target (else the smallest L).
 Every iteration is appended (fsynced) to runs/design/optimize/history.jsonl; a killed run resumes
 from its last iterate (Adam's moments restart). The DEM check runs seeds 20-27 (never trained on)
@@ -197,7 +197,7 @@ def main() -> None:
     o.add_argument("--iterations", type=int, default=25)
     o.add_argument("--duration", type=float, default=1.0)
     o.add_argument("--burn-in", type=float, default=0.5)
-    o.add_argument("--horizon", type=int, default=100)
+    o.add_argument("--horizon", type=int, default=10)
     o.add_argument("--segments", type=int, default=5)
     d = sub.add_parser("dem")
     d.add_argument("--duration", type=float, default=1.5)
