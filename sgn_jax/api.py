@@ -60,7 +60,13 @@ from sgn_jax.design import (
 from sgn_jax.geometry import jar_params_from_config
 from sgn_jax.graph import Window, graph_spec_from_config
 from sgn_jax.motion import Motion, frequency_hz, motion_from_config, offset
-from sgn_jax.rollout import initial_window, model_predictor
+from sgn_jax.rollout import (
+    RolloutResult,
+    analytic_jar_query,
+    initial_window,
+    make_rollout,
+    model_predictor,
+)
 from sgn_jax.validation import warn_outside_envelope
 
 # A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
@@ -254,6 +260,50 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     return DesignStudy(names=names, theta0=theta0,
                        power=power_of_theta, ensemble=ensemble, duration=float(duration),
                        burn_in=float(burn_in), _args=args)
+
+
+def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
+                     duration: float, *, save_every: int | None = None) -> RolloutResult:
+    """Roll the surrogate out from every packing under ``cfg``'s jar and motion (vmapped).
+
+    The rollout uses ``cfg``'s ``[rollout]`` settings (snap-back, its velocity rule, the
+    ball-ball separation), so a script gets the physics of the shipped config and of
+    ``sgn-jax rollout`` (``make_rollout``'s own defaults are the paper's: no separation). The
+    jar is queried through its analytic SDF, as in design studies; packings made under another
+    motion are anchored to this one in the jar frame.
+
+    Returns:
+        a :class:`sgn_jax.rollout.RolloutResult` with a leading axis K (packings): ``positions``
+        (K, P, N, 3) m at the times ``t_pos`` (every ``save_every`` steps, default ``[rollout]
+        save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` / ``n_snapped`` (K, S).
+    """
+    if not (math.isfinite(duration) and duration > 0):
+        raise DesignError(f"duration = {duration} s: it must be a finite number of seconds > 0")
+    dt = float(cfg.dem.dt)
+    n_steps = _steps(duration, dt, "duration")
+    every = int(cfg.rollout.save_every if save_every is None else save_every)
+    if every < 1 or n_steps % every:
+        raise DesignError(f"duration ({n_steps} steps) must be a multiple of save_every = "
+                          f"{every} steps")
+    model_cfg = surrogate.config
+    warn_outside_envelope(cfg, model_cfg, surrogate.meta)
+    spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
+                                  n_particles=cfg.balls.count)
+    motion = motion_from_config(cfg.motion)
+    base_motion = motion_from_config(packings.config.motion)
+    if type(base_motion) is not type(motion):
+        base_motion = motion
+    r = cfg.rollout
+    rollout = make_rollout(spec, model_predictor(surrogate.model), n_steps, every,
+                           snap_back=r.snap_back, phi_sb=model_cfg.graph.phi_sb,
+                           snap_velocity=r.snap_velocity, query=analytic_jar_query,
+                           pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
+                           jit=False)
+    windows = _reanchor(packings, base_motion, motion, dt)
+    jar = jar_params_from_config(cfg.jar)
+    run = jax.jit(jax.vmap(rollout, in_axes=(None, None, 0, None, None, None)))
+    return jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, motion, jar,
+                              packings.t0))
 
 
 def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float) -> Window:
@@ -480,5 +530,6 @@ __all__ = [
     "make_packings",
     "parameter_unit",
     "parameter_values_of",
+    "rollout_ensemble",
     "sensitivity",
 ]
