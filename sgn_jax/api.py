@@ -182,8 +182,8 @@ def _steps(seconds: float, dt: float, what: str) -> int:
 def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], packings: Packings,
                  *, duration: float = 1.5, burn_in: float = 0.5, horizon: int = 10,
                  n_segments: int = 8, separation: bool | None = None,
-                 estimator: str = "difference", steps: dict[str, float] | None = None
-                 ) -> DesignStudy:
+                 estimator: str = "difference", steps: dict[str, float] | None = None,
+                 shard: bool = False) -> DesignStudy:
     """Build a :class:`DesignStudy` of ``cfg``'s jar and motion over ``packings``.
 
     Args:
@@ -203,6 +203,8 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
             :func:`default_step`, 10 % of the value); ``"horizon"``: the truncated-horizon
             autodiff estimator. docs/design.md measures both against the DEM.
         steps: difference step per parameter name (SI units), for the names it lists.
+        shard: split the packings over all devices (:func:`shard_packings`); the powers and
+            gradients equal the unsharded ones to float tolerance.
     """
     model_cfg = surrogate.config
     for section, field in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
@@ -251,7 +253,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         pp_max_overlap=rollout.pp_max_overlap if use_sep else None)
     windows = _reanchor(packings, base_motion, motion, dt)
     args = (jax.device_put(surrogate.params), jax.device_put(surrogate.norm_stats),
-            jax.device_put(windows))
+            shard_packings(windows) if shard else jax.device_put(windows))
     power = ensemble.power
 
     def power_of_theta(theta: Any) -> jax.Array:
@@ -263,14 +265,16 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
 
 
 def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
-                     duration: float, *, save_every: int | None = None) -> RolloutResult:
+                     duration: float, *, save_every: int | None = None,
+                     shard: bool = False) -> RolloutResult:
     """Roll the surrogate out from every packing under ``cfg``'s jar and motion (vmapped).
 
     The rollout uses ``cfg``'s ``[rollout]`` settings (snap-back, its velocity rule, the
     ball-ball separation), so a script gets the physics of the shipped config and of
     ``sgn-jax rollout`` (``make_rollout``'s own defaults are the paper's: no separation). The
     jar is queried through its analytic SDF, as in design studies; packings made under another
-    motion are anchored to this one in the jar frame.
+    motion are anchored to this one in the jar frame. ``shard``: split the packings over all
+    devices (:func:`shard_packings`).
 
     Returns:
         a :class:`sgn_jax.rollout.RolloutResult` with a leading axis K (packings): ``positions``
@@ -300,10 +304,33 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
                            pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
                            jit=False)
     windows = _reanchor(packings, base_motion, motion, dt)
+    if shard:
+        windows = shard_packings(windows)
     jar = jar_params_from_config(cfg.jar)
     run = jax.jit(jax.vmap(rollout, in_axes=(None, None, 0, None, None, None)))
     return jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, motion, jar,
                               packings.t0))
+
+
+def shard_packings(tree: Any, devices: Sequence[Any] | None = None) -> Any:
+    """Place a pytree batched over packings (leading axis K) across ``devices`` (default: all),
+    one slice of packings per device, with a 1-D ``jax.sharding.Mesh`` over the batch axis.
+
+    A jitted, vmapped rollout of a sharded batch runs each device's packings on that device
+    (the packings are independent: no communication until the ensemble mean). K must be a
+    multiple of the number of devices. On one CPU, ``XLA_FLAGS=
+    --xla_force_host_platform_device_count=2`` makes two host devices (tests/test_sharding.py).
+    """
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = list(jax.devices() if devices is None else devices)
+    k = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
+    if k % len(devices):
+        raise DesignError(f"{k} packings do not split over {len(devices)} devices; use a "
+                          f"multiple of {len(devices)} packings")
+    mesh = Mesh(np.asarray(devices), ("packings",))
+    sharding = NamedSharding(mesh, PartitionSpec("packings"))
+    return jax.device_put(tree, sharding)
 
 
 def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float) -> Window:
@@ -532,4 +559,5 @@ __all__ = [
     "parameter_values_of",
     "rollout_ensemble",
     "sensitivity",
+    "shard_packings",
 ]
