@@ -200,28 +200,28 @@ def _dem_source_digest() -> str:
 
 
 def settle_key(setup: DEMSetup, seed: int) -> str:
-    """Digest of what a settled state depends on: jar, balls, material, DEM settings (not the
-    duration, chunking or motion: the jar rests while settling), seed and the DEM's code."""
+    """Digest of what a settled state depends on, bit for bit: jar, balls, material, DEM
+    settings (not the duration or chunking), seed, the DEM's code, and where the jar rests,
+    ``offset(0)``. The rest of the motion (rpm, frequency) does not enter settling, so circles of
+    one amplitude and phase share their packings. A packing settled at another rest position
+    is the same packing translated physically, but not bit for bit (settling is chaotic and
+    its rounding depends on the absolute positions): it gets its own entry."""
     from sgn_jax.config import config_to_dict
+    from sgn_jax.motion import offset
 
     cfg = config_to_dict(setup.cfg)
     dem = {k: v for k, v in cfg["dem"].items() if k not in ("duration", "chunk_samples", "seed")}
+    rest = [float(v).hex() for v in np.asarray(offset(setup.params.motion, 0.0))]
     key = {"jar": cfg["jar"], "balls": cfg["balls"], "material": cfg["material"], "dem": dem,
            "seed": int(seed), "dt_dem": setup.dt_dem, "pp_capacity": setup.pp_capacity,
            "pair_mode": setup.spec.resolved_pair_mode, "format": PARTIAL_FORMAT,
-           "code": _dem_source_digest()}
+           "code": _dem_source_digest(), "rest_offset": rest}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:32]
 
 
-def _translated(state: DEMState, shift: np.ndarray) -> DEMState:
-    return state.replace(pos=state.pos + shift, offset=state.offset + shift,
-                         pairs=state.pairs.replace(ref_pos=state.pairs.ref_pos + shift))
-
-
 def load_settled(setup: DEMSetup, seed: int) -> DEMState | None:
-    """The cached settled state (at t = 0, translated to this motion's start), or None."""
+    """The cached settled state at t = 0 of this jar, balls, DEM and rest position, or None."""
     from sgn_jax.cache import settled_dir
-    from sgn_jax.motion import offset
 
     directory = settled_dir()
     if directory is None:
@@ -233,16 +233,14 @@ def load_settled(setup: DEMSetup, seed: int) -> DEMState | None:
     try:
         with np.load(path) as data:
             state = _tree_from_npz(template, data, str(path))
-            offset0 = np.asarray(data["offset0"])
     except (OSError, ValueError, KeyError, DEMError):
         return None  # a damaged or stale entry is settled again (and overwritten)
-    return _translated(state, np.asarray(offset(setup.params.motion, 0.0)) - offset0)
+    return state
 
 
 def save_settled(setup: DEMSetup, seed: int, state: DEMState) -> Path | None:
     """Store a settled state (atomically); None when the cache is off or not writable."""
     from sgn_jax.cache import settled_dir
-    from sgn_jax.motion import offset
 
     directory = settled_dir()
     if directory is None:
@@ -250,8 +248,7 @@ def save_settled(setup: DEMSetup, seed: int, state: DEMState) -> Path | None:
     path = directory / f"{settle_key(setup, seed)}.npz"
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        _save_npz(path, {**_tree_to_npz(jax.device_get(state)),
-                         "offset0": np.asarray(offset(setup.params.motion, 0.0))})
+        _save_npz(path, _tree_to_npz(jax.device_get(state)))
     except OSError:
         return None
     return path
@@ -305,8 +302,8 @@ def run_dem(
         check: refuse a config the DEM cannot represent before any work
             (:func:`sgn_jax.validation.check_dem_config`; an envelope warning otherwise).
         settle_cache: reuse (and store) the settled packing of this jar, balls, material, DEM
-            settings and seed in the user cache (:mod:`sgn_jax.cache`; off with
-            ``SGN_JAX_NO_CACHE=1``); the motion only translates it.
+            settings, seed and rest position in the user cache (:mod:`sgn_jax.cache`; off with
+            ``SGN_JAX_NO_CACHE=1``); a cached run is bit-identical to a fresh one.
 
     Raises:
         DEMRunError: a ball left the jar, a value went non-finite, or a contact became too fast
