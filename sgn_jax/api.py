@@ -57,8 +57,8 @@ from sgn_jax.design import (
     parameter_values,
     summarize_estimate,
 )
-from sgn_jax.geometry import jar_params_from_config
-from sgn_jax.graph import Window, graph_spec_from_config
+from sgn_jax.geometry import JarParams, jar_params_from_config
+from sgn_jax.graph import GraphSpec, Window, graph_spec_from_config
 from sgn_jax.motion import Motion, frequency_hz, motion_from_config, offset
 from sgn_jax.rollout import (
     RolloutResult,
@@ -67,7 +67,7 @@ from sgn_jax.rollout import (
     make_rollout,
     model_predictor,
 )
-from sgn_jax.validation import warn_outside_envelope
+from sgn_jax.validation import check_dem_config, check_duration, warn_outside_envelope
 
 # A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
 # SGN_JAX_NO_CACHE=1).
@@ -122,14 +122,64 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
     dt = float(cfg.dem.dt)
     freq = float(frequency_hz(motion_from_config(cfg.motion)))
     windows = []
+    check_dem_config(cfg)  # once for all seeds (it may warn)
     for i, seed in enumerate(seeds):
-        run = run_dem(cfg, duration=w * dt, seed=seed, progress=progress)
+        run = run_dem(cfg, duration=w * dt, seed=seed, progress=progress, check=False)
         traj = SimpleNamespace(pos=run.arrays["pos"], offset=run.arrays["offset"],
                                offset_vel=run.arrays["offset_vel"])
         windows.append(initial_window(traj, w, w, freq=freq))
         log(f"packing {i + 1}/{len(seeds)} (seed {seed})")
     stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *windows)
     return Packings(windows=stacked, t0=w * dt, seeds=seeds, config=cfg)
+
+
+def check_study_sizes(duration: float, burn_in: float, packings: int | None = None) -> None:
+    """Refuse a study before any work: duration > burn_in >= 0 s, and >= 2 packings (a
+    standard error needs two)."""
+    check_duration(duration, "duration")
+    if not (math.isfinite(burn_in) and 0 <= burn_in < duration):
+        raise DesignError(f"need duration > burn_in >= 0 s, got duration {duration:g}, burn_in "
+                          f"{burn_in:g}")
+    if packings is not None and packings < 2:
+        raise DesignError(f"packings must be >= 2 (a standard error needs two), got {packings}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _SurrogateFrame:
+    """What a surrogate needs to roll ``packings`` out under ``cfg``: its graph spec, the motion
+    and jar pytrees, and the windows anchored to that motion (K leading)."""
+
+    spec: GraphSpec
+    motion: Motion
+    jar: JarParams
+    windows: Window
+
+
+def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
+                     ) -> _SurrogateFrame:
+    """Check that ``surrogate`` can roll ``packings`` out under ``cfg`` (balls and dt as
+    trained; an envelope warning otherwise) and build the pieces of that rollout."""
+    model_cfg = surrogate.config
+    for section, field in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
+        a = getattr(getattr(model_cfg, section), field)
+        b = getattr(getattr(cfg, section), field)
+        if not math.isclose(float(a), float(b), rel_tol=1e-12):
+            raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
+                              f"design config has {b}")
+    warn_outside_envelope(cfg, model_cfg, surrogate.meta)
+    if packings.windows.positions.shape[-2] != cfg.balls.count:
+        raise DesignError("the packings have a different number of balls from the config")
+    # Window-level features come from the model's graph rules; the jar and motion from cfg.
+    spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
+                                  n_particles=cfg.balls.count)
+    motion = motion_from_config(cfg.motion)
+    base_motion = motion_from_config(packings.config.motion)
+    if type(base_motion) is not type(motion):
+        # Packings made under another motion kind are re-anchored to this motion at t0.
+        base_motion = motion
+    windows = _reanchor(packings, base_motion, motion, float(cfg.dem.dt))
+    return _SurrogateFrame(spec=spec, motion=motion, jar=jar_params_from_config(cfg.jar),
+                           windows=windows)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,37 +256,18 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         shard: split the packings over all devices (:func:`shard_packings`); the powers and
             gradients equal the unsharded ones to float tolerance.
     """
-    model_cfg = surrogate.config
-    for section, field in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
-        a = getattr(getattr(model_cfg, section), field)
-        b = getattr(getattr(cfg, section), field)
-        if not math.isclose(float(a), float(b), rel_tol=1e-12):
-            raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
-                              f"design config has {b}")
-    warn_outside_envelope(cfg, model_cfg, surrogate.meta)
-    if packings.windows.positions.shape[-2] != cfg.balls.count:
-        raise DesignError("the packings have a different number of balls from the config")
-    if not duration > burn_in >= 0:
-        raise DesignError(f"need duration > burn_in >= 0 s, got duration {duration:g}, burn_in "
-                          f"{burn_in:g}")
+    check_study_sizes(duration, burn_in)
+    frame = _surrogate_frame(surrogate, cfg, packings)
+    motion, jar = frame.motion, frame.jar
     dt = float(cfg.dem.dt)
     n_burn = _steps(burn_in, dt, "burn_in")
     n_measure = _steps(duration - burn_in, dt, "duration - burn_in")
     if n_measure % n_segments:
         raise DesignError(f"the measurement interval ({n_measure} steps) must split into "
                           f"n_segments = {n_segments} equal parts")
-    # Window-level features come from the model's graph rules; the jar and motion from cfg.
-    spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
-                                  n_particles=cfg.balls.count)
-    motion = motion_from_config(cfg.motion)
-    jar = jar_params_from_config(cfg.jar)
     names = check_parameters(names, motion, jar)
     rollout = cfg.rollout
     use_sep = rollout.pp_separation if separation is None else bool(separation)
-    base_motion = motion_from_config(packings.config.motion)
-    if type(base_motion) is not type(motion):
-        # Packings made under another motion kind are re-anchored to this motion at t0.
-        base_motion = motion
     theta0 = parameter_values(names, motion, jar)
     unknown = sorted(set(steps or {}) - set(names))
     if unknown:
@@ -245,13 +276,13 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     fd_steps = [float((steps or {}).get(n, default_step(n, v))) for n, v in zip(names, theta0,
                                                                                   strict=True)]
     ensemble = make_ensemble_power(
-        spec, model_predictor(surrogate.model), names, motion, jar, packings.t0,
+        frame.spec, model_predictor(surrogate.model), names, motion, jar, packings.t0,
         estimator=estimator, steps=fd_steps if estimator == "difference" else None,
         n_burn=n_burn, n_measure=n_measure, horizon=horizon, n_segments=n_segments,
-        snap_back=rollout.snap_back, phi_sb=model_cfg.graph.phi_sb,
+        snap_back=rollout.snap_back, phi_sb=surrogate.config.graph.phi_sb,
         snap_velocity=rollout.snap_velocity,
         pp_max_overlap=rollout.pp_max_overlap if use_sep else None)
-    windows = _reanchor(packings, base_motion, motion, dt)
+    windows = frame.windows
     args = (jax.device_put(surrogate.params), jax.device_put(surrogate.norm_stats),
             shard_packings(windows) if shard else jax.device_put(windows))
     power = ensemble.power
@@ -281,34 +312,24 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
         (K, P, N, 3) m at the times ``t_pos`` (every ``save_every`` steps, default ``[rollout]
         save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` / ``n_snapped`` (K, S).
     """
-    if not (math.isfinite(duration) and duration > 0):
-        raise DesignError(f"duration = {duration} s: it must be a finite number of seconds > 0")
+    check_duration(duration, "duration")
     dt = float(cfg.dem.dt)
     n_steps = _steps(duration, dt, "duration")
     every = int(cfg.rollout.save_every if save_every is None else save_every)
     if every < 1 or n_steps % every:
         raise DesignError(f"duration ({n_steps} steps) must be a multiple of save_every = "
                           f"{every} steps")
-    model_cfg = surrogate.config
-    warn_outside_envelope(cfg, model_cfg, surrogate.meta)
-    spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
-                                  n_particles=cfg.balls.count)
-    motion = motion_from_config(cfg.motion)
-    base_motion = motion_from_config(packings.config.motion)
-    if type(base_motion) is not type(motion):
-        base_motion = motion
+    frame = _surrogate_frame(surrogate, cfg, packings)
     r = cfg.rollout
-    rollout = make_rollout(spec, model_predictor(surrogate.model), n_steps, every,
-                           snap_back=r.snap_back, phi_sb=model_cfg.graph.phi_sb,
+    rollout = make_rollout(frame.spec, model_predictor(surrogate.model), n_steps, every,
+                           snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
                            snap_velocity=r.snap_velocity, query=analytic_jar_query,
                            pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
                            jit=False)
-    windows = _reanchor(packings, base_motion, motion, dt)
-    if shard:
-        windows = shard_packings(windows)
-    jar = jar_params_from_config(cfg.jar)
+    windows = shard_packings(frame.windows) if shard else frame.windows
     run = jax.jit(jax.vmap(rollout, in_axes=(None, None, 0, None, None, None)))
-    return jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, motion, jar,
+    return jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, frame.motion,
+                              frame.jar,
                               packings.t0))
 
 
@@ -393,8 +414,7 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
     every evaluation. Returns a JSON-ready dict (SI units; the gradient in W per unit of each
     parameter).
     """
-    if packings < 2:
-        raise DesignError(f"packings must be >= 2 (a standard error needs two), got {packings}")
+    check_study_sizes(duration, burn_in, packings)
     if first_seed < 0:
         raise DesignError(f"first_seed must be >= 0, got {first_seed}")
     t_start = time.perf_counter()

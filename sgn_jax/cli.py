@@ -1,8 +1,10 @@
 """The ``sgn-jax`` command line.
 
 Each subcommand is registered by a ``_add_<name>`` function below and dispatched to a
-``_cmd_<name>`` handler that imports its modules lazily, so ``sgn-jax --help`` stays fast.
-Errors that are the user's (bad config, bad file) are printed as one clear line, exit code 2.
+``_cmd_<name>`` handler. The handlers import their heavy modules (training, plotting, orbax,
+the demo) inside the handler, so ``sgn-jax --help`` does not pay for them. Every error that
+derives from :class:`sgn_jax.errors.SGNJaxError` (bad config, bad file, a run that failed) is
+printed as one clear line, exit code 2.
 """
 
 from __future__ import annotations
@@ -13,9 +15,16 @@ import sys
 import warnings
 from pathlib import Path
 
-from sgn_jax import __version__
+from sgn_jax import __version__, api
 from sgn_jax.cache import enable_compilation_cache
-from sgn_jax.errors import SGNJaxError
+from sgn_jax.checkpoint import load_trained_model
+from sgn_jax.config import resolve_config
+from sgn_jax.dataset import load_trajectory
+from sgn_jax.dem.driver import run_dem
+from sgn_jax.errors import EnvelopeWarning, SGNJaxError
+from sgn_jax.geometry import jar_mesh_from_config, mesh_report
+from sgn_jax.io_utils import atomic_write, write_json
+from sgn_jax.rollout import run_rollout
 from sgn_jax.validation import check_duration, warn_outside_envelope
 
 
@@ -40,9 +49,6 @@ def _add_jar(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_jar(args: argparse.Namespace) -> int:
-    from sgn_jax.config import resolve_config
-    from sgn_jax.geometry import jar_mesh_from_config, mesh_report
-    from sgn_jax.io_utils import atomic_write
 
     cfg = resolve_config(args.config)
     mesh = jar_mesh_from_config(cfg.jar)
@@ -83,21 +89,11 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from sgn_jax.checkpoint import CheckpointError
-    from sgn_jax.dem.engine import DEMError
-    from sgn_jax.dem.placement import PlacementError
-    from sgn_jax.demo import DemoError, format_report, run_demo
-    from sgn_jax.metrics import MetricsError
-    from sgn_jax.prediction import PredictionError
-    from sgn_jax.rollout import RolloutError
+    from sgn_jax.demo import format_report, run_demo
 
-    try:
-        summary = run_demo(args.out, checkpoint=args.checkpoint, duration=args.duration,
-                           seed=args.seed, config=args.config, progress=not args.no_progress,
-                           log=lambda msg: print(f"sgn-jax demo: {msg}", file=sys.stderr))
-    except (DemoError, CheckpointError, DEMError, PlacementError, RolloutError,
-            PredictionError, MetricsError) as exc:
-        raise UserError(str(exc)) from exc
+    summary = run_demo(args.out, checkpoint=args.checkpoint, duration=args.duration,
+                       seed=args.seed, config=args.config, progress=not args.no_progress,
+                       log=lambda msg: print(f"sgn-jax demo: {msg}", file=sys.stderr))
     print(format_report(summary))
     return 0
 
@@ -128,11 +124,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from sgn_jax.checkpoint import CheckpointError
-    from sgn_jax.config import resolve_config
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.graph import GraphError
-    from sgn_jax.train import TrainingError, train
+    from sgn_jax.train import train
 
     if args.epochs is not None and args.epochs < 1:
         raise UserError(f"--epochs must be >= 1, got {args.epochs}")
@@ -142,11 +134,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = resolve_config(args.config)
     trajectories = [load_trajectory(p) for p in paths]
     log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
-    try:
-        summary = train(cfg, trajectories, args.out, epochs=args.epochs, resume=args.resume,
-                        names=paths, progress=not args.quiet, log=log)
-    except (TrainingError, GraphError, CheckpointError) as exc:
-        raise UserError(str(exc)) from exc
+    summary = train(cfg, trajectories, args.out, epochs=args.epochs, resume=args.resume,
+                    names=paths, progress=not args.quiet, log=log)
     keys = ("epochs", "best_epoch", "best_loss", "n_train", "n_val", "n_params")
     print(json.dumps({"out": str(Path(args.out)), **{k: summary[k] for k in keys}}))
     return 0
@@ -182,18 +171,11 @@ def _add_dem(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_dem(args: argparse.Namespace) -> int:
-    from sgn_jax.config import resolve_config
-    from sgn_jax.dem.driver import run_dem
-    from sgn_jax.dem.engine import DEMError
-    from sgn_jax.dem.placement import PlacementError
 
     cfg = resolve_config(args.config)
-    try:
-        result = run_dem(cfg, duration=args.duration, out_path=args.out, seed=args.seed,
-                         dt_dem=args.dt_dem, dtype=args.dtype, resume=not args.no_resume,
-                         progress=not args.no_progress)
-    except (DEMError, PlacementError) as exc:
-        raise UserError(str(exc)) from exc
+    result = run_dem(cfg, duration=args.duration, out_path=args.out, seed=args.seed,
+                     dt_dem=args.dt_dem, dtype=args.dtype, resume=not args.no_resume,
+                     progress=not args.no_progress)
     print(json.dumps(result.summary, sort_keys=True))
     return 0
 
@@ -233,30 +215,19 @@ def _add_rollout(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
-    from sgn_jax.checkpoint import CheckpointError, load_trained_model
-    from sgn_jax.config import resolve_config
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.prediction import PredictionError
-    from sgn_jax.rollout import RolloutError, run_rollout
 
     if args.save_every is not None and args.save_every < 1:
         raise UserError(f"--save-every must be >= 1, got {args.save_every}")
     check_duration(args.duration, "--duration")
-    try:
-        trained = load_trained_model(args.checkpoint, which=args.which)
-    except CheckpointError as exc:
-        raise UserError(str(exc)) from exc
+    trained = load_trained_model(args.checkpoint, which=args.which)
     override = resolve_config(args.config) if args.config else None
     if override is not None:
         warn_outside_envelope(override, trained.config, trained.meta)
     traj = load_trajectory(args.init)
     start = trained.config.graph.window if args.start_index is None else args.start_index
-    try:
-        summary = run_rollout(trained, traj, start, args.duration, args.out, override,
-                              save_every=args.save_every, progress=not args.no_progress,
-                              checkpoint_path=str(args.checkpoint))
-    except (RolloutError, PredictionError) as exc:
-        raise UserError(str(exc)) from exc
+    summary = run_rollout(trained, traj, start, args.duration, args.out, override,
+                          save_every=args.save_every, progress=not args.no_progress,
+                          checkpoint_path=str(args.checkpoint))
     summary.pop("arrays")
     summary.pop("meta")
     print(json.dumps(summary, sort_keys=True))
@@ -292,12 +263,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    import warnings
-
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.io_utils import write_json
     from sgn_jax.metrics import (
-        MetricsError,
         MetricsWarning,
         compare,
         ensemble_summary,
@@ -305,7 +271,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     )
     from sgn_jax.metrics import headline as run_headline
     from sgn_jax.plots import plot_ensemble, plot_run
-    from sgn_jax.prediction import PredictionError, load_prediction
+    from sgn_jax.prediction import load_prediction
 
     if len(args.prediction) != len(args.reference):
         raise UserError(f"got {len(args.prediction)} --prediction file(s) but "
@@ -318,14 +284,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     summaries, headline = [], []
     for i, (pred_path, ref_path) in enumerate(zip(args.prediction, args.reference, strict=True)):
         run_dir = out / f"run_{i:02d}" if several else out
-        try:
-            prediction, reference = load_prediction(pred_path), load_trajectory(ref_path)
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", MetricsWarning)
-                comparison = compare(prediction, reference, classify_by=args.classify_by,
-                                     threshold=args.threshold)
-        except (PredictionError, MetricsError) as exc:
-            raise UserError(str(exc)) from exc
+        prediction, reference = load_prediction(pred_path), load_trajectory(ref_path)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", MetricsWarning)
+            comparison = compare(prediction, reference, classify_by=args.classify_by,
+                                 threshold=args.threshold)
         for warning in caught:
             print(f"sgn-jax evaluate: warning: {warning.message}", file=sys.stderr)
         summary = comparison.summary
@@ -341,12 +304,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if not several:
         print(json.dumps(headline[0]))
         return 0
-    try:
-        ensemble = ensemble_summary(summaries, classify_by=args.classify_by,
-                                    threshold=args.threshold,
-                                    labels=[str(p) for p in args.prediction])
-    except MetricsError as exc:
-        raise UserError(str(exc)) from exc
+    ensemble = ensemble_summary(summaries, classify_by=args.classify_by,
+                                threshold=args.threshold, labels=[str(p) for p in args.prediction])
     ensemble["plot"] = str(plot_ensemble(ensemble, out / "ensemble.png"))
     write_json(out / "ensemble.json", ensemble)
     print(json.dumps({
@@ -418,17 +377,9 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
 def _cmd_sensitivity(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from sgn_jax import api
-    from sgn_jax.io_utils import write_json
     from sgn_jax.plots import plot_sensitivity
 
-    check_duration(args.duration, "--duration")
-    if not (args.burn_in >= 0 and args.burn_in < args.duration):
-        raise UserError(f"--burn-in = {args.burn_in} s must be in [0, --duration = "
-                        f"{args.duration} s)")
-    if args.packings < 2:
-        raise UserError(f"--packings = {args.packings}: packings must be >= 2 (a standard "
-                        "error needs two)")
+    api.check_study_sizes(args.duration, args.burn_in, args.packings)
     steps = {}
     for item in args.step:
         name, _, value = item.partition("=")
@@ -482,8 +433,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _show_warnings_as_lines(command: str) -> None:
     """Envelope and data warnings as one ``sgn-jax CMD: warning: ...`` line each on stderr
     (not Python's file:line form), every time they occur."""
-    from sgn_jax.errors import EnvelopeWarning
-
     def show(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
         print(f"sgn-jax {command}: warning: {message}", file=sys.stderr)
 

@@ -57,7 +57,7 @@ from sgn_jax.metrics import (
     MOTION_SPEED_TOLERANCE,
     motion_warning_lines,
 )
-from sgn_jax.validation import check_dem_config, warn_outside_envelope
+from sgn_jax.validation import check_duration, warn_outside_envelope
 
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
@@ -170,8 +170,7 @@ def run_demo(
 
     t_start = time.perf_counter()
     out = Path(out_dir)
-    if not (math.isfinite(duration) and duration > 0):
-        raise DemoError(f"--duration must be a finite number of seconds > 0, got {duration}")
+    check_duration(duration, "--duration")
     if animation_frames < 2:
         raise DemoError(f"animation_frames must be >= 2, got {animation_frames}")
     case_cfg = resolve_config(config)
@@ -181,7 +180,6 @@ def run_demo(
     except CheckpointError as exc:
         raise DemoError(str(exc)) from exc
     _check_compatible(case_cfg, trained.config, ckpt)
-    check_dem_config(case_cfg)
     warn_outside_envelope(case_cfg, trained.config, trained.meta)
 
     dt = float(case_cfg.dem.dt)

@@ -34,22 +34,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.config import Config, ConfigError
+from sgn_jax.dem.contact import MIN_CONTACT_STEPS, hertz_contact_time
+from sgn_jax.dem.engine import make_params
 from sgn_jax.errors import EnvelopeWarning
+from sgn_jax.geometry import jar_params_from_config, jar_volume
+from sgn_jax.motion import acceleration, frequency_hz, motion_from_config, velocity
 
 RSA_FILL_LIMIT = 0.38
 """Largest solid fraction of the cavity that random sequential insertion reaches (3-D jamming)."""
-
-MIN_CONTACT_STEPS = 20
-"""A Hertz contact at the largest impact speed must last at least this many DEM steps."""
 
 MAX_OVERLAP_FRACTION = 0.10
 """The Hertz peak overlap at the largest impact speed must stay below this fraction of R."""
 
 DEM_VALIDATED_PEAK_SPEED = 3.6
 """m/s: peak jar speed of the fastest validated DEM case (2000 rpm at 17 mm, no escapes)."""
-
-HERTZ_TIME = 2.87
-"""t_c = 2.87 (m*^2 / (R* Y*^2 v))^(1/5) (sgn_jax.dem.contact.hertz_contact_time)."""
 
 
 def check_duration(value: float | None, what: str = "--duration", *, dt: float | None = None,
@@ -92,8 +90,6 @@ class MotionPeaks:
 
 def motion_peaks(motion_cfg: Any, samples: int = 2048) -> MotionPeaks:
     """Peak jar speed and acceleration of a ``[motion]`` config over one period."""
-    from sgn_jax.motion import acceleration, frequency_hz, motion_from_config, velocity
-
     motion = motion_from_config(motion_cfg)
     f = float(frequency_hz(motion))
     if not math.isfinite(f) or f <= 0:
@@ -111,15 +107,13 @@ def motion_peaks(motion_cfg: Any, samples: int = 2048) -> MotionPeaks:
 
 
 def _contact_laws(cfg: Config) -> dict[str, Any]:
-    from sgn_jax.dem.contact import make_contact_law
-
-    r = cfg.balls.radius
-    m = cfg.balls.density * 4.0 / 3.0 * math.pi * r**3
-    mat = cfg.material
-    common = dict(young=mat.young, poisson=mat.poisson, restitution=mat.restitution,
-                  friction=mat.friction, rolling_friction=mat.rolling_friction)
-    return {"ball-ball": make_contact_law(radius_1=r, mass_1=m, radius_2=r, mass_2=m, **common),
-            "ball-wall": make_contact_law(radius_1=r, mass_1=m, **common)}
+    """The DEM's own ball-ball and ball-wall contact laws of ``cfg`` (sgn_jax.dem.engine)."""
+    m = cfg.material
+    params = make_params(radius=cfg.balls.radius, density=cfg.balls.density, young=m.young,
+                         poisson=m.poisson, restitution=m.restitution, friction=m.friction,
+                         rolling_friction=m.rolling_friction, gravity=cfg.dem.gravity,
+                         geometry=None, motion=None)
+    return {"ball-ball": params.pp, "ball-wall": params.pw}
 
 
 def hertz_peak_overlap(law: Any, speed: float) -> float:
@@ -132,15 +126,14 @@ def hertz_peak_overlap(law: Any, speed: float) -> float:
 def max_resolved_impact_speed(cfg: Config) -> tuple[float, str]:
     """The largest impact speed (m/s) the DEM of ``cfg`` resolves, and the rule that sets it.
 
-    Both rules invert in closed form: t_c(v) >= MIN_CONTACT_STEPS dt_dem gives
-    v <= m*^2 / (R* Y*^2 (MIN_CONTACT_STEPS dt_dem / 2.87)^5); delta(v) <= f R gives
+    Both rules invert in closed form: t_c(v) = t_c(1) v^(-1/5) >= MIN_CONTACT_STEPS dt_dem
+    gives v <= (t_c(1) / (MIN_CONTACT_STEPS dt_dem))^5; delta(v) <= f R gives
     v^2 <= 16 Y* sqrt(R*) (f R)^(5/2) / (15 m*).
     """
     dt_dem = cfg.dem.dt_dem
     best = (math.inf, "")
     for name, law in _contact_laws(cfg).items():
-        v_time = law.mass_eff**2 / (law.radius_eff * law.young_eff**2
-                                    * (MIN_CONTACT_STEPS * dt_dem / HERTZ_TIME) ** 5)
+        v_time = (hertz_contact_time(law, 1.0) / (MIN_CONTACT_STEPS * dt_dem)) ** 5
         overlap = MAX_OVERLAP_FRACTION * cfg.balls.radius
         v_overlap = math.sqrt(16 * law.young_eff * math.sqrt(law.radius_eff) * overlap**2.5
                               / (15 * law.mass_eff))
@@ -163,8 +156,6 @@ def check_fill(cfg: Config) -> float:
     """Solid fraction of the balls in the cavity; ConfigError above :data:`RSA_FILL_LIMIT`."""
     if cfg.jar.kind != "emax":
         return float("nan")  # an STL cavity's volume needs the mesh; placement will say
-    from sgn_jax.geometry import jar_params_from_config, jar_volume
-
     volume = float(jar_volume(jar_params_from_config(cfg.jar)))
     solid = cfg.balls.count * 4.0 / 3.0 * math.pi * cfg.balls.radius**3
     fraction = solid / volume

@@ -97,6 +97,12 @@ def make_contact_law(
     )
 
 
+MIN_CONTACT_STEPS = 20
+"""A Hertz contact must last at least this many DEM steps to be resolved: the config check
+(sgn_jax.validation) applies it to the largest impact speed a motion drives, the run
+(sgn_jax.dem.driver.check_samples) to the relative speeds it reaches."""
+
+
 def hertz_contact_time(law: ContactLaw, impact_speed: float) -> float:
     """Hertz's elastic contact duration t_c = 2.87 (m*^2 / (R* Y*^2 v))^(1/5) (s)."""
     return 2.87 * (law.mass_eff**2 / (law.radius_eff * law.young_eff**2 * impact_speed)) ** 0.2

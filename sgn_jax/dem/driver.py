@@ -31,6 +31,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.cache import settled_dir
+from sgn_jax.config import config_to_dict, replace_section
+from sgn_jax.dataset import DatasetError, build_meta, save_trajectory
+from sgn_jax.dem.contact import MIN_CONTACT_STEPS, hertz_contact_time
 from sgn_jax.dem.engine import (
     DISSIPATION_KINDS,
     DEMError,
@@ -41,17 +45,16 @@ from sgn_jax.dem.engine import (
     geometry_from_config,
     init_state,
     make_sampler,
+    observe,
     params_from_config,
     reset_ledger_totals,
 )
 from sgn_jax.dem.placement import place_balls
 from sgn_jax.io_utils import atomic_write
+from sgn_jax.motion import offset
+from sgn_jax.validation import check_dem_config, check_duration
 
 PARTIAL_FORMAT = 1
-
-MIN_CONTACT_STEPS = 20
-"""A run stops when a Hertz contact at the largest relative speed reached would last fewer
-DEM steps than this (sgn_jax.validation applies the same rule to the config before the run)."""
 
 
 class DEMRunError(DEMError):
@@ -101,8 +104,6 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
     ``dt_dem`` (optional) overrides ``[dem] dt_dem_max``: the step used is dt / k with the
     smallest integer k such that dt / k <= dt_dem, so every sample falls on a step (SPEC 2).
     """
-    from sgn_jax.config import replace_section
-
     if dt_dem is not None:
         if not dt_dem > 0:
             raise DEMError(f"dt_dem must be > 0, got {dt_dem}")
@@ -123,8 +124,6 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
 
 def initial_state(setup: DEMSetup, seed: int, gap: float = 5e-4) -> DEMState:
     """Balls placed at rest from ``seed``, at DEM step -settle_steps (jar at rest)."""
-    from sgn_jax.motion import offset
-
     jar = setup.jar
     x_jar = place_balls(lambda x: jar.sdf_fn(jar.geometry, x), jar.lower, jar.upper,
                         setup.spec.n_balls, float(setup.params.radius), seed, gap=gap)
@@ -165,8 +164,6 @@ def _tree_from_npz(template: Any, data: Any, where: str) -> Any:
 
 
 def _fingerprint(setup: DEMSetup, seed: int) -> str:
-    from sgn_jax.config import config_to_dict
-
     cfg = config_to_dict(setup.cfg)
     cfg["dem"].pop("duration", None)
     cfg["dem"].pop("chunk_samples", None)
@@ -206,9 +203,6 @@ def settle_key(setup: DEMSetup, seed: int) -> str:
     one amplitude and phase share their packings. A packing settled at another rest position
     is the same packing translated physically, but not bit for bit (settling is chaotic and
     its rounding depends on the absolute positions): it gets its own entry."""
-    from sgn_jax.config import config_to_dict
-    from sgn_jax.motion import offset
-
     cfg = config_to_dict(setup.cfg)
     dem = {k: v for k, v in cfg["dem"].items() if k not in ("duration", "chunk_samples", "seed")}
     rest = [float(v).hex() for v in np.asarray(offset(setup.params.motion, 0.0))]
@@ -221,8 +215,6 @@ def settle_key(setup: DEMSetup, seed: int) -> str:
 
 def load_settled(setup: DEMSetup, seed: int) -> DEMState | None:
     """The cached settled state at t = 0 of this jar, balls, DEM and rest position, or None."""
-    from sgn_jax.cache import settled_dir
-
     directory = settled_dir()
     if directory is None:
         return None
@@ -240,8 +232,6 @@ def load_settled(setup: DEMSetup, seed: int) -> DEMState | None:
 
 def save_settled(setup: DEMSetup, seed: int, state: DEMState) -> Path | None:
     """Store a settled state (atomically); None when the cache is off or not writable."""
-    from sgn_jax.cache import settled_dir
-
     directory = settled_dir()
     if directory is None:
         return None
@@ -310,19 +300,10 @@ def run_dem(
             for the time step; it names the time, the ball and the cause, and keeps the valid
             samples before it (written to ``OUT.valid_part.npz`` when ``out_path`` is given).
     """
-    from sgn_jax.dataset import DatasetError, build_meta, save_trajectory
-
     seed = cfg.dem.seed if seed is None else int(seed)
     duration = cfg.dem.duration if duration is None else float(duration)
-    if not (np.isfinite(duration) and duration > 0):
-        raise DEMError(f"duration = {duration} s: it must be a finite number of seconds > 0 "
-                       "(e.g. 1.0)")
-    if duration < cfg.dem.dt * (1 - 1e-9):
-        raise DEMError(f"duration = {duration:g} s is shorter than one sample (dt = "
-                       f"{cfg.dem.dt:g} s)")
+    check_duration(duration, "duration", dt=cfg.dem.dt)
     if check:
-        from sgn_jax.validation import check_dem_config
-
         check_dem_config(cfg)
     chunk = int(chunk_samples or cfg.dem.chunk_samples)
     if chunk < 1:
@@ -350,8 +331,6 @@ def run_dem(
         ensure_compiled(state, n)
         state, samples = compiled[n](params, state)
         return state, jax.tree_util.tree_map(np.asarray, samples)
-
-    from sgn_jax.dem.engine import observe
 
     observe_jit = jax.jit(lambda p, s: observe(spec, setup.jar.wall_fn, p, s, setup.pp_capacity))
     jar = setup.jar
@@ -508,8 +487,6 @@ def check_samples(setup: DEMSetup, samples: dict[str, np.ndarray], sdf: Any
     resolve: the Hertz duration at the largest relative speed (any ball pair, or any ball
     against the wall) below :data:`MIN_CONTACT_STEPS` steps.
     """
-    from sgn_jax.dem.contact import hertz_contact_time
-
     pos, vel = samples["pos"], samples["vel"]
     found: list[tuple[int, int, str, str]] = []
     bad = ~(np.all(np.isfinite(pos), axis=-1) & np.all(np.isfinite(vel), axis=-1))
@@ -544,8 +521,6 @@ def _stop_invalid(setup: DEMSetup, chunks: list[dict[str, np.ndarray]], samples:
                   bad: tuple[int, int, str, str], first_sample: int, out_path: Any,
                   seed: int) -> DEMRunError:
     """The error for an invalid sample; keeps (and writes) the valid samples before it."""
-    from sgn_jax.dataset import build_meta, save_trajectory
-
     index, ball, cause, detail = bad
     t_bad = (first_sample + index) * setup.dt
     head = {k: v[:index] for k, v in samples.items()}
