@@ -49,6 +49,32 @@ def write_json(path: str | Path, data: Any) -> None:
         fh.write("\n")
 
 
+def append_jsonl(path: str | Path, record: Any) -> None:
+    """Append ``record`` as one JSON line and fsync it: a log that a killed run resumes from
+    (:func:`read_jsonl`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as fh:
+        fh.write(json.dumps(record, default=json_default) + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def read_jsonl(path: str | Path) -> list[Any]:
+    """The records of a JSON-lines log (none if it does not exist); a line cut by a kill is
+    skipped, so the run that wrote it is redone."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue
+    return records
+
+
 def json_default(obj: Any) -> Any:
     """``default=`` hook for ``json.dump(s)``: numpy scalars and arrays become Python numbers
     and lists, paths strings; anything else raises TypeError naming its type."""

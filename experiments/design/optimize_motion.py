@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import time
 from pathlib import Path
 
@@ -33,6 +32,7 @@ import numpy as np
 import optax
 
 import sgn_jax.api as sj
+from sgn_jax.io_utils import append_jsonl, read_jsonl
 
 OUT = Path("runs/design/optimize")
 NAMES = ("motion.rpm", "motion.amplitude")
@@ -50,29 +50,9 @@ def peak_acceleration(theta: np.ndarray) -> tuple[float, np.ndarray]:
     return amp * w * w, np.array([2 * amp * w * (2 * math.pi / 60), w * w])
 
 
-def _append(path: Path, record: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as fh:
-        fh.write(json.dumps(record) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-
-
-def _read(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except ValueError:
-            continue  # a line cut by a kill
-    return out
-
-
 def cmd_optimize(args: argparse.Namespace) -> None:
     history_path = OUT / "history.jsonl"
-    history = _read(history_path)
+    history = read_jsonl(history_path)
     cfg = sj.load_config("emax_300rpm")
     settings = {"target_W": args.target, "weight": args.weight, "lr": args.lr,
                 "duration": args.duration, "burn_in": args.burn_in, "horizon": args.horizon,
@@ -109,7 +89,7 @@ def cmd_optimize(args: argparse.Namespace) -> None:
         record = {"iteration": it, "theta": theta.tolist(), "power_W": power,
                   "grad_power": grad_p.tolist(), "peak_acceleration": acc, "loss": loss,
                   "u_next": u_next.tolist(), "wall_s": time.perf_counter() - t_it}
-        _append(history_path, record)
+        append_jsonl(history_path, record)
         done = it + 1 - len(history)
         eta = (time.perf_counter() - t_start) / done * (args.iterations - it - 1)
         print(f"[{it + 1}/{args.iterations}] rpm {theta[0]:.1f} A {theta[1] * 1e3:.2f} mm: "
@@ -126,13 +106,13 @@ def optimum(history: list[dict], target: float) -> dict:
 
 
 def cmd_dem(args: argparse.Namespace) -> None:
-    history = _read(OUT / "history.jsonl")
+    history = read_jsonl(OUT / "history.jsonl")
     if not history:
         raise SystemExit("run `optimize` first")
     settings = json.loads((OUT / "settings.json").read_text())
     best = optimum(history, settings["target_W"])
     cfg = sj.design_config(sj.load_config("emax_300rpm"), list(NAMES), best["theta"])
-    done = {r["seed"] for r in _read(OUT / "dem.jsonl")}
+    done = {r["seed"] for r in read_jsonl(OUT / "dem.jsonl")}
     ensemble = sj.DEMEnsemble()
     for seed in DEM_SEEDS:
         if seed in done:
@@ -140,7 +120,7 @@ def cmd_dem(args: argparse.Namespace) -> None:
         t0 = time.perf_counter()
         r = ensemble.power(cfg, seed, args.duration, args.burn_in)
         r.update(theta=best["theta"], wall_s=time.perf_counter() - t0)
-        _append(OUT / "dem.jsonl", r)
+        append_jsonl(OUT / "dem.jsonl", r)
         print(f"seed {seed}: {r['power_W']:.4f} W ({r['wall_s']:.1f} s)", flush=True)
 
 
@@ -150,11 +130,11 @@ def cmd_report(_: argparse.Namespace) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    history = _read(OUT / "history.jsonl")
+    history = read_jsonl(OUT / "history.jsonl")
     settings = json.loads((OUT / "settings.json").read_text())
     target = settings["target_W"]
     best = optimum(history, target)
-    dem = [r["power_W"] for r in _read(OUT / "dem.jsonl")]
+    dem = [r["power_W"] for r in read_jsonl(OUT / "dem.jsonl")]
     report = {"target_W": target, "optimum": best, "iterations": len(history)}
     if len(dem) >= 2:
         mean, se = sj.ensemble_mean(dem)

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
+from sgn_jax.io_utils import append_jsonl, read_jsonl
 
 OUT = Path("runs/design")
 SEEDS = tuple(range(20, 28))  # never used for training (standard-case training used 0-3)
@@ -86,14 +87,9 @@ def job_key(job) -> str:
 
 
 def done_keys() -> set[str]:
-    keys = set()
-    for path in (OUT / "dem").glob("worker*.jsonl"):
-        for line in path.read_text().splitlines():
-            try:
-                keys.add(json.loads(line)["key"])
-            except (ValueError, KeyError):
-                continue  # a line cut by a kill: that run is redone
-    return keys
+    """Keys of the DEM runs already logged (a line cut by a kill is redone)."""
+    return {r["key"] for path in (OUT / "dem").glob("worker*.jsonl") for r in read_jsonl(path)
+            if "key" in r}
 
 
 def cmd_dem_worker(index: int, of: int) -> None:
@@ -102,7 +98,6 @@ def cmd_dem_worker(index: int, of: int) -> None:
     todo = [j for j in jobs if job_key(j) not in done]
     ensemble = sj.DEMEnsemble()
     path = OUT / "dem" / f"worker{index}.jsonl"
-    path.parent.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     for n, job in enumerate(todo, 1):
         point, param, side, seed = job
@@ -111,10 +106,7 @@ def cmd_dem_worker(index: int, of: int) -> None:
         result = ensemble.power(cfg, seed, DURATION, BURN_IN)
         result.update(key=job_key(job), point=point, param=param, side=side,
                       wall_s=time.perf_counter() - t0)
-        with open(path, "a") as fh:
-            fh.write(json.dumps(result) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
+        append_jsonl(path, result)
         rate = (time.perf_counter() - t_start) / n
         print(f"[worker {index}] {n}/{len(todo)} {job_key(job)}: {result['power_W']:.4f} W, "
               f"{result['wall_s']:.1f} s; ETA {rate * (len(todo) - n) / 60:.1f} min", flush=True)
@@ -135,11 +127,7 @@ def cmd_dem(workers: int) -> None:
 def load_dem() -> dict[tuple, list[float]]:
     table: dict[tuple, dict[int, float]] = {}
     for path in sorted((OUT / "dem").glob("worker*.jsonl")):
-        for line in path.read_text().splitlines():
-            try:
-                r = json.loads(line)
-            except ValueError:
-                continue
+        for r in read_jsonl(path):
             side = int(r["side"])
             key = (r["point"], None if side == 0 else r["param"], side)
             table.setdefault(key, {})[int(r["seed"])] = float(r["power_W"])
