@@ -410,6 +410,14 @@ class TrainConfig:
         train_time: s of motion; windows whose target step ends at t <= train_time train.
         val_time: s; windows wholly in (train_time, train_time + val_time] validate.
         seed: seed of the initial parameters, the shuffling and the noise.
+        window_stride: use every k-th window of each trajectory (training and validation);
+            neighbouring windows 1e-4 s apart are nearly the same sample, so a stride > 1
+            spreads a fixed budget of samples over more trajectories.
+        position_noise_std: m/s, GNS random-walk noise on the training position windows: the
+            std of the velocity noise at the last slot (0 = off; docs/sgn.md, "Training noise").
+        envelope: the motion envelope the model is trained for and promises to cover: "" (its
+            single training motion), "default" (sgn_jax/data/envelope.toml) or a TOML path;
+            stored in the checkpoint meta (key ``envelope``).
     """
 
     batch_size: int = 2
@@ -423,6 +431,9 @@ class TrainConfig:
     train_time: float = 4.5
     val_time: float = 0.5
     seed: int = 0
+    window_stride: int = 1
+    position_noise_std: float = 0.0
+    envelope: str = ""
 
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.epochs < 1:
@@ -435,6 +446,11 @@ class TrainConfig:
             raise ConfigError("[train] need huber_delta > 0, noise_std >= 0, node_loss_weight >= 0")
         if self.global_loss_weight < 0:
             raise ConfigError("[train] need global_loss_weight >= 0 (0: no global loss)")
+        if self.window_stride < 1:
+            raise ConfigError(f"[train] window_stride must be >= 1, got {self.window_stride}")
+        if not (math.isfinite(self.position_noise_std) and self.position_noise_std >= 0):
+            raise ConfigError(f"[train] position_noise_std must be >= 0 (m/s), got "
+                              f"{self.position_noise_std}")
         if self.train_time <= 0 or self.val_time < 0:
             raise ConfigError("[train] need train_time > 0 and val_time >= 0 (s)")
 

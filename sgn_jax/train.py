@@ -116,15 +116,41 @@ class GraphDataset:
             window_end=cat("window_end"), pp_dropped=sum(p.pp_dropped for p in parts))
 
 
+def random_walk_position_noise(rng: np.random.Generator, n_windows: int, window: int,
+                               n_particles: int, velocity_std: float, dt: float
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """GNS-style random-walk noise on a position window (Sanchez-Gonzalez et al. 2020).
+
+    The W finite-difference velocities of a window get a random walk ``nu_k = sum_{j<=k}
+    eps_j`` with ``eps_j ~ N(0, velocity_std^2 / W)`` (so the last one has std
+    ``velocity_std``, m/s); the positions integrate it: ``n_0 = 0``, ``n_k = n_{k-1} + nu_k dt``.
+
+    Returns ``(position_noise (S, W+1, N, 3) m, last_velocity_noise (S, N, 3) m/s)``. A window
+    trained with this noise gets the target ``a_true - nu_W / dt``: the next position stays
+    the true one shifted by the last position's noise, so the model learns to undo a velocity
+    error instead of carrying it on (docs/sgn.md, "Training noise").
+    """
+    eps = rng.normal(0.0, velocity_std / math.sqrt(window), (n_windows, window, n_particles, 3))
+    nu = np.cumsum(eps, axis=1)
+    steps = np.cumsum(nu * dt, axis=1)
+    noise = np.concatenate([np.zeros((n_windows, 1, n_particles, 3)), steps], axis=1)
+    return noise, nu[:, -1]
+
+
 def featurize_trajectory(traj: Any, spec: GraphSpec, sdf: Any, ends: np.ndarray, *,
                          query: SDFQuery | None = None, frequency_hz: float | None = None,
                          source: int = 0, chunk: int = 1024, progress: bool = False,
-                         builder: Callable | None = None) -> GraphDataset:
+                         builder: Callable | None = None, position_noise_std: float = 0.0,
+                         noise_seed: int = 0) -> GraphDataset:
     """Featurize the windows of ``traj`` ending at ``ends`` with :func:`build_graph`.
 
     ``traj`` is a ``sgn_jax.dataset.Trajectory`` (or any object with ``pos``, ``offset``,
     ``offset_vel``, the four dissipation arrays and ``meta``). Chunks of ``chunk`` windows are
     built at once (the last one padded, so one compilation serves all).
+
+    ``position_noise_std`` > 0 (m/s) perturbs every window once with
+    :func:`random_walk_position_noise` (seeded by ``(noise_seed, source)``, so a rerun
+    featurizes the same noise) and corrects the acceleration targets to match.
     """
     from tqdm.auto import tqdm
 
@@ -138,11 +164,18 @@ def featurize_trajectory(traj: Any, spec: GraphSpec, sdf: Any, ends: np.ndarray,
     builder = builder or make_graph_builder(query, spec)
     parts: list[dict[str, np.ndarray]] = []
     dropped = 0
+    noise_rng = np.random.default_rng([noise_seed, source]) if position_noise_std > 0 else None
+    last_velocity_noise = []
     starts = range(0, len(ends), chunk)
     for start in tqdm(starts, desc="featurize", unit="chunk", disable=not progress, leave=False):
         e = ends[start:start + chunk]
         padded = np.concatenate([e, np.full(chunk - len(e), e[-1])]) if len(e) < chunk else e
         wins = windows_from_arrays(pos, traj.offset, traj.offset_vel, freq, padded, w)
+        if noise_rng is not None:
+            noise, nu_last = random_walk_position_noise(noise_rng, len(padded), w, n,
+                                                        position_noise_std, spec.dt)
+            wins = wins.replace(positions=wins.positions + noise)
+            last_velocity_noise.append(nu_last[:len(e)])
         graphs, counts = builder(jax.tree_util.tree_map(jnp.asarray, wins), sdf)
         graphs, counts = jax.device_get((graphs, counts))
         k = len(e)
@@ -158,6 +191,8 @@ def featurize_trajectory(traj: Any, spec: GraphSpec, sdf: Any, ends: np.ndarray,
         dropped += int(np.sum(counts.pp_dropped[:k]))
     cat = lambda name: np.concatenate([p[name] for p in parts])  # noqa: E731
     accel = (pos[ends + 1] - 2.0 * pos[ends] + pos[ends - 1]) / spec.dt**2
+    if last_velocity_noise:
+        accel = accel - np.concatenate(last_velocity_noise) / spec.dt
     return GraphDataset(
         node_features=cat("node_features"),
         edge_offsets=np.concatenate([[0], np.cumsum(cat("n_edges"))]).astype(np.int64),
@@ -536,13 +571,19 @@ def prepare_datasets(trajectories: Sequence[Any], cfg: Any, sdf: Any, *,
         check_trajectory_matches(traj, cfg, name)
         t = np.asarray(traj.t, np.float64)
         tr, va = split_window_ends(t, spec.window, cfg.train.train_time, cfg.train.val_time)
+        stride = cfg.train.window_stride
+        tr, va = tr[::stride], va[::stride]
         if len(tr) == 0:
             raise TrainingError(f"{name}: no training window with t <= train_time = "
                                 f"{cfg.train.train_time} s (the data cover {t[-1]:.4g} s)")
-        for ends, parts in ((tr, train_parts), (va, val_parts)):
+        # Noise on the training windows only: validation measures the clean one-step error.
+        for ends, parts, noise in ((tr, train_parts, cfg.train.position_noise_std),
+                                   (va, val_parts, 0.0)):
             if len(ends):
                 parts.append(featurize_trajectory(traj, spec, sdf, ends, source=i,
-                                                  builder=builder, progress=progress))
+                                                  builder=builder, progress=progress,
+                                                  position_noise_std=noise,
+                                                  noise_seed=cfg.train.seed))
     train_ds = GraphDataset.concatenate(train_parts)
     val_ds = GraphDataset.concatenate(val_parts) if val_parts else None
     dropped = train_ds.pp_dropped + (val_ds.pp_dropped if val_ds else 0)
@@ -670,6 +711,11 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     best = min((r["val_loss"] if r["val_loss"] is not None else r["train_loss"]
                 for r in history), default=math.inf)
     meta_base = {"config": config_to_dict(cfg), "info": info}
+    if tcfg.envelope:
+        from sgn_jax.envelope import ENVELOPE_PATH, load_envelope
+
+        path = ENVELOPE_PATH if tcfg.envelope == "default" else Path(tcfg.envelope)
+        meta_base["envelope"] = load_envelope(path).to_meta()
 
     epoch_bar = tqdm(range(start_epoch, tcfg.epochs), desc="epochs", unit="epoch",
                      disable=not progress, initial=start_epoch, total=tcfg.epochs)

@@ -36,6 +36,7 @@ import numpy as np
 from sgn_jax.config import Config, ConfigError
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS, hertz_contact_time
 from sgn_jax.dem.engine import make_params
+from sgn_jax.envelope import harmonic_axis_amplitudes
 from sgn_jax.errors import EnvelopeWarning
 from sgn_jax.geometry import jar_params_from_config, jar_volume
 from sgn_jax.motion import acceleration, frequency_hz, motion_from_config, velocity
@@ -230,7 +231,7 @@ class ModelEnvelope:
     """The motions and jars a trained model promises to cover.
 
     ``circle_rpm`` / ``circle_amplitude`` (min, max) for circles, ``harmonic_base_hz`` and
-    ``harmonic_max_axis_amplitude`` (m, sum of |coefficients| per axis) for harmonic orbits
+    ``harmonic_max_axis_amplitude`` (m, per axis the sum of the harmonics' amplitudes) for harmonic orbits
     (None: that kind is not covered); ``jar``: the (radius, straight_length, height,
     post_radius) of the trained jar, or None for any jar.
     """
@@ -268,8 +269,8 @@ def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> 
 
 
 def _axis_amplitudes(m: Any) -> list[float]:
-    return [sum(abs(c) for c in getattr(m, f"{a}_sin")) + sum(abs(c) for c in getattr(m, f"{a}_cos"))
-            for a in "xyz"]
+    """Per axis, the sum over harmonics of each harmonic's amplitude hypot(sin, cos) (m)."""
+    return [sum(amps) for amps in harmonic_axis_amplitudes(m).values()]
 
 
 def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
