@@ -21,6 +21,7 @@ from sgn_jax.checkpoint import load_trained_model
 from sgn_jax.config import resolve_config
 from sgn_jax.dataset import load_trajectory
 from sgn_jax.dem.driver import run_dem
+from sgn_jax.demo import resolve_checkpoint
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.geometry import jar_mesh_from_config, mesh_report
 from sgn_jax.io_utils import atomic_write, write_json
@@ -194,8 +195,10 @@ def _add_rollout(sub: argparse._SubParsersAction) -> None:
         "the [jar], [motion], [sdf] and [rollout] sections (balls and dt must match). Prints "
         "one JSON line: energy, counts, wall and compile time, ms per step.",
     )
-    p.add_argument("--checkpoint", required=True,
-                   help="training run directory (its checkpoints/best) or checkpoint directory")
+    p.add_argument("--checkpoint", default=None,
+                   help="training run directory (its checkpoints/best), checkpoint directory or "
+                   "shipped model name (envelope, emax_300rpm); default: the shipped default "
+                   "model (docs/envelope.md)")
     p.add_argument("--init", required=True, metavar="DATASET",
                    help="trajectory (.npz, SPEC 4) that provides the initial window")
     p.add_argument("--duration", required=True, type=float, help="seconds of rollout")
@@ -219,7 +222,8 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     if args.save_every is not None and args.save_every < 1:
         raise UserError(f"--save-every must be >= 1, got {args.save_every}")
     check_duration(args.duration, "--duration")
-    trained = load_trained_model(args.checkpoint, which=args.which)
+    checkpoint = resolve_checkpoint(args.checkpoint)
+    trained = load_trained_model(checkpoint, which=args.which)
     override = resolve_config(args.config) if args.config else None
     if override is not None:
         warn_outside_envelope(override, trained.config, trained.meta)
@@ -227,7 +231,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     start = trained.config.graph.window if args.start_index is None else args.start_index
     summary = run_rollout(trained, traj, start, args.duration, args.out, override,
                           save_every=args.save_every, progress=not args.no_progress,
-                          checkpoint_path=str(args.checkpoint))
+                          checkpoint_path=str(checkpoint))
     summary.pop("arrays")
     summary.pop("meta")
     print(json.dumps(summary, sort_keys=True))

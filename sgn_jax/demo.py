@@ -61,7 +61,13 @@ from sgn_jax.validation import check_duration, warn_outside_envelope
 
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
-"""Where the trained models shipped with the package live (one directory per case)."""
+"""Where the trained models shipped with the package live (one directory per model)."""
+DEFAULT_MODEL = "envelope"
+"""The shipped default: the motion-general model trained over the motion envelope (issue 10,
+docs/envelope.md). ``PAPER_MODEL`` is the paper-setting one-trajectory model of the
+reproduction (docs/results.md); either name may be given wherever a checkpoint is asked for."""
+PAPER_MODEL = "emax_300rpm"
+SHIPPED_MODEL_ORDER = (DEFAULT_MODEL, PAPER_MODEL)
 
 ANIMATION_FRAMES = 100
 
@@ -90,25 +96,39 @@ def has_checkpoint(path: str | Path) -> bool:
     return path.is_dir() and latest_step(path) is not None
 
 
-def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
-    """``checkpoint`` itself, or the shipped model (trained on the standard case) if None;
-    refused with a clear message if no model is shipped."""
-    if checkpoint is not None:
-        path = Path(checkpoint)
-        if not path.exists():
-            raise DemoError(f"--checkpoint {str(path)!r} does not exist; pass a training run "
-                            "directory (written by `sgn-jax train --out DIR`) or its "
-                            "checkpoints/best directory")
-        return path
-    shipped = shipped_model_dir(DEFAULT_CASE)
+def _shipped_checkpoint(name: str) -> Path | None:
+    shipped = shipped_model_dir(name)
     # The checkpoint directory itself (the documented layout), or a copied checkpoints/ folder.
     for candidate in (shipped, shipped / "best"):
         if has_checkpoint(candidate):
             return candidate
+    return None
+
+
+def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
+    """``checkpoint`` itself (a path, or the name of a shipped model: ``"envelope"``,
+    ``"emax_300rpm"``), or the shipped default model if None (:data:`DEFAULT_MODEL`, else the
+    paper-setting one); refused with a clear message if no model is shipped."""
+    if checkpoint is not None:
+        path = Path(checkpoint)
+        if not path.exists() and str(checkpoint) in SHIPPED_MODEL_ORDER:
+            found = _shipped_checkpoint(str(checkpoint))
+            if found is not None:
+                return found
+        if not path.exists():
+            raise DemoError(f"--checkpoint {str(path)!r} does not exist; pass a training run "
+                            "directory (written by `sgn-jax train --out DIR`), its "
+                            "checkpoints/best directory, or a shipped model's name "
+                            f"({', '.join(SHIPPED_MODEL_ORDER)})")
+        return path
+    for name in SHIPPED_MODEL_ORDER:
+        found = _shipped_checkpoint(name)
+        if found is not None:
+            return found
     raise DemoError(
-        f"no trained model is shipped with this installation (looked in {shipped}); pass one "
-        "with --checkpoint DIR: a training run directory written by `sgn-jax train --out DIR` "
-        "(its checkpoints/best is used) or a checkpoint directory")
+        f"no trained model is shipped with this installation (looked in {SHIPPED_MODELS_DIR}); "
+        "pass one with --checkpoint DIR: a training run directory written by `sgn-jax train "
+        "--out DIR` (its checkpoints/best is used) or a checkpoint directory")
 
 
 def _check_compatible(case_cfg: Any, model_cfg: Any, checkpoint: Path) -> None:
@@ -459,7 +479,10 @@ def _motion_check_lines(checks: list[dict[str, Any]]) -> list[str]:
 
 __all__ = [
     "DEFAULT_CASE",
+    "DEFAULT_MODEL",
+    "PAPER_MODEL",
     "SHIPPED_MODELS_DIR",
+    "SHIPPED_MODEL_ORDER",
     "DemoError",
     "format_report",
     "has_checkpoint",
