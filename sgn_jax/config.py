@@ -330,6 +330,9 @@ class GraphConfig:
         phi_pw: m, a ball-wall edge where the ball centre's phi >= phi_pw.
         phi_sb: m, rollout snap-back threshold, phi_pw < phi_sb < 0.
         pp_edges_per_particle: static directed ball-ball edge slots per graph, per ball.
+        contact_features: two more edge columns, the surface gap and the overlap of the two
+            balls (or of ball and wall), so the network sees a contact coming (issue 10;
+            docs/sgn.md). Off: the paper's 3 columns (displacement, phi n).
     """
 
     window: int = 7
@@ -337,6 +340,7 @@ class GraphConfig:
     phi_pw: float = -0.0052
     phi_sb: float = -0.0049
     pp_edges_per_particle: int = 8
+    contact_features: bool = False
 
     def __post_init__(self) -> None:
         if self.window < 1:

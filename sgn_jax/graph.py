@@ -30,7 +30,7 @@ adjacent), then padding edges from and to the padding node; ``n_edge = [n_real, 
 Particle features per slot k (0 = oldest): columns ``7k .. 7k+6`` = [v (3), phi, n (3)] with the
 SDF and its unit normal ``n = grad phi / |grad phi|`` at ``x_j`` relative to the jar at ``t_j``.
 Wall features per slot: [offset (3), offset velocity (3), rotational frequency].
-``graph.edges`` is a dict: ``features`` (E, 3) float32, ``pp`` and ``pw`` (E,) bool. An edge
+``graph.edges`` is a dict: ``features`` (E, 3) float32 (E, 5 with ``contact_features``), ``pp`` and ``pw`` (E,) bool. An edge
 ``sender s -> receiver r`` carries ``x_s - x_r`` (ball-ball, paper Eq. 20 with i = receiver)
 or ``phi_b n_b`` of its ball b (ball-wall, Eq. 21, same feature in both directions).
 Edges use the newest slot: ball-ball where ``|x_j - x_i| <= 2 R + pp_skin``, ball-wall where
@@ -75,6 +75,10 @@ class GraphSpec:
         pp_skin: surface-gap skin s_pp (m): ball-ball edge if ``|x_j - x_i| <= 2 R + s_pp``.
         phi_pw: ball-wall edge if ``phi >= phi_pw`` (m).
         pp_pair_capacity: unordered ball pairs kept per graph (2 directed edges each).
+        contact_features: two more edge columns that make a contact visible to the network
+            (issue 10): ball-ball ``[|x_j - x_i| - 2 R, max(0, 2 R - |x_j - x_i|)]`` (surface
+            gap and overlap, m), ball-wall ``[-phi - R, max(0, phi + R)]`` (the same for the
+            wall). Off: the paper's 3 columns.
     """
 
     n_particles: int
@@ -84,6 +88,7 @@ class GraphSpec:
     pp_skin: float = 1.5e-3
     phi_pw: float = -0.0052
     pp_pair_capacity: int = 96
+    contact_features: bool = False
 
     def __post_init__(self) -> None:
         if self.n_particles < 1 or self.window < 1 or self.pp_pair_capacity < 1:
@@ -120,6 +125,11 @@ class GraphSpec:
         return SLOT_DIM * self.window
 
     @property
+    def edge_dim(self) -> int:
+        """Edge feature columns: 3 (displacement or phi n), 5 with ``contact_features``."""
+        return 5 if self.contact_features else 3
+
+    @property
     def pp_cutoff(self) -> float:
         """Centre distance (m) up to which two balls are joined by an edge."""
         return 2.0 * self.ball_radius + self.pp_skin
@@ -139,6 +149,7 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
         pp_skin=cfg.graph.pp_skin,
         phi_pw=cfg.graph.phi_pw,
         pp_pair_capacity=max(1, (cfg.graph.pp_edges_per_particle * n) // 2),
+        contact_features=cfg.graph.contact_features,
     )
 
 
@@ -273,10 +284,19 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     e_cap = spec.edge_capacity
     senders = jnp.full((e_cap,), pad, jnp.int32)
     receivers = jnp.full((e_cap,), pad, jnp.int32)
-    efeat = jnp.zeros((e_cap, 3), jnp.float64)
+    efeat = jnp.zeros((e_cap, spec.edge_dim), jnp.float64)
     senders = senders.at[slot].set(pj, mode="drop").at[slot + 1].set(pi, mode="drop")
     receivers = receivers.at[slot].set(pi, mode="drop").at[slot + 1].set(pj, mode="drop")
-    efeat = efeat.at[slot].set(rij, mode="drop").at[slot + 1].set(-rij, mode="drop")
+    pp_feat = rij
+    if spec.contact_features:
+        # sqrt of the squared distance + tiny: differentiable also at coincident centres
+        dist = jnp.sqrt(jnp.sum(rij * rij, axis=-1) + 1e-30)[:, None]
+        gap = dist - 2.0 * spec.ball_radius
+        pp_feat_j = jnp.concatenate([rij, gap, jnp.maximum(0.0, -gap)], axis=-1)
+        pp_feat_i = jnp.concatenate([-rij, gap, jnp.maximum(0.0, -gap)], axis=-1)
+    else:
+        pp_feat_j, pp_feat_i = pp_feat, -pp_feat
+    efeat = efeat.at[slot].set(pp_feat_j, mode="drop").at[slot + 1].set(pp_feat_i, mode="drop")
 
     # Ball-wall: wall -> b and b -> wall, both with phi_b n_b, placed after the kept pp edges.
     ball_ok = phi_now >= spec.phi_pw
@@ -285,6 +305,9 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     bslot = jnp.where(ball_ok, n_pp_kept + 2 * ball_rank, e_cap)
     balls = jnp.arange(n, dtype=jnp.int32)
     pw_feat = phi_now[:, None] * normal_now
+    if spec.contact_features:
+        wall_gap = (-phi_now - spec.ball_radius)[:, None]
+        pw_feat = jnp.concatenate([pw_feat, wall_gap, jnp.maximum(0.0, -wall_gap)], axis=-1)
     senders = senders.at[bslot].set(wall, mode="drop").at[bslot + 1].set(balls, mode="drop")
     receivers = receivers.at[bslot].set(balls, mode="drop").at[bslot + 1].set(wall, mode="drop")
     efeat = efeat.at[bslot].set(pw_feat, mode="drop").at[bslot + 1].set(pw_feat, mode="drop")

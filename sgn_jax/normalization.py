@@ -123,19 +123,20 @@ def compute_norm_stats(particle: np.ndarray, wall: np.ndarray, pp_edge: np.ndarr
 
     Args:
         particle: (M_p, 7W) ball-node features; wall: (M_w, 7W) wall-node features.
-        pp_edge, pw_edge: (M, 3) features of real ball-ball / ball-wall edges.
+        pp_edge, pw_edge: (M, 3) or (M, 5) features of real ball-ball / ball-wall edges.
         accel: (M_p, 3) acceleration targets (m/s^2); dissipation: (S,) dE targets (J).
         velocity_encoding: see :func:`encode_velocities`; the ball statistics are of the
             encoded columns.
     """
     f = np.asarray(particle).shape[-1]
+    e = np.asarray(pp_edge).shape[-1]  # 3, or 5 with GraphSpec.contact_features
     particle = encode_velocities(np.asarray(particle), velocity_encoding)
     return NormStats(
         velocity_encoding=velocity_encoding,
         particle=moments(particle, f, "particle"),
         wall=moments(wall, f, "wall"),
-        pp_edge=moments(np.reshape(pp_edge, (-1, 3)), 3, "pp_edge"),
-        pw_edge=moments(np.reshape(pw_edge, (-1, 3)), 3, "pw_edge"),
+        pp_edge=moments(np.reshape(pp_edge, (-1, e)), e, "pp_edge"),
+        pw_edge=moments(np.reshape(pw_edge, (-1, e)), e, "pw_edge"),
         accel=moments(np.reshape(accel, (-1, 3)), 3, "accel"),
         dissipation=moments(np.reshape(dissipation, (-1, 1)), 1, "dissipation"),
     )

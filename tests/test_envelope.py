@@ -82,3 +82,28 @@ def test_train_config_rejects_bad_noise_and_stride():
         TrainConfig(position_noise_std=-1.0)
     with pytest.raises(ConfigError, match="window_stride"):
         TrainConfig(window_stride=0)
+
+
+def test_contact_edge_features_give_gap_and_overlap():
+    import jax.numpy as jnp
+
+    from sgn_jax.graph import GraphSpec, Window, build_graph
+
+    r = 0.005
+    spec = GraphSpec(n_particles=2, window=1, ball_radius=r, dt=1e-4, contact_features=True)
+    x = jnp.array([[0.0, 0.0, 0.0], [2 * r - 4e-5, 0.0, 0.0]])  # 40 um overlap
+    window = Window(positions=jnp.stack([x, x]), offsets=jnp.zeros((1, 3)),
+                    offset_velocities=jnp.zeros((1, 3)), frequency_hz=jnp.asarray(5.0))
+
+    def query(sdf, points, offset):  # a wall far away: phi = -0.02 m
+        return jnp.full(points.shape[:-1], -0.02), jnp.zeros(points.shape)
+
+    graph, _ = build_graph(window, None, spec, query)
+    e = np.asarray(graph.edges["features"])
+    pp = np.asarray(graph.edges["pp"])
+    assert e.shape[1] == 5 and pp.sum() == 2
+    assert np.allclose(e[pp][:, 3], -4e-5, atol=1e-9)
+    assert np.allclose(e[pp][:, 4], 4e-5, atol=1e-9)
+    assert np.allclose(np.abs(e[pp][:, 0]), 2 * r - 4e-5, atol=1e-9)
+    off = GraphSpec(n_particles=2, window=1, ball_radius=r, dt=1e-4)
+    assert np.asarray(build_graph(window, None, off, query)[0].edges["features"]).shape[1] == 3
