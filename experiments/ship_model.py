@@ -43,6 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--results", default=None, help="results.json of run_experiments.py")
     p.add_argument("--case", default="emax_300rpm")
     p.add_argument("--what", default="SGN of the standard case")
+    p.add_argument("--manifest", default=None,
+                   help="the data manifest.json of generate_data.py (its sha256 is recorded)")
+    p.add_argument("--report", action="append", default=[],
+                   help="an experiments/envelope/report.py JSON (held-out table); repeatable")
     args = p.parse_args(argv)
 
     run = Path(args.run)
@@ -74,6 +78,14 @@ def main(argv: list[str] | None = None) -> int:
         "n_val": summary["n_val"],
         "train_wall_time_s": sum(r.get("epoch_seconds", 0.0) for r in history),
     }
+    if args.manifest:
+        provenance["data_manifest"] = {"file": args.manifest, "sha256": sha256_file(args.manifest)}
+    config_file = run / "config.toml"
+    if config_file.is_file():
+        provenance["config"] = config_file.read_text()
+    if args.report:
+        provenance["held_out_reports"] = [json.loads(Path(r).read_text()) | {"file": r}
+                                          for r in args.report]
     if args.results:
         results = json.loads(Path(args.results).read_text())
         provenance["held_out_evaluation"] = {
