@@ -67,7 +67,7 @@ class GraphDataset:
     Attributes:
         node_features: (S, N+1, 7W) float32, rows 0..N-1 balls, row N the wall node.
         edge_offsets: (S+1,) int64, edges of sample s are ``edge_offsets[s]:edge_offsets[s+1]``.
-        edge_features: (E, 3) float32; edge_senders, edge_receivers: (E,) int32 local node
+        edge_features: (E, 3 or 5) float32; edge_senders, edge_receivers: (E,) int32 local node
             indices (0..N); edge_is_pp: (E,) bool (False: ball-wall edge).
         accel: (S, N, 3) acceleration targets (m/s^2); dissipation: (S,) dE targets (J).
         source: (S,) index of the trajectory; window_end: (S,) sample index n ending the window.
@@ -326,7 +326,7 @@ class BatchPacker:
         receivers = np.full(cap, pad_node, np.int32)
         senders[:total] = ds.edge_senders[src] + seg * n1
         receivers[:total] = ds.edge_receivers[src] + seg * n1
-        efeat = np.zeros((cap, 3), np.float32)
+        efeat = np.zeros((cap, ds.edge_features.shape[-1]), np.float32)
         efeat[:total] = ds.edge_features[src]
         is_pp = np.zeros(cap, bool)
         is_pp[:total] = ds.edge_is_pp[src]

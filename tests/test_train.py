@@ -293,3 +293,33 @@ def test_cli_train_on_trajectory_files(cfg, tmp_path):
     assert info["n_train"] == 2 * (79 - 3 + 1)
     assert main(["train", "--config", str(cfg_path), "--data", str(tmp_path / "nope.npz"),
                  "--out", str(out / "x")]) == 2
+
+
+def test_contact_features_train_batches_equal_the_single_window_path(data, grid):
+    """With [graph] contact_features the 5-column edges pack, normalise and predict the same in
+    a training batch as in the rollout's build_graph + predict path."""
+    import dataclasses
+
+    traj, spec0, _, _, _ = data
+    spec = dataclasses.replace(spec0, contact_features=True)
+    raw = featurize_trajectory(traj, spec, grid, np.arange(spec.window, 80), chunk=32)
+    assert raw.edge_features.shape[1] == 5
+    stats = norm_stats_from_dataset(raw, "differences")
+    assert np.asarray(stats.pp_edge.mean).shape == (5,)
+    ds = normalize_dataset(raw, stats)
+    model = SGN(hidden=24)
+    packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
+    idx = np.array([5, 33, 71])
+    batch = packer.make(idx)
+    params = init_params(model, batch.graph, 3)
+    accel_b, _ = jax.jit(make_apply(model))(params, batch.graph)
+    predict = jax.jit(make_predict(model))
+    builder = make_graph_builder(None, spec)
+    wins, _, _ = windows_from_trajectory(traj, spec.window, ends=raw.window_end[idx])
+    graphs, _ = builder(jax.tree_util.tree_map(jnp.asarray, wins), grid)
+    for k in range(len(idx)):
+        g = jax.tree_util.tree_map(lambda a, k=k: a[k], graphs)
+        accel, _ = predict(params, stats, g)
+        rows = slice(k * (N + 1), k * (N + 1) + N)
+        accel_phys = np.asarray(accel_b[rows]) * stats.accel.std + stats.accel.mean
+        np.testing.assert_allclose(np.asarray(accel[:N]), accel_phys, rtol=1e-4, atol=1e-3)
