@@ -18,6 +18,8 @@ runs, its submodules import their siblings without re-entering it). The root pac
 import ast
 from pathlib import Path
 
+import pytest
+
 PACKAGE = "sgn_jax"
 PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 
@@ -139,24 +141,31 @@ def _find_cycle(edges) -> list[str] | None:
     return None
 
 
+def _where(module: str, line: int) -> str:
+    path = _module_files()[module]
+    return f"{path.relative_to(PACKAGE_DIR.parent)}:{line}"
+
+
 def test_the_module_level_import_graph_has_no_cycles():
     edges, _ = import_graph()
     assert len(edges) > 20, "found too few modules: is PACKAGE_DIR right?"
     cycle = _find_cycle(edges)
-    assert cycle is None, "module-level import cycle: " + " -> ".join(
-        f"{a} (line {edges[a][b]})" for a, b in zip(cycle, cycle[1:], strict=False)
-    ) + f" -> {cycle[-1]}"
+    if cycle:
+        pytest.fail("module-level import cycle (break it, see docs/architecture.md, Imports):\n"
+                    + "\n".join(f"  {_where(a, edges[a][b])}: {a} imports {b}"
+                                 for a, b in zip(cycle, cycle[1:], strict=False)),
+                    pytrace=False)
 
 
 def test_function_level_imports_of_the_package_are_allowlisted():
     _, deferred = import_graph()
     offending = sorted({
-        f"{PACKAGE_DIR.parent / module.replace('.', '/')}:{line}: {module} imports {target} "
-        "inside a function"
+        f"  {_where(module, line)}: {module} imports {target} inside a function"
         for module, target, line in deferred if (module, target) not in DEFERRED_IMPORTS})
-    assert not offending, (
-        "move these imports to the top of the module, or list them in DEFERRED_IMPORTS with a "
-        "reason:\n" + "\n".join(offending))
+    if offending:
+        pytest.fail("move these imports to the top of the module, or list them in "
+                    "DEFERRED_IMPORTS (tests/test_architecture.py) with a reason:\n"
+                    + "\n".join(offending), pytrace=False)
 
 
 def test_the_allowlist_has_no_stale_entries():
