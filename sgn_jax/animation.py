@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from sgn_jax.geometry import jar_mesh_from_config
 from sgn_jax.io_utils import atomic_write
 
 # Layout of the GIF's figure (inches): tick labels and axis titles around the four panels.
@@ -65,8 +66,6 @@ def jar_sections(jar_cfg: Any) -> JarSections:
     for the parametric jar); both come from ``trimesh.intersections.mesh_plane``.
     """
     from trimesh.intersections import mesh_plane
-
-    from sgn_jax.geometry import jar_mesh_from_config
 
     mesh = jar_mesh_from_config(jar_cfg)
     lower, upper = (np.asarray(b, dtype=np.float64) for b in mesh.bounds)

@@ -34,7 +34,9 @@ from typing import Any
 import jax
 import numpy as np
 
+from sgn_jax.config import ConfigError, config_from_dict
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.model import make_model, make_predict
 from sgn_jax.normalization import NormStats, stats_from_arrays, stats_to_arrays
 
 ITEMS = ("params", "opt_state", "norm", "meta")
@@ -346,17 +348,12 @@ class TrainedModel:
 
     def predict_fn(self):
         """Pure ``predict(params, stats, raw_graph) -> (accel m/s^2, dE J)`` (see model.py)."""
-        from sgn_jax.model import make_predict
-
         return make_predict(self.model)
 
 
 def load_trained_model(path: str | Path, which: str = "best") -> TrainedModel:
     """Load the model of a training run directory (``which`` = "best" or "latest") or of a
     checkpoint directory, with its config and normalisation statistics."""
-    from sgn_jax.config import ConfigError, config_from_dict
-    from sgn_jax.model import make_model
-
     path = Path(path)
     if which not in ("best", "latest"):
         raise CheckpointError(f"which must be 'best' or 'latest', got {which!r}")

@@ -1,10 +1,11 @@
 """The ``sgn-jax`` command line.
 
 Each subcommand is registered by a ``_add_<name>`` function below and dispatched to a
-``_cmd_<name>`` handler. The handlers import their heavy modules (training, plotting, orbax,
-the demo) inside the handler, so ``sgn-jax --help`` does not pay for them. Every error that
-derives from :class:`sgn_jax.errors.SGNJaxError` (bad config, bad file, a run that failed) is
-printed as one clear line, exit code 2.
+``_cmd_<name>`` handler. The handlers that plot import :mod:`sgn_jax.plots` (matplotlib)
+inside the handler, so ``sgn-jax --help`` does not pay for it (orbax is imported where a
+checkpoint is read or written). Every error that derives from
+:class:`sgn_jax.errors.SGNJaxError` (bad config, bad file, a run that failed) is printed as one
+clear line, exit code 2.
 """
 
 from __future__ import annotations
@@ -21,11 +22,20 @@ from sgn_jax.checkpoint import load_trained_model
 from sgn_jax.config import resolve_config
 from sgn_jax.dataset import load_trajectory
 from sgn_jax.dem.driver import run_dem
-from sgn_jax.demo import resolve_checkpoint
+from sgn_jax.demo import format_report, resolve_checkpoint, run_demo
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.geometry import jar_mesh_from_config, mesh_report
 from sgn_jax.io_utils import atomic_write, write_json
+from sgn_jax.metrics import (
+    MetricsWarning,
+    compare,
+    ensemble_summary,
+    motion_warning_lines,
+)
+from sgn_jax.metrics import headline as run_headline
+from sgn_jax.prediction import load_prediction
 from sgn_jax.rollout import run_rollout
+from sgn_jax.train import train
 from sgn_jax.validation import check_duration, warn_outside_envelope
 
 
@@ -90,8 +100,6 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from sgn_jax.demo import format_report, run_demo
-
     summary = run_demo(args.out, checkpoint=args.checkpoint, duration=args.duration,
                        seed=args.seed, config=args.config, progress=not args.no_progress,
                        log=lambda msg: print(f"sgn-jax demo: {msg}", file=sys.stderr))
@@ -125,8 +133,6 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from sgn_jax.train import train
-
     if args.epochs is not None and args.epochs < 1:
         raise UserError(f"--epochs must be >= 1, got {args.epochs}")
     paths = [p.strip() for p in args.data.split(",") if p.strip()]
@@ -267,15 +273,8 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from sgn_jax.metrics import (
-        MetricsWarning,
-        compare,
-        ensemble_summary,
-        motion_warning_lines,
-    )
-    from sgn_jax.metrics import headline as run_headline
+    # deferred: sgn_jax.plots imports matplotlib, which the other commands do not need
     from sgn_jax.plots import plot_ensemble, plot_run
-    from sgn_jax.prediction import load_prediction
 
     if len(args.prediction) != len(args.reference):
         raise UserError(f"got {len(args.prediction)} --prediction file(s) but "
@@ -381,6 +380,7 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
 def _cmd_sensitivity(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    # deferred: sgn_jax.plots imports matplotlib, which the other commands do not need
     from sgn_jax.plots import plot_sensitivity
 
     api.check_study_sizes(args.duration, args.burn_in, args.packings)

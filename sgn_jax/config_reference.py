@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 
 from sgn_jax import config as config_module
 from sgn_jax.config import Config, MotionConfig
+from sgn_jax.io_utils import atomic_write
 
 REGENERATE_COMMAND = "python -m sgn_jax.config_reference --out docs/config.md"
 
@@ -295,8 +296,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is None:
         sys.stdout.write(text)
     else:
-        from sgn_jax.io_utils import atomic_write
-
         with atomic_write(args.out, "w") as fh:
             fh.write(text)
     return 0

@@ -39,8 +39,11 @@ from typing import Any
 
 import numpy as np
 
+import sgn_jax
 from sgn_jax import records
+from sgn_jax.config import config_to_dict
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.io_utils import git_commit
 from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
 
 
@@ -198,10 +201,6 @@ def build_meta(config: Any, *, seed: int | None = None, extra: Mapping[str, Any]
     ball radius and mass from ``config.balls``, ``code_version`` is the package version and git
     commit, ``created`` the current UTC time. ``extra`` entries are added (and may override).
     """
-    import sgn_jax
-    from sgn_jax.config import config_to_dict
-    from sgn_jax.io_utils import git_commit
-
     radius = float(config.balls.radius)
     meta = {
         "config": config_to_dict(config),

@@ -47,16 +47,25 @@ from typing import Any
 
 import numpy as np
 
+from sgn_jax.animation import select_frames, write_comparison_gif
+from sgn_jax.checkpoint import CheckpointError, latest_step, load_trained_model
 from sgn_jax.config import resolve_config
+from sgn_jax.dataset import load_trajectory
 from sgn_jax.dem.driver import run_dem
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.io_utils import machine_info, write_json
 from sgn_jax.metrics import (
     MOTION_MSE_FLOOR_MAX_RATIO,
     MOTION_OVERLAP_MAX_M,
     MOTION_SNAPPED_FRACTION_MAX,
     MOTION_SPEED_TOLERANCE,
+    MetricsWarning,
+    compare,
     motion_warning_lines,
+    position_mse,
 )
+from sgn_jax.prediction import load_prediction
+from sgn_jax.rollout import run_rollout
 from sgn_jax.validation import check_duration, warn_outside_envelope
 
 DEFAULT_CASE = "emax_300rpm"
@@ -88,8 +97,6 @@ def shipped_model_dir(case: str = DEFAULT_CASE) -> Path:
 def has_checkpoint(path: str | Path) -> bool:
     """True if ``path`` is a training run directory (with ``checkpoints/``) or a checkpoint
     directory holding at least one complete step."""
-    from sgn_jax.checkpoint import latest_step
-
     path = Path(path)
     if (path / "checkpoints").is_dir():
         return True
@@ -180,13 +187,8 @@ def run_demo(
         dicts, :func:`sgn_jax.metrics.motion_checks`), ``motion_warnings`` (messages of the
         failed checks), ``files``, ``wall_time_s``.
     """
-    from sgn_jax.checkpoint import CheckpointError, load_trained_model
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.io_utils import write_json
-    from sgn_jax.metrics import MetricsWarning, compare, position_mse
+    # deferred: sgn_jax.plots imports matplotlib; api and cli import this module without plotting
     from sgn_jax.plots import plot_run
-    from sgn_jax.prediction import load_prediction
-    from sgn_jax.rollout import run_rollout
 
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -349,8 +351,6 @@ def _interval_sum(cumulative: np.ndarray, alignment: Any) -> float:
 
 def _machine() -> dict[str, Any]:
     """Where the timings were taken (the demo's numbers are benchmarks too)."""
-    from sgn_jax.io_utils import machine_info
-
     return machine_info()
 
 
@@ -361,8 +361,6 @@ def _per_ball(value: Any, n_balls: int) -> float | None:
 def _write_animation(path: Path, prediction: Any, traj: Any, comparison: Any, case_cfg: Any,
                      n_frames: int, progress: bool) -> Path:
     """About ``n_frames`` frames over the rollout: DEM and SGN at the prediction's frame times."""
-    from sgn_jax.animation import select_frames, write_comparison_gif
-
     al = comparison.alignment
     if al.frame_index.size == 0:
         raise DemoError("no prediction frame has a DEM sample at the same time")

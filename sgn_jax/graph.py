@@ -49,7 +49,10 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
+from sgn_jax.config import MotionConfig, config_from_dict
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.geometry import query_sdf_grid
+from sgn_jax.motion import frequency_hz, motion_from_config
 
 # One slot's particle columns: velocity (0..2), phi (3), unit normal (4..6).
 SLOT_DIM = 7
@@ -204,8 +207,6 @@ class EdgeCounts(NamedTuple):
 
 
 def _default_query() -> SDFQuery:
-    from sgn_jax.geometry import query_sdf_grid
-
     return query_sdf_grid
 
 
@@ -376,9 +377,6 @@ def trajectory_frequency_hz(traj: Any, default: float | None = None) -> float:
     meta = getattr(traj, "meta", None) or {}
     cfg = meta.get("config") if isinstance(meta, dict) else None
     if cfg is not None:
-        from sgn_jax.config import MotionConfig, config_from_dict
-        from sgn_jax.motion import frequency_hz, motion_from_config
-
         motion_cfg = cfg if isinstance(cfg, MotionConfig) else None
         if motion_cfg is None:
             section = cfg.get("motion") if isinstance(cfg, dict) else getattr(cfg, "motion", None)

@@ -16,6 +16,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+import sgn_jax
+
 
 @contextlib.contextmanager
 def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
@@ -129,8 +131,6 @@ def machine_info() -> dict[str, Any]:
     import time
 
     import jax
-
-    import sgn_jax
 
     affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     load = os.getloadavg()

@@ -15,8 +15,8 @@ Pure numpy. The pieces (each usable alone):
 - regime indicators: :func:`pp_contact_counts` (the DEM's contact list),
   :func:`pairs_within` (pairs with centre distance <= 2 R + skin, the graph's own edge rule, so
   the DEM count computed this way is the apples-to-apples number for the surrogate's
-  ``n_pp_edges / 2``), :func:`kinetic_energy_fd` (from finite-difference velocities) and the
-  mean dissipation power.
+  ``n_pp_edges / 2``; it and :func:`deepest_pair_overlap` are defined in :mod:`sgn_jax.pairs`),
+  :func:`kinetic_energy_fd` (from finite-difference velocities) and the mean dissipation power.
 - :func:`compare` -> :class:`Comparison` (full-length curves for plots and the summary),
   :func:`evaluate` -> JSON-able dict, :func:`ensemble_summary` over runs (SPEC 7).
 - motion checks (is the energy agreement right for the right reason?):
@@ -53,7 +53,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sgn_jax.errors import SGNJaxError
+from sgn_jax.dataset import load_trajectory
+from sgn_jax.pairs import MetricsError, deepest_pair_overlap, pairs_within
+from sgn_jax.prediction import load_prediction
 
 BED_PAIRS_PER_BALL = 0.75
 """``classify_by="contacts"`` threshold: mean pairs within the edge skin per ball (bed if >=)."""
@@ -105,11 +107,6 @@ ENERGY_TRUST_WARNING = (
 
 _ALIGN_TOL_FRACTION = 0.1  # match times within dt / 10
 _OFFSET_WARN_M = 1e-5  # jar offsets of matched frames differ by more: wrong reference or motion
-_PAIR_CHUNK = 4096  # samples per chunk in pairs_within (N^2 distances each)
-
-
-class MetricsError(SGNJaxError, ValueError):
-    """The prediction and reference cannot be compared; the message says why and what to do."""
 
 
 class MetricsWarning(UserWarning):
@@ -182,50 +179,6 @@ def pp_contact_counts(pp_pairs: np.ndarray) -> np.ndarray:
     """Ball-ball contacts per sample from a DEM contact list (T, K, 2) padded with -1 -> (T,)."""
     pp_pairs = np.asarray(pp_pairs)
     return np.sum(np.all(pp_pairs >= 0, axis=-1), axis=-1).astype(np.int64)
-
-
-def pairs_within(pos: np.ndarray, cutoff: float) -> np.ndarray:
-    """Ball pairs i < j with centre distance <= ``cutoff`` (m), per frame: (T, N, 3) -> (T,).
-
-    With ``cutoff = 2 R + pp_skin`` this is the graph builder's ball-ball edge rule (directed
-    edges = 2 x pairs).
-    """
-    pos = np.asarray(pos, dtype=np.float64)
-    if pos.ndim != 3 or pos.shape[-1] != 3:
-        raise MetricsError(f"pairs_within needs (T, N, 3) positions, got {pos.shape}")
-    n_balls = pos.shape[1]
-    upper = np.triu(np.ones((n_balls, n_balls), dtype=bool), k=1)
-    counts = np.zeros(pos.shape[0], dtype=np.int64)
-    for start in range(0, pos.shape[0], _PAIR_CHUNK):
-        chunk = pos[start:start + _PAIR_CHUNK]
-        d2 = np.sum((chunk[:, :, None, :] - chunk[:, None, :, :]) ** 2, axis=-1)
-        counts[start:start + chunk.shape[0]] = np.sum((d2 <= cutoff * cutoff) & upper,
-                                                      axis=(1, 2))
-    return counts
-
-
-def deepest_pair_overlap(pos: np.ndarray, radius: float) -> np.ndarray:
-    """Deepest ball-ball overlap per frame: max over pairs i < j of 2 R - |x_i - x_j| (m).
-
-    Args:
-        pos: (T, N, 3) ball centres (m); radius: ball radius R (m).
-    Returns:
-        (T,) float64; negative where no pair touches (then minus the narrowest gap), NaN for
-        fewer than two balls.
-    """
-    pos = np.asarray(pos, dtype=np.float64)
-    if pos.ndim != 3 or pos.shape[-1] != 3:
-        raise MetricsError(f"deepest_pair_overlap needs (T, N, 3) positions, got {pos.shape}")
-    n_balls = pos.shape[1]
-    if n_balls < 2:
-        return np.full(pos.shape[0], np.nan)
-    i, j = np.triu_indices(n_balls, k=1)
-    deepest = np.empty(pos.shape[0])
-    for start in range(0, pos.shape[0], _PAIR_CHUNK):
-        chunk = pos[start:start + _PAIR_CHUNK]
-        distance = np.linalg.norm(chunk[:, i, :] - chunk[:, j, :], axis=-1)
-        deepest[start:start + chunk.shape[0]] = 2.0 * radius - distance.min(axis=1)
-    return deepest
 
 
 def kinetic_energy_fd(t: np.ndarray, pos: np.ndarray, ball_mass: float
@@ -355,9 +308,6 @@ def _match(t_query: np.ndarray, t_ref: np.ndarray, dt_ref: float, tol: float
 
 
 def _load(prediction: Any, reference: Any) -> tuple[Any, Any]:
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.prediction import load_prediction
-
     if isinstance(prediction, (str, Path)):
         prediction = load_prediction(prediction)
     if isinstance(reference, (str, Path)):

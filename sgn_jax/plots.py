@@ -27,6 +27,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from sgn_jax.io_utils import atomic_write
+from sgn_jax.metrics import relative_error
 
 _DPI = 150
 _PRED_COLOR = "tab:blue"
@@ -94,8 +95,6 @@ def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
         t: (S,) s; e_pred: (S,) J; e_ref: (S,) J, NaN where the reference does not cover the
             prediction (the prediction is drawn on, the reference stops, as in Fig. 8).
     """
-    from sgn_jax.metrics import relative_error
-
     t, e_pred, e_ref = _as_1d(t, "t"), _as_1d(e_pred, "e_pred"), _as_1d(e_ref, "e_ref")
     if not t.shape == e_pred.shape == e_ref.shape:
         raise ValueError(f"t, e_pred and e_ref must have the same length, got {t.size}, "

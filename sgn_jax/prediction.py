@@ -52,6 +52,7 @@ import numpy as np
 
 from sgn_jax import records
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.pairs import pairs_within
 from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
 
 
@@ -280,8 +281,6 @@ def prediction_from_trajectory(traj: Any, start_index: int, n_steps: int, *,
     Returns:
         (arrays, meta) ready for :func:`save_prediction`.
     """
-    from sgn_jax.metrics import pairs_within
-
     if not 0 <= start_index or n_steps < 1 or start_index + n_steps >= traj.n_samples:
         raise PredictionError(
             f"need 0 <= start_index and n_steps >= 1 with start_index + n_steps < T = "

@@ -32,6 +32,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from sgn_jax.config import ConfigError, config_from_dict
 from sgn_jax.io_utils import atomic_write, json_default
 
 
@@ -80,8 +81,6 @@ class RecordFormat:
 
     def config_from_meta(self, meta: Mapping[str, Any], path: str | Path | None) -> Any:
         """The run's ``sgn_jax.config.Config`` rebuilt from ``meta['config']``."""
-        from sgn_jax.config import ConfigError, config_from_dict
-
         try:
             return config_from_dict(dict(meta["config"]))
         except ConfigError as exc:

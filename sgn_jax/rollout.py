@@ -61,9 +61,23 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
+import sgn_jax
+from sgn_jax.config import config_to_dict
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.graph import GraphSpec, SDFQuery, Window, build_graph, slide_window
-from sgn_jax.motion import Motion, frequency_hz, offset, velocity
+from sgn_jax.geometry import jar_sdf, query_sdf_grid, safe_normalize, sdf_grid_from_config
+from sgn_jax.graph import (
+    GraphSpec,
+    SDFQuery,
+    Window,
+    build_graph,
+    graph_spec_from_config,
+    slide_window,
+    windows_from_arrays,
+)
+from sgn_jax.io_utils import git_commit
+from sgn_jax.model import make_predict
+from sgn_jax.motion import Motion, frequency_hz, motion_from_config, offset, velocity
+from sgn_jax.prediction import save_prediction
 
 F64 = jnp.float64
 I32 = jnp.int32
@@ -175,8 +189,6 @@ def model_predictor(model_or_predict: Any) -> Predictor:
     """Predictor of an SGN: a flax ``SGN`` module or a ``predict(params, stats, raw_graph)``
     from :func:`sgn_jax.model.make_predict`. Returns the N ball rows and dE of graph 0."""
     if isinstance(model_or_predict, nn.Module):
-        from sgn_jax.model import make_predict
-
         predict = make_predict(model_or_predict)
     elif callable(model_or_predict):
         predict = model_or_predict
@@ -214,8 +226,6 @@ def analytic_jar_query(jar: Any, points: jax.Array, jar_offset: jax.Array
     ``(..., 3)`` for a jar at ``jar_offset`` (3,). The normal is the autodiff gradient of
     :func:`sgn_jax.geometry.jar_sdf`; both are differentiable in the points, the offset and the
     jar parameters (a kink only on the medial surfaces, where two walls are equally near)."""
-    from sgn_jax.geometry import jar_sdf, safe_normalize
-
     x = jnp.asarray(points) - jnp.asarray(jar_offset)
     flat = x.reshape(-1, 3)
     phi, grad = jax.vmap(jax.value_and_grad(lambda p: jar_sdf(jar, p)))(flat)
@@ -223,8 +233,6 @@ def analytic_jar_query(jar: Any, points: jax.Array, jar_offset: jax.Array
 
 
 def _default_query() -> SDFQuery:
-    from sgn_jax.geometry import query_sdf_grid
-
     return query_sdf_grid
 
 
@@ -576,8 +584,6 @@ def _effective_config(trained_cfg: Any, override: Any) -> Any:
 
 def initial_window(traj: Any, start_index: int, window: int, freq: float = 0.0) -> Window:
     """The :class:`Window` of a trajectory ending at sample ``start_index`` (float64 numpy)."""
-    from sgn_jax.graph import windows_from_arrays
-
     n_samples = int(np.shape(traj.pos)[0])
     if not window <= start_index < n_samples:
         raise RolloutError(
@@ -614,14 +620,6 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
         and meta under "arrays" and "meta".
     """
     from tqdm.auto import tqdm
-
-    import sgn_jax
-    from sgn_jax.config import config_to_dict
-    from sgn_jax.geometry import sdf_grid_from_config
-    from sgn_jax.graph import graph_spec_from_config
-    from sgn_jax.io_utils import git_commit
-    from sgn_jax.motion import motion_from_config
-    from sgn_jax.prediction import save_prediction
 
     cfg = _effective_config(trained_model.config, cfg_override)
     rcfg = cfg.rollout

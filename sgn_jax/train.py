@@ -41,7 +41,12 @@ import jraph
 import numpy as np
 import optax
 
+import sgn_jax
+from sgn_jax.checkpoint import latest_step, restore_checkpoint, save_checkpoint
+from sgn_jax.config import config_to_dict, replace_section, save_config
+from sgn_jax.envelope import ENVELOPE_PATH, load_envelope
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.geometry import sdf_grid_from_config
 from sgn_jax.graph import (
     GraphError,
     GraphSpec,
@@ -54,7 +59,9 @@ from sgn_jax.graph import (
     velocity_columns,
     windows_from_arrays,
 )
-from sgn_jax.normalization import NormStats, compute_norm_stats, encode_velocities
+from sgn_jax.io_utils import atomic_write, git_commit, write_json
+from sgn_jax.model import count_params, init_params, make_apply, make_model
+from sgn_jax.normalization import NormStats, compute_norm_stats, encode_velocities, stats_to_arrays
 
 # --------------------------------------------------------------------------------------------
 # Precomputed graphs
@@ -475,8 +482,6 @@ METRIC_FIELDS = ("epoch", "step", "lr", "train_loss", "train_node", "train_globa
 
 def write_metrics(out_dir: Path, history: list[dict[str, Any]]) -> None:
     """``metrics.jsonl`` and ``metrics.csv`` (rewritten atomically) and ``loss.png``."""
-    from sgn_jax.io_utils import atomic_write
-
     with atomic_write(out_dir / "metrics.jsonl", "w") as fh:
         for row in history:
             fh.write(json.dumps(row, sort_keys=True) + "\n")
@@ -502,8 +507,6 @@ def plot_losses(history: list[dict[str, Any]], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from sgn_jax.io_utils import atomic_write
 
     if not history:
         return
@@ -550,8 +553,6 @@ def check_trajectory_matches(traj: Any, cfg: Any, name: str) -> None:
         problems.append(f"ball radius {meta['ball_radius']}, config {cfg.balls.radius}")
     saved = meta.get("config") if isinstance(meta, dict) else None
     if isinstance(saved, dict) and "jar" in saved:
-        from sgn_jax.config import config_to_dict
-
         if saved["jar"] != config_to_dict(cfg)["jar"]:
             problems.append(f"jar {saved['jar']}, config [jar] {config_to_dict(cfg)['jar']} "
                             "(the featurizer would use the wrong SDF)")
@@ -616,13 +617,6 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     """
     from tqdm.auto import tqdm
 
-    import sgn_jax
-    from sgn_jax.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-    from sgn_jax.config import config_to_dict, replace_section, save_config
-    from sgn_jax.io_utils import git_commit, write_json
-    from sgn_jax.model import count_params, init_params, make_apply, make_model
-    from sgn_jax.normalization import stats_to_arrays
-
     if epochs is not None:
         cfg = replace_section(cfg, "train", epochs=int(epochs))
     tcfg = cfg.train
@@ -635,8 +629,6 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     if resume and existing is None:
         log(f"no checkpoint in {ckpt_latest}; starting a new run")
     if sdf is None:
-        from sgn_jax.geometry import sdf_grid_from_config
-
         sdf = sdf_grid_from_config(cfg)
 
     t0 = time.perf_counter()
@@ -712,8 +704,6 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
                 for r in history), default=math.inf)
     meta_base = {"config": config_to_dict(cfg), "info": info}
     if tcfg.envelope:
-        from sgn_jax.envelope import ENVELOPE_PATH, load_envelope
-
         path = ENVELOPE_PATH if tcfg.envelope == "default" else Path(tcfg.envelope)
         meta_base["envelope"] = load_envelope(path).to_meta()
 

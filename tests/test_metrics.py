@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from sgn_jax import cli, metrics
+from sgn_jax import cli, metrics, pairs
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.dataset import build_meta, load_trajectory, save_trajectory
 from sgn_jax.metrics import (
@@ -178,7 +178,7 @@ def test_small_functions_known_answers():
 def test_pairs_within_across_chunks(monkeypatch):
     pos = np.broadcast_to(BASE, (7, 4, 3)).copy()
     pos[3:, 3] = pos[3:, 2] + [0.0114, 0.0, 0.0]  # 0.4 mm gap: now within the skin too
-    monkeypatch.setattr(metrics, "_PAIR_CHUNK", 2)
+    monkeypatch.setattr(pairs, "_PAIR_CHUNK", 2)  # pairs_within lives in sgn_jax.pairs
     np.testing.assert_array_equal(pairs_within(pos, 2 * RADIUS + 1.5e-3), [1, 1, 1, 2, 2, 2, 2])
     np.testing.assert_array_equal(pairs_within(pos, 0.0105), 0)
 

@@ -41,6 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax import geometry as geo
+from sgn_jax import motion as motion_mod
 from sgn_jax.dem.contact import (
     ContactLaw,
     contact_dissipation,
@@ -185,12 +187,10 @@ def make_params(
 
 def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DEMParams:
     """DEMParams of an experiment config (balls, material, gravity, jar patches, motion)."""
-    from sgn_jax.motion import motion_from_config
-
     if geometry is None:
         geometry = geometry_from_config(cfg).geometry
     if motion is None:
-        motion = motion_from_config(cfg.motion)
+        motion = motion_mod.motion_from_config(cfg.motion)
     m = cfg.material
     return make_params(
         radius=cfg.balls.radius, density=cfg.balls.density, young=m.young, poisson=m.poisson,
@@ -219,28 +219,20 @@ class JarGeometry(NamedTuple):
 
 
 def _emax_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    from sgn_jax.geometry import jar_patch_sdf_and_normal
-
-    return jar_patch_sdf_and_normal(g, x_jar)
+    return geo.jar_patch_sdf_and_normal(g, x_jar)
 
 
 def _emax_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
-    from sgn_jax.geometry import jar_sdf
-
-    return jar_sdf(g, x_jar)
+    return geo.jar_sdf(g, x_jar)
 
 
 def _grid_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    from sgn_jax.geometry import query_sdf_grid
-
-    phi, normal = query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
+    phi, normal = geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
     return phi[..., None].astype(x_jar.dtype), normal[..., None, :].astype(x_jar.dtype)
 
 
 def _grid_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
-    from sgn_jax.geometry import grid_sdf
-
-    return grid_sdf(g, x_jar)
+    return geo.grid_sdf(g, x_jar)
 
 
 def geometry_from_config(cfg: Any) -> JarGeometry:
@@ -251,8 +243,6 @@ def geometry_from_config(cfg: Any) -> JarGeometry:
     spacing): a ball in a concave edge of an STL jar then feels only the nearer wall, and the
     wall is only as smooth as the trilinear grid (documented limitation, SPEC 3).
     """
-    from sgn_jax import geometry as geo
-
     if cfg.jar.kind == "emax":
         params = geo.jar_params_from_config(cfg.jar)
         params = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params)
@@ -431,7 +421,7 @@ def init_state(
 ) -> DEMState:
     """A fresh state (no contact histories) at DEM step ``step`` (negative: settling)."""
     if offset_fn is None:
-        from sgn_jax.motion import offset as offset_fn
+        offset_fn = motion_mod.offset
     dtype = spec.jnp_dtype
     pos = jnp.asarray(pos, dtype=dtype)
     if pos.shape != (spec.n_balls, 3):
@@ -485,8 +475,6 @@ def _wall_geometry(wall_fn: WallFn, geometry: Any, radius: Any, pos: jnp.ndarray
 
 def _default_motion_fns(offset_fn: MotionFn | None, velocity_fn: MotionFn | None
                         ) -> tuple[MotionFn, MotionFn]:
-    from sgn_jax import motion as motion_mod
-
     return (offset_fn or motion_mod.offset), (velocity_fn or motion_mod.velocity)
 
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.jar import JarParams, jar_sdf
+from sgn_jax.geometry.sdf_grid import grid_sdf
 
 FLOOR, LID, WALL_ZPLUS, WALL_ZMINUS, ARC_RIGHT, ARC_LEFT, POST, CORNER = range(8)
 PIECE_NAMES = ("floor", "lid", "wall_z+", "wall_z-", "arc_right", "arc_left", "post", "corner")
@@ -103,8 +104,6 @@ def grid_error_report(
     "smooth_curved", "crease" (cell straddles a kink), "band" (exact phi > ``band``: where
     wall contacts and wall edges happen) and "band_smooth".
     """
-    from sgn_jax.geometry.sdf_grid import grid_sdf
-
     points = cavity_points(params, n_points, seed)
     exact = np.asarray(jar_sdf(params, jnp.asarray(points)))
     phi = np.asarray(grid_sdf(grid, jnp.asarray(points, grid.values.dtype)), dtype=np.float64)

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
+from sgn_jax.geometry.stl import load_stl
 
 
 @flax.struct.dataclass
@@ -238,8 +239,6 @@ def jar_mesh_from_config(jar_cfg: Any) -> Any:
     if jar_cfg.kind == "emax":
         return jar_mesh(jar_params_from_config(jar_cfg))
     if jar_cfg.kind == "stl":
-        from sgn_jax.geometry.stl import load_stl
-
         return load_stl(jar_cfg.stl_path, jar_cfg.stl_units)
     raise GeometryError(f"[jar] kind must be 'emax' or 'stl', got {jar_cfg.kind!r}")
 

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.common import GeometryError
+from sgn_jax.geometry.stl import check_closed_mesh
 
 # Feature codes of the closest point on a triangle (a, b, c) = vertices (0, 1, 2).
 FACE, EDGE_AB, EDGE_BC, EDGE_CA, VERTEX_A, VERTEX_B, VERTEX_C = range(7)
@@ -231,8 +232,6 @@ class _MeshData:
     """A validated mesh, recentred (for precision), with its packed triangles and pseudonormals."""
 
     def __init__(self, mesh: Any) -> None:
-        from sgn_jax.geometry.stl import check_closed_mesh
-
         mesh = check_closed_mesh(mesh.copy(), name="mesh")  # copy: never invert the caller's
         self.shift = np.asarray(mesh.bounds, dtype=np.float64).mean(axis=0)
         triangles = np.asarray(mesh.triangles, dtype=np.float64) - self.shift

@@ -31,7 +31,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
-from sgn_jax.geometry.jar import JarParams, jar_params_from_config, jar_patch_sdf, jar_sdf
+from sgn_jax.geometry.jar import (
+    JarParams,
+    jar_mesh_from_config,
+    jar_params_from_config,
+    jar_patch_sdf,
+    jar_sdf,
+)
+from sgn_jax.geometry.mesh_distance import signed_distance_grid
+from sgn_jax.io_utils import atomic_write
 
 # Bump when the way a mesh grid is computed changes, so that old cache files are not reused.
 MESH_GRID_CACHE_VERSION = 1
@@ -244,9 +252,6 @@ def sdf_grid_from_mesh(
     ``sdf_grid_<sha256>.npz`` in ``cache_dir`` (default :func:`default_cache_dir`), keyed by
     :func:`mesh_grid_cache_key`, and written atomically.
     """
-    from sgn_jax.geometry.mesh_distance import signed_distance_grid
-    from sgn_jax.io_utils import atomic_write
-
     lower = np.asarray(mesh.bounds[0], dtype=np.float64) - margin
     upper = np.asarray(mesh.bounds[1], dtype=np.float64) + margin
     origin, shape = grid_layout(lower, upper, spacing)
@@ -277,7 +282,6 @@ def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32, per_patch: bool = T
         return sdf_grid_from_jar(
             jar_params_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype, per_patch
         )
-    from sgn_jax.geometry.jar import jar_mesh_from_config
 
     return sdf_grid_from_mesh(jar_mesh_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype)
 

@@ -1,0 +1,192 @@
+"""Import rules of the package, checked on the source with `ast` (nothing is imported).
+
+1. The module-level import graph among `sgn_jax.*` modules has no cycles.
+2. An import of an `sgn_jax` module inside a function is allowed only when it is listed in
+   `DEFERRED_IMPORTS` with its reason (see docs/architecture.md, "Imports").
+
+How the graph is built. A module-level import is any import statement that is not inside a
+function body (class bodies and top-level `if`/`try` blocks run at import time and count;
+blocks under `if TYPE_CHECKING:` do not). `import sgn_jax.x` and `from sgn_jax.x import y`
+are edges to `sgn_jax.x`, or to `sgn_jax.x.y` when that is a module;
+`from sgn_jax import api` is an edge to `sgn_jax.api`. Importing `sgn_jax.a.b` also runs the
+package `sgn_jax.a` (its `__init__`, which re-exports its submodules), so it adds an edge to
+`sgn_jax.a` too, except from modules inside `sgn_jax.a` itself (while a package's `__init__`
+runs, its submodules import their siblings without re-entering it). The root package
+`sgn_jax` is a node like the others; its `__init__` imports no `sgn_jax` module.
+"""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = "sgn_jax"
+PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
+
+# (importing module, imported module) -> why the import stays inside a function.
+DEFERRED_IMPORTS: dict[tuple[str, str], str] = {
+    ("sgn_jax.cli", "sgn_jax.plots"):
+        "plots imports matplotlib at module level; only the plotting commands need it, so "
+        "`sgn-jax --help` and the other commands do not load it",
+    ("sgn_jax.demo", "sgn_jax.plots"):
+        "demo is imported by sgn_jax.api and sgn_jax.cli; only run_demo plots (matplotlib)",
+}
+
+
+def _module_files() -> dict[str, Path]:
+    """Module name -> source file, for every module and package under sgn_jax/."""
+    modules = {}
+    for path in sorted(PACKAGE_DIR.rglob("*.py")):
+        parts = list(path.relative_to(PACKAGE_DIR.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        modules[".".join(parts)] = path
+    return modules
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _imports(tree: ast.Module):
+    """Yield (import node, inside_function) for every import that can run."""
+    def walk(node, in_function):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import | ast.ImportFrom):
+                yield child, in_function
+            elif isinstance(child, ast.If) and _is_type_checking(child.test):
+                yield from walk(ast.Module(body=child.orelse, type_ignores=[]), in_function)
+            else:
+                nested = in_function or isinstance(
+                    child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda)
+                yield from walk(child, nested)
+    yield from walk(tree, False)
+
+
+def _targets(node: ast.Import | ast.ImportFrom, importer: str, modules) -> list[str]:
+    """The sgn_jax modules an import statement names (relative imports resolved)."""
+    if isinstance(node, ast.Import):
+        names = [alias.name for alias in node.names]
+        return [n for n in names if n == PACKAGE or n.startswith(PACKAGE + ".")]
+    base = node.module or ""
+    if node.level:
+        package = importer if modules[importer].name == "__init__.py" else importer.rpartition(
+            ".")[0]
+        for _ in range(node.level - 1):
+            package = package.rpartition(".")[0]
+        base = f"{package}.{base}" if base else package
+    if not (base == PACKAGE or base.startswith(PACKAGE + ".")):
+        return []
+    targets = []
+    for alias in node.names:
+        sub = f"{base}.{alias.name}"
+        targets.append(sub if sub in modules else base)
+    return list(dict.fromkeys(targets))
+
+
+def _with_parent_packages(importer: str, target: str) -> list[str]:
+    """The target plus the packages that importing it runs (see the module docstring)."""
+    out = [target]
+    parts = target.split(".")
+    for i in range(2, len(parts)):
+        package = ".".join(parts[:i])
+        if not importer.startswith(package + "."):
+            out.append(package)
+    return out
+
+
+def import_graph():
+    """(module-level edges {module: {imported: line}}, function-level [(module, imported, line)])."""
+    modules = _module_files()
+    edges: dict[str, dict[str, int]] = {name: {} for name in modules}
+    deferred = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node, in_function in _imports(tree):
+            for target in _targets(node, name, modules):
+                if in_function:
+                    deferred.append((name, target, node.lineno))
+                    continue
+                for dep in _with_parent_packages(name, target):
+                    if dep != name:
+                        edges[name].setdefault(dep, node.lineno)
+    return edges, deferred
+
+
+def _find_cycle(edges) -> list[str] | None:
+    """One cycle of the graph as [a, b, ..., a], or None."""
+    state: dict[str, int] = {}  # 1: on the stack, 2: done
+    stack: list[str] = []
+
+    def visit(node):
+        state[node] = 1
+        stack.append(node)
+        for dep in sorted(edges.get(node, {})):
+            if state.get(dep) == 1:
+                return stack[stack.index(dep):] + [dep]
+            if dep not in state:
+                cycle = visit(dep)
+                if cycle:
+                    return cycle
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(edges):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                return cycle
+    return None
+
+
+def _where(module: str, line: int) -> str:
+    path = _module_files()[module]
+    return f"{path.relative_to(PACKAGE_DIR.parent)}:{line}"
+
+
+def test_the_module_level_import_graph_has_no_cycles():
+    edges, _ = import_graph()
+    assert len(edges) > 20, "found too few modules: is PACKAGE_DIR right?"
+    cycle = _find_cycle(edges)
+    if cycle:
+        pytest.fail("module-level import cycle (break it, see docs/architecture.md, Imports):\n"
+                    + "\n".join(f"  {_where(a, edges[a][b])}: {a} imports {b}"
+                                 for a, b in zip(cycle, cycle[1:], strict=False)),
+                    pytrace=False)
+
+
+def test_function_level_imports_of_the_package_are_allowlisted():
+    _, deferred = import_graph()
+    offending = sorted({
+        f"  {_where(module, line)}: {module} imports {target} inside a function"
+        for module, target, line in deferred if (module, target) not in DEFERRED_IMPORTS})
+    if offending:
+        pytest.fail("move these imports to the top of the module, or list them in "
+                    "DEFERRED_IMPORTS (tests/test_architecture.py) with a reason:\n"
+                    + "\n".join(offending), pytrace=False)
+
+
+def test_the_allowlist_has_no_stale_entries():
+    _, deferred = import_graph()
+    used = {(module, target) for module, target, _ in deferred}
+    stale = sorted(set(DEFERRED_IMPORTS) - used)
+    assert not stale, f"DEFERRED_IMPORTS entries that no longer occur: {stale}"
+
+
+def test_the_checker_sees_cycles_and_deferred_imports():
+    assert _find_cycle({"a": {"b": 1}, "b": {"c": 2}, "c": {"a": 3}}) == ["a", "b", "c", "a"]
+    assert _find_cycle({"a": {"b": 1}, "b": {}, "c": {"a": 2}}) is None
+    tree = ast.parse(
+        "import sgn_jax.config\n"
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n    from sgn_jax import train\n"
+        "def f():\n    from sgn_jax.geometry import jar_sdf\n")
+    modules = _module_files()
+    found = [(_targets(node, "sgn_jax.api", modules), fn) for node, fn in _imports(tree)]
+    assert found == [(["sgn_jax.config"], False), ([], False), (["sgn_jax.geometry"], True)]
+    assert _with_parent_packages("sgn_jax.api", "sgn_jax.geometry.jar") == [
+        "sgn_jax.geometry.jar", "sgn_jax.geometry"]
+    assert _with_parent_packages("sgn_jax.geometry.sdf_grid", "sgn_jax.geometry.jar") == [
+        "sgn_jax.geometry.jar"]
