@@ -142,17 +142,43 @@ def markdown(rep: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def ablation_row(rep: dict[str, Any]) -> dict[str, Any]:
+    """One line of the ablation table: a report over the held-out envelope motions, condensed."""
+    rows = [r for r in rep["cases"] if r["relative_error_of_means"] is not None]
+    errs = [abs(r["relative_error_of_means"]) for r in rows]
+    speeds = [abs(r["jar_speed_relative"]) for r in rows if r["jar_speed_relative"] is not None]
+    overlaps = [r["deepest_overlap_m"] for r in rows if r["deepest_overlap_m"] is not None]
+    return {"experiment": rep["experiments"][0]["experiment"] if rep["experiments"] else None,
+            "cases": len(rows), "bars_met": sum(bool(r["meets_bar"]) for r in rows),
+            "mean_abs_power_error": float(np.mean(errs)) if errs else None,
+            "max_abs_power_error": float(np.max(errs)) if errs else None,
+            "spearman_rho": rep["heldout_spearman_rho"],
+            "mean_abs_speed_error": float(np.mean(speeds)) if speeds else None,
+            "deepest_overlap_m": max(overlaps) if overlaps else None,
+            "balls_outside_total": sum(r["balls_outside_total"] for r in rows),
+            "missing_runs": sum(r["missing_runs"] for r in rep["cases"])}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--experiment", action="append", required=True, type=Path)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--markdown", action="store_true")
+    p.add_argument("--ablation", action="store_true",
+                   help="one condensed row per --experiment (each its own report) instead")
     args = p.parse_args(argv)
     for exp in args.experiment:
         if not (exp / "results.json").is_file():
             print(f"report: error: {exp / 'results.json'} does not exist; run "
                   "experiments/run_experiments.py first", file=sys.stderr)
             return 2
+    if args.ablation:
+        rows = [ablation_row(report([exp])) for exp in args.experiment]
+        if args.out:
+            write_json(args.out, {"ablation": rows})
+        for r in rows:
+            print(json.dumps(r))
+        return 0
     rep = report(args.experiment)
     if args.out:
         write_json(args.out, rep)
