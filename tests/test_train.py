@@ -90,16 +90,13 @@ def test_tight_capacity_closes_batches_early(data):
 
 
 @pytest.mark.parametrize("encoding", ["absolute", "differences"])
-def test_batch_predictions_equal_the_single_window_path(data, grid, encoding):
+def _assert_batches_match_single_windows(traj, spec, raw, stats, grid, idx, seed):
     """Training batches (dataset path) and the rollout's build_graph + predict agree."""
-    traj, spec, raw, _, _ = data
-    stats = norm_stats_from_dataset(raw, encoding)
     ds = normalize_dataset(raw, stats)
     model = SGN(hidden=24)
     packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
-    idx = np.array([3, 40, 17, 60])
     batch = packer.make(idx)
-    params = init_params(model, batch.graph, 2)
+    params = init_params(model, batch.graph, seed)
     accel_b, de_b = jax.jit(make_apply(model))(params, batch.graph)
     predict = jax.jit(make_predict(model))
     builder = make_graph_builder(None, spec)
@@ -113,6 +110,14 @@ def test_batch_predictions_equal_the_single_window_path(data, grid, encoding):
         np.testing.assert_allclose(np.asarray(accel[:N]), accel_phys, rtol=1e-4, atol=1e-3)
         de_phys = float(de_b[k]) * stats.dissipation.std[0] + stats.dissipation.mean[0]
         np.testing.assert_allclose(float(de[0]), de_phys, rtol=1e-4)
+
+
+def test_batch_predictions_equal_the_single_window_path(data, grid, encoding):
+    """Training batches (dataset path) and the rollout's build_graph + predict agree."""
+    traj, spec, raw, _, _ = data
+    stats = norm_stats_from_dataset(raw, encoding)
+    _assert_batches_match_single_windows(traj, spec, raw, stats, grid,
+                                         np.array([3, 40, 17, 60]), 2)
 
 
 def test_huber_is_paper_eq30():
@@ -306,20 +311,4 @@ def test_contact_features_train_batches_equal_the_single_window_path(data, grid)
     assert raw.edge_features.shape[1] == 5
     stats = norm_stats_from_dataset(raw, "differences")
     assert np.asarray(stats.pp_edge.mean).shape == (5,)
-    ds = normalize_dataset(raw, stats)
-    model = SGN(hidden=24)
-    packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
-    idx = np.array([5, 33, 71])
-    batch = packer.make(idx)
-    params = init_params(model, batch.graph, 3)
-    accel_b, _ = jax.jit(make_apply(model))(params, batch.graph)
-    predict = jax.jit(make_predict(model))
-    builder = make_graph_builder(None, spec)
-    wins, _, _ = windows_from_trajectory(traj, spec.window, ends=raw.window_end[idx])
-    graphs, _ = builder(jax.tree_util.tree_map(jnp.asarray, wins), grid)
-    for k in range(len(idx)):
-        g = jax.tree_util.tree_map(lambda a, k=k: a[k], graphs)
-        accel, _ = predict(params, stats, g)
-        rows = slice(k * (N + 1), k * (N + 1) + N)
-        accel_phys = np.asarray(accel_b[rows]) * stats.accel.std + stats.accel.mean
-        np.testing.assert_allclose(np.asarray(accel[:N]), accel_phys, rtol=1e-4, atol=1e-3)
+    _assert_batches_match_single_windows(traj, spec, raw, stats, grid, np.array([5, 33, 71]), 3)
