@@ -203,8 +203,8 @@ def _add_rollout(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--checkpoint", default=None,
                    help="training run directory (its checkpoints/best), checkpoint directory or "
-                   "shipped model name (envelope, emax_300rpm); default: the shipped default "
-                   "model (docs/envelope.md)")
+                   "shipped model name (emax_300rpm, envelope); default: the shipped default "
+                   "model, emax_300rpm (docs/envelope.md)")
     p.add_argument("--init", required=True, metavar="DATASET",
                    help="trajectory (.npz, SPEC 4) that provides the initial window")
     p.add_argument("--duration", required=True, type=float, help="seconds of rollout")

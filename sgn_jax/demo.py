@@ -71,12 +71,16 @@ from sgn_jax.validation import check_duration, warn_outside_envelope
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
 """Where the trained models shipped with the package live (one directory per model)."""
-DEFAULT_MODEL = "envelope"
-"""The shipped default: the motion-general model trained over the motion envelope (issue 10,
-docs/envelope.md). ``PAPER_MODEL`` is the paper-setting one-trajectory model of the
-reproduction (docs/results.md); either name may be given wherever a checkpoint is asked for."""
 PAPER_MODEL = "emax_300rpm"
-SHIPPED_MODEL_ORDER = (DEFAULT_MODEL, PAPER_MODEL)
+"""The paper-setting one-trajectory model of the reproduction (docs/results.md)."""
+ENVELOPE_MODEL = "envelope"
+"""The motion-general model trained over the motion envelope (issue 10, docs/envelope.md). It
+ranks motions by dissipation better than the paper-setting model but is not yet within the
+issue's accuracy bars (+124 % on the standard case against +11 %), so it is shipped by name
+only (docs/results.md section 11)."""
+DEFAULT_MODEL = PAPER_MODEL
+"""What ``--checkpoint`` defaults to: the model whose numbers on the standard case are best."""
+SHIPPED_MODEL_ORDER = (DEFAULT_MODEL, ENVELOPE_MODEL)
 
 ANIMATION_FRAMES = 100
 
@@ -113,9 +117,9 @@ def _shipped_checkpoint(name: str) -> Path | None:
 
 
 def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
-    """``checkpoint`` itself (a path, or the name of a shipped model: ``"envelope"``,
-    ``"emax_300rpm"``), or the shipped default model if None (:data:`DEFAULT_MODEL`, else the
-    paper-setting one); refused with a clear message if no model is shipped."""
+    """``checkpoint`` itself (a path, or the name of a shipped model: ``"emax_300rpm"``,
+    ``"envelope"``), or the shipped default model if None (:data:`DEFAULT_MODEL`, else the
+    other shipped one); refused with a clear message if no model is shipped."""
     if checkpoint is not None:
         path = Path(checkpoint)
         if not path.exists() and str(checkpoint) in SHIPPED_MODEL_ORDER:
@@ -478,6 +482,7 @@ def _motion_check_lines(checks: list[dict[str, Any]]) -> list[str]:
 __all__ = [
     "DEFAULT_CASE",
     "DEFAULT_MODEL",
+    "ENVELOPE_MODEL",
     "PAPER_MODEL",
     "SHIPPED_MODELS_DIR",
     "SHIPPED_MODEL_ORDER",
