@@ -89,7 +89,6 @@ def test_tight_capacity_closes_batches_early(data):
     assert len(plan) > int(np.ceil(len(ds) / 6))
 
 
-@pytest.mark.parametrize("encoding", ["absolute", "differences"])
 def _assert_batches_match_single_windows(traj, spec, raw, stats, grid, idx, seed):
     """Training batches (dataset path) and the rollout's build_graph + predict agree."""
     ds = normalize_dataset(raw, stats)
@@ -112,6 +111,7 @@ def _assert_batches_match_single_windows(traj, spec, raw, stats, grid, idx, seed
         np.testing.assert_allclose(float(de[0]), de_phys, rtol=1e-4)
 
 
+@pytest.mark.parametrize("encoding", ["absolute", "differences"])
 def test_batch_predictions_equal_the_single_window_path(data, grid, encoding):
     """Training batches (dataset path) and the rollout's build_graph + predict agree."""
     traj, spec, raw, _, _ = data
