@@ -30,7 +30,8 @@ adjacent), then padding edges from and to the padding node; ``n_edge = [n_real, 
 Particle features per slot k (0 = oldest): columns ``7k .. 7k+6`` = [v (3), phi, n (3)] with the
 SDF and its unit normal ``n = grad phi / |grad phi|`` at ``x_j`` relative to the jar at ``t_j``.
 Wall features per slot: [offset (3), offset velocity (3), rotational frequency].
-``graph.edges`` is a dict: ``features`` (E, 3) float32 (E, 5 with ``contact_features``), ``pp`` and ``pw`` (E,) bool. An edge
+``graph.edges`` is a dict: ``features`` (E, 3) float32 (E, 5 with ``contact_features``), ``pp``
+and ``pw`` (E,) bool. An edge
 ``sender s -> receiver r`` carries ``x_s - x_r`` (ball-ball, paper Eq. 20 with i = receiver)
 or ``phi_b n_b`` of its ball b (ball-wall, Eq. 21, same feature in both directions).
 Edges use the newest slot: ball-ball where ``|x_j - x_i| <= 2 R + pp_skin``, ball-wall where
@@ -235,6 +236,11 @@ def particle_slot_features(window: Window, sdf: Any, spec: GraphSpec,
     return vel, jnp.asarray(phi, jnp.float64), jnp.asarray(normal, jnp.float64)
 
 
+def _contact_columns(gap: jax.Array) -> jax.Array:
+    """(K,) surface gaps (m, negative in contact) -> (K, 2) ``[gap, overlap = max(0, -gap)]``."""
+    return jnp.stack([gap, jnp.maximum(0.0, -gap)], axis=-1)
+
+
 def build_graph(window: Window, sdf: Any, spec: GraphSpec,
                 query: SDFQuery | None = None) -> tuple[jraph.GraphsTuple, EdgeCounts]:
     """Featurize one window (static shapes, jittable, differentiable in positions and offsets).
@@ -288,15 +294,13 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     efeat = jnp.zeros((e_cap, spec.edge_dim), jnp.float64)
     senders = senders.at[slot].set(pj, mode="drop").at[slot + 1].set(pi, mode="drop")
     receivers = receivers.at[slot].set(pi, mode="drop").at[slot + 1].set(pj, mode="drop")
-    pp_feat = rij
+    pp_feat_j, pp_feat_i = rij, -rij
     if spec.contact_features:
         # sqrt of the squared distance + tiny: differentiable also at coincident centres
-        dist = jnp.sqrt(jnp.sum(rij * rij, axis=-1) + 1e-30)[:, None]
-        gap = dist - 2.0 * spec.ball_radius
-        pp_feat_j = jnp.concatenate([rij, gap, jnp.maximum(0.0, -gap)], axis=-1)
-        pp_feat_i = jnp.concatenate([-rij, gap, jnp.maximum(0.0, -gap)], axis=-1)
-    else:
-        pp_feat_j, pp_feat_i = pp_feat, -pp_feat
+        dist = jnp.sqrt(jnp.sum(rij * rij, axis=-1) + 1e-30)
+        contact = _contact_columns(dist - 2.0 * spec.ball_radius)
+        pp_feat_j = jnp.concatenate([rij, contact], axis=-1)
+        pp_feat_i = jnp.concatenate([-rij, contact], axis=-1)
     efeat = efeat.at[slot].set(pp_feat_j, mode="drop").at[slot + 1].set(pp_feat_i, mode="drop")
 
     # Ball-wall: wall -> b and b -> wall, both with phi_b n_b, placed after the kept pp edges.
@@ -307,8 +311,8 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     balls = jnp.arange(n, dtype=jnp.int32)
     pw_feat = phi_now[:, None] * normal_now
     if spec.contact_features:
-        wall_gap = (-phi_now - spec.ball_radius)[:, None]
-        pw_feat = jnp.concatenate([pw_feat, wall_gap, jnp.maximum(0.0, -wall_gap)], axis=-1)
+        pw_feat = jnp.concatenate([pw_feat, _contact_columns(-phi_now - spec.ball_radius)],
+                                  axis=-1)
     senders = senders.at[bslot].set(wall, mode="drop").at[bslot + 1].set(balls, mode="drop")
     receivers = receivers.at[bslot].set(balls, mode="drop").at[bslot + 1].set(wall, mode="drop")
     efeat = efeat.at[bslot].set(pw_feat, mode="drop").at[bslot + 1].set(pw_feat, mode="drop")
