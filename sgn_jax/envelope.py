@@ -54,6 +54,21 @@ class MotionEnvelope:
                 "harmonic_second_amplitude": list(self.harmonic_second_amplitude),
                 "harmonic_max_axis_amplitude": self.harmonic_max_axis_sum}
 
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> MotionEnvelope | None:
+        """The inverse of :meth:`to_meta`; None when ``meta`` lacks one of its keys (an
+        envelope stated in an older, partial form)."""
+        keys = ("circle_rpm", "circle_amplitude", "harmonic_base_hz", "harmonic_first_amplitude",
+                "harmonic_second_amplitude", "harmonic_max_axis_amplitude")
+        if any(meta.get(k) is None for k in keys):
+            return None
+        pair = lambda k: (float(meta[k][0]), float(meta[k][1]))  # noqa: E731
+        return cls(circle_rpm=pair("circle_rpm"), circle_amplitude=pair("circle_amplitude"),
+                   harmonic_base_hz=pair("harmonic_base_hz"),
+                   harmonic_first_amplitude=pair("harmonic_first_amplitude"),
+                   harmonic_second_amplitude=pair("harmonic_second_amplitude"),
+                   harmonic_max_axis_sum=float(meta["harmonic_max_axis_amplitude"]))
+
 
 def _pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
     value = table.get(key)

@@ -36,7 +36,8 @@ import numpy as np
 from sgn_jax.config import Config, ConfigError
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS, hertz_contact_time
 from sgn_jax.dem.engine import make_params
-from sgn_jax.envelope import harmonic_axis_amplitudes
+from sgn_jax.envelope import MotionEnvelope, harmonic_axis_amplitudes
+from sgn_jax.envelope import envelope_notes as motion_envelope_notes
 from sgn_jax.errors import EnvelopeWarning
 from sgn_jax.geometry import jar_params_from_config, jar_volume
 from sgn_jax.motion import acceleration, frequency_hz, motion_from_config, velocity
@@ -231,9 +232,12 @@ class ModelEnvelope:
     """The motions and jars a trained model promises to cover.
 
     ``circle_rpm`` / ``circle_amplitude`` (min, max) for circles, ``harmonic_base_hz`` and
-    ``harmonic_max_axis_amplitude`` (m, per axis the sum of the harmonics' amplitudes) for harmonic orbits
+    ``harmonic_max_axis_amplitude`` (m, per axis the sum of the harmonics' amplitudes) for
+    harmonic orbits
     (None: that kind is not covered); ``jar``: the (radius, straight_length, height,
-    post_radius) of the trained jar, or None for any jar.
+    post_radius) of the trained jar, or None for any jar. ``motion``: the full
+    :class:`sgn_jax.envelope.MotionEnvelope` when the model states one (then its motion checks
+    are :func:`sgn_jax.envelope.envelope_notes`, per-harmonic limits included).
     """
 
     circle_rpm: tuple[float, float] | None = None
@@ -242,6 +246,7 @@ class ModelEnvelope:
     harmonic_max_axis_amplitude: float | None = None
     jar: tuple[float, float, float, float] | None = None
     source: str = ""
+    motion: MotionEnvelope | None = None
 
 
 def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> ModelEnvelope:
@@ -259,7 +264,8 @@ def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> 
                              harmonic_base_hz=pair("harmonic_base_hz"),
                              harmonic_max_axis_amplitude=stated.get("harmonic_max_axis_amplitude"),
                              jar=None if stated.get("any_jar") else jar_key,
-                             source="the model's stated envelope")
+                             source="the model's stated envelope",
+                             motion=MotionEnvelope.from_meta(stated))
     m = model_config.motion
     if m.kind == "circle":
         return ModelEnvelope(circle_rpm=(m.rpm * 0.99, m.rpm * 1.01),
@@ -285,7 +291,9 @@ def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
             notes.append(f"{what} = {value:g} is outside the model's range "
                          f"[{bounds[0]:g}, {bounds[1]:g}]")
 
-    if m.kind == "circle":
+    if envelope.motion is not None:
+        notes.extend(motion_envelope_notes(m, envelope.motion))
+    elif m.kind == "circle":
         outside(m.rpm, envelope.circle_rpm, "[motion] rpm")
         if envelope.circle_rpm is not None:
             outside(m.amplitude, envelope.circle_amplitude, "[motion] amplitude (m)")

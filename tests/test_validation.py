@@ -185,6 +185,17 @@ def test_envelope_of_a_single_motion_model(std):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert envelope_notes(replace_section(std, "motion", rpm=600.0), stated)
+    # A model trained over the shipped envelope states it whole: its per-harmonic limits hold
+    # too (a 24 mm first harmonic is within the 26 mm sum but above the 20 mm limit).
+    from sgn_jax.envelope import load_envelope
+
+    full = model_envelope(std, {"envelope": load_envelope().to_meta()})
+    assert full.motion == load_envelope()
+    assert envelope_notes(motion1, full) == [] and envelope_notes(fast, full) == []
+    wide = replace_section(std, "motion", kind="harmonic", base_frequency_hz=5.0,
+                           x_sin=(0.024, 0.0))
+    assert envelope_notes(wide, stated) == []
+    assert any("first-harmonic amplitude" in n for n in envelope_notes(wide, full))
 
 
 def test_sdf_is_negative_inside_for_the_fixture(setup3):
