@@ -76,7 +76,8 @@ PAPER_MODEL = "emax_300rpm"
 ENVELOPE_MODEL = "envelope"
 """The motion-general model trained over the motion envelope (issue 10, docs/envelope.md). It
 ranks motions by dissipation better than the paper-setting model but is not yet within the
-issue's accuracy bars (+124 % on the standard case against +11 %), so it is shipped by name
+issue's accuracy bars (on the standard case +124 % with the ball-ball separation, +21 % without
+it but with coincident balls, against +11 %), so it is shipped by name
 only (docs/results.md section 11)."""
 DEFAULT_MODEL = PAPER_MODEL
 """What ``--checkpoint`` defaults to: the model whose numbers on the standard case are best."""
