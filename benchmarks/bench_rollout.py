@@ -61,7 +61,8 @@ def _hand_stats(window: int):
 def lattice_window(cfg, spec):
     """24 balls on a lattice in the jar (at rest), as a Window ending at t = 0.1 s."""
     from sgn_jax.graph import Window
-    from sgn_jax.motion import motion_from_config, offset
+    from sgn_jax.motion import offset
+    from sgn_jax.pipelines.configure import motion_from_config
 
     t0 = 0.1
     xs = np.linspace(-0.03, 0.03, 6)
@@ -78,11 +79,14 @@ def lattice_window(cfg, spec):
 def _setup(hidden: int, window0, t0: float, cfg):
     import jax
 
-    from sgn_jax.geometry import sdf_grid_from_config
-    from sgn_jax.graph import build_graph, graph_spec_from_config
+    from sgn_jax.graph import build_graph
     from sgn_jax.model import SGN, count_params, init_params
-    from sgn_jax.motion import motion_from_config
     from sgn_jax.normalization import normalize_graph
+    from sgn_jax.pipelines.configure import (
+        graph_spec_from_config,
+        motion_from_config,
+        sdf_grid_from_config,
+    )
     from sgn_jax.rollout import jar_state_window
 
     spec = graph_spec_from_config(cfg)
@@ -157,7 +161,8 @@ def bench_in_loop(hidden: int, steps: int, repeats: int, traj, start: int, cfg,
     import jax.numpy as jnp
 
     from sgn_jax.graph import dissipation_per_interval, targets_from_arrays
-    from sgn_jax.rollout import ReplayTable, initial_window, make_rollout, model_predictor
+    from sgn_jax.pipelines.rollout_run import initial_window
+    from sgn_jax.rollout import ReplayTable, make_rollout, model_predictor
 
     window0, t0 = initial_window(traj, start, cfg.graph.window), float(traj.t[start])
     s = _setup(hidden, window0, t0, cfg)
@@ -214,7 +219,7 @@ def bench_batch(hidden: int, batch: int, steps: int, repeats: int, window0, t0: 
 
 def bench_dem(cfg, seconds: float) -> tuple[dict, object]:
     from sgn_jax.dataset import Trajectory
-    from sgn_jax.dem.driver import run_dem
+    from sgn_jax.pipelines.dem_run import run_dem
 
     run = run_dem(cfg, duration=seconds, progress=False)
     s = run.summary
@@ -238,7 +243,7 @@ def differentiated_rollout_memory(n_steps: int, hidden: int = 16, checkpoint_ste
     import jax
     import jax.numpy as jnp
 
-    from sgn_jax.graph import graph_spec_from_config
+    from sgn_jax.pipelines.configure import graph_spec_from_config
     from sgn_jax.rollout import make_rollout
 
     cfg = _standard_config()
@@ -371,8 +376,8 @@ def main() -> None:
     parser.add_argument("--append", action="store_true", help="append to docs/benchmarks.md")
     args = parser.parse_args()
 
-    from sgn_jax.graph import graph_spec_from_config
-    from sgn_jax.rollout import initial_window
+    from sgn_jax.pipelines.configure import graph_spec_from_config
+    from sgn_jax.pipelines.rollout_run import initial_window
 
     report: dict = {"machine": machine(), "single": [], "batch": [], "memory": []}
     cfg = _standard_config()

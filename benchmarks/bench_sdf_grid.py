@@ -34,10 +34,10 @@ from sgn_jax.geometry import (
     jar_mesh,
     query_sdf_grid,
     sdf_grid_from_jar,
-    sdf_grid_from_mesh,
 )
 from sgn_jax.geometry.accuracy import grid_error_report
 from sgn_jax.io_utils import machine_info, write_json
+from sgn_jax.pipelines.configure import sdf_grid_from_mesh
 
 DEFAULT = JarParams()
 POST = JarParams(post_radius=0.006, has_post=True)

@@ -51,8 +51,9 @@ def one_step(model_dir: str, data: str, train_time: float = 4.5, stride: int = 7
 
     from sgn_jax.checkpoint import load_trained_model
     from sgn_jax.dataset import load_trajectory
-    from sgn_jax.geometry import sdf_grid_from_config
-    from sgn_jax.graph import build_graph, graph_spec_from_config, windows_from_trajectory
+    from sgn_jax.graph import build_graph
+    from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+    from sgn_jax.pipelines.features import windows_from_trajectory
 
     trained = load_trained_model(model_dir)
     cfg = trained.config

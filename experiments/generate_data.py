@@ -296,7 +296,7 @@ def partial_progress(run: Run, cfg: Any) -> float:
     The DEM driver writes chunk 0 (the settled state) after settling, then one chunk file per
     ``[dem] chunk_samples`` samples of motion.
     """
-    from sgn_jax.dem.driver import partial_dir
+    from sgn_jax.pipelines.dem_run import partial_dir
 
     folder = partial_dir(run.out_path)
     if not folder.is_dir():

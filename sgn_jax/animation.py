@@ -32,8 +32,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sgn_jax.geometry import jar_mesh_from_config
 from sgn_jax.io_utils import atomic_write
+from sgn_jax.pipelines.configure import jar_mesh_from_config
 
 # Layout of the GIF's figure (inches): tick labels and axis titles around the four panels.
 _MARGIN_LEFT_IN, _MARGIN_RIGHT_IN, _GAP_X_IN = 0.5, 0.1, 0.5

@@ -35,16 +35,7 @@ import numpy as np
 from sgn_jax.cache import enable_compilation_cache
 from sgn_jax.checkpoint import TrainedModel, load_trained_model
 from sgn_jax.config import Config, replace_section, resolve_config
-from sgn_jax.dem.driver import (
-    initial_state,
-    load_settled,
-    run_dem,
-    save_settled,
-    settle_sample_count,
-    setup_from_config,
-)
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
-from sgn_jax.demo import resolve_checkpoint
 from sgn_jax.design import (
     DesignError,
     EnsemblePower,
@@ -57,16 +48,25 @@ from sgn_jax.design import (
     parameter_values,
     summarize_estimate,
 )
-from sgn_jax.geometry import JarParams, jar_params_from_config
-from sgn_jax.graph import GraphSpec, Window, graph_spec_from_config
-from sgn_jax.motion import Motion, frequency_hz, motion_from_config, offset
-from sgn_jax.rollout import (
-    RolloutResult,
-    analytic_jar_query,
-    initial_window,
-    make_rollout,
-    model_predictor,
+from sgn_jax.geometry import JarParams
+from sgn_jax.graph import GraphSpec, Window
+from sgn_jax.motion import Motion, frequency_hz, offset
+from sgn_jax.pipelines.configure import (
+    graph_spec_from_config,
+    jar_params_from_config,
+    motion_from_config,
 )
+from sgn_jax.pipelines.dem_run import (
+    initial_state,
+    load_settled,
+    run_dem,
+    save_settled,
+    settle_sample_count,
+    setup_from_config,
+)
+from sgn_jax.pipelines.demo import resolve_checkpoint
+from sgn_jax.pipelines.rollout_run import initial_window
+from sgn_jax.rollout import RolloutResult, analytic_jar_query, make_rollout, model_predictor
 from sgn_jax.validation import check_dem_config, check_duration, warn_outside_envelope
 
 # A second session of a design study reuses the compiled programs (sgn_jax.cache; off with

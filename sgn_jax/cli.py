@@ -21,10 +21,7 @@ from sgn_jax.cache import enable_compilation_cache
 from sgn_jax.checkpoint import load_trained_model
 from sgn_jax.config import resolve_config
 from sgn_jax.dataset import load_trajectory
-from sgn_jax.dem.driver import run_dem
-from sgn_jax.demo import format_report, resolve_checkpoint, run_demo
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
-from sgn_jax.geometry import jar_mesh_from_config, mesh_report
 from sgn_jax.io_utils import atomic_write, write_json
 from sgn_jax.metrics import (
     MetricsWarning,
@@ -33,9 +30,12 @@ from sgn_jax.metrics import (
     motion_warning_lines,
 )
 from sgn_jax.metrics import headline as run_headline
+from sgn_jax.pipelines.configure import jar_mesh_from_config, mesh_report
+from sgn_jax.pipelines.dem_run import run_dem
+from sgn_jax.pipelines.demo import format_report, resolve_checkpoint, run_demo
+from sgn_jax.pipelines.rollout_run import run_rollout
+from sgn_jax.pipelines.train_run import train
 from sgn_jax.prediction import load_prediction
-from sgn_jax.rollout import run_rollout
-from sgn_jax.train import train
 from sgn_jax.validation import check_duration, warn_outside_envelope
 
 

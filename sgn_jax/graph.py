@@ -50,10 +50,8 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
-from sgn_jax.config import MotionConfig, config_from_dict
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.geometry import query_sdf_grid
-from sgn_jax.motion import frequency_hz, motion_from_config
 
 # One slot's particle columns: velocity (0..2), phi (3), unit normal (4..6).
 SLOT_DIM = 7
@@ -137,24 +135,6 @@ class GraphSpec:
     def pp_cutoff(self) -> float:
         """Centre distance (m) up to which two balls are joined by an edge."""
         return 2.0 * self.ball_radius + self.pp_skin
-
-
-def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpec:
-    """The GraphSpec of a :class:`sgn_jax.config.Config` (balls, dem.dt and the [graph] section).
-
-    The ball-ball capacity is ``graph.pp_edges_per_particle * N`` directed edges.
-    """
-    n = cfg.balls.count if n_particles is None else int(n_particles)
-    return GraphSpec(
-        n_particles=n,
-        window=cfg.graph.window,
-        ball_radius=cfg.balls.radius,
-        dt=cfg.dem.dt,
-        pp_skin=cfg.graph.pp_skin,
-        phi_pw=cfg.graph.phi_pw,
-        pp_pair_capacity=max(1, (cfg.graph.pp_edges_per_particle * n) // 2),
-        contact_features=cfg.graph.contact_features,
-    )
 
 
 def velocity_columns(window: int) -> np.ndarray:
@@ -373,26 +353,6 @@ def valid_window_ends(n_samples: int, window: int) -> np.ndarray:
     return np.arange(window, n_samples - 1)
 
 
-def trajectory_frequency_hz(traj: Any, default: float | None = None) -> float:
-    """The rotational frequency (Hz) of a trajectory's motion: ``default`` if given, else from
-    the motion config stored in ``meta['config']``."""
-    if default is not None:
-        return float(default)
-    meta = getattr(traj, "meta", None) or {}
-    cfg = meta.get("config") if isinstance(meta, dict) else None
-    if cfg is not None:
-        motion_cfg = cfg if isinstance(cfg, MotionConfig) else None
-        if motion_cfg is None:
-            section = cfg.get("motion") if isinstance(cfg, dict) else getattr(cfg, "motion", None)
-            if isinstance(section, dict):
-                motion_cfg = config_from_dict(section, MotionConfig)
-            elif isinstance(section, MotionConfig):
-                motion_cfg = section
-        if motion_cfg is not None:
-            return float(frequency_hz(motion_from_config(motion_cfg)))
-    raise GraphError("trajectory meta has no motion config; pass frequency_hz explicitly")
-
-
 def windows_from_arrays(pos: np.ndarray, offset: np.ndarray, offset_vel: np.ndarray,
                         frequency_hz: float, ends: np.ndarray, window: int) -> Window:
     """Batched :class:`Window` (leading axis S) ending at samples ``ends`` (S,), numpy float64."""
@@ -422,26 +382,3 @@ def targets_from_arrays(pos: np.ndarray, diss_per_interval: np.ndarray, ends: np
     return accel, np.asarray(diss_per_interval, np.float64)[ends + 1]
 
 
-def windows_from_trajectory(traj: Any, window: int, dt: float | None = None,
-                            frequency_hz: float | None = None, ends: np.ndarray | None = None
-                            ) -> tuple[Window, np.ndarray, np.ndarray]:
-    """Training windows and targets of a trajectory (``sgn_jax.dataset.Trajectory``-like).
-
-    ``traj`` needs ``pos`` (T, N, 3), ``offset`` and ``offset_vel`` (T, 3), the four
-    ``diss_{pp,pw}_{normal,tangential}`` (T,) arrays and ``meta`` (with ``dt`` and ``config``
-    unless ``dt`` / ``frequency_hz`` are passed). ``ends`` defaults to every valid window end.
-
-    Returns ``(windows, accel (S, N, 3), dE (S,))`` as float64 numpy arrays.
-    """
-    pos = np.asarray(traj.pos, np.float64)
-    meta = getattr(traj, "meta", None) or {}
-    if dt is None:
-        if "dt" not in meta:
-            raise GraphError("trajectory meta has no 'dt'; pass dt explicitly")
-        dt = float(meta["dt"])
-    freq = trajectory_frequency_hz(traj, frequency_hz)
-    if ends is None:
-        ends = valid_window_ends(len(pos), window)
-    wins = windows_from_arrays(pos, traj.offset, traj.offset_vel, freq, ends, window)
-    accel, de = targets_from_arrays(pos, dissipation_per_interval(traj), ends, dt)
-    return wins, accel, de

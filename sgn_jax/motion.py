@@ -42,8 +42,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.config import ConfigError, MotionConfig
-
 _TWO_PI = 2.0 * np.pi
 
 
@@ -258,45 +256,6 @@ def frequency_hz(motion: Motion) -> jax.Array:
     raise TypeError(f"expected a Motion, got {type(motion).__name__}")
 
 
-def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:
-    """Build the motion pytree described by a ``[motion]`` config section, leaves of ``dtype``.
-
-    Harmonic coefficient lists that are empty mean zero; all lists of one config have the same
-    length K (checked by MotionConfig).
-    """
-    if not isinstance(cfg, MotionConfig):
-        raise TypeError(
-            f"motion_from_config expects a sgn_jax.config.MotionConfig (cfg.motion), "
-            f"got {type(cfg).__name__}"
-        )
-    if cfg.kind == "circle":
-        return CircleMotion(
-            rpm=jnp.asarray(cfg.rpm, dtype),
-            amplitude=jnp.asarray(cfg.amplitude, dtype),
-            phase=jnp.asarray(cfg.phase, dtype),
-        )
-    if cfg.kind == "harmonic":
-        lists = {name: getattr(cfg, name) for name in
-                 ("x_sin", "y_sin", "z_sin", "x_cos", "y_cos", "z_cos")}
-        n_harmonics = max(len(v) for v in lists.values())
-        sin_coeffs = np.zeros((n_harmonics, 3))
-        cos_coeffs = np.zeros((n_harmonics, 3))
-        for axis, letter in enumerate("xyz"):
-            for target, kind in ((sin_coeffs, "sin"), (cos_coeffs, "cos")):
-                values = lists[f"{letter}_{kind}"]
-                if values:
-                    target[:, axis] = values
-        return HarmonicMotion(
-            base_frequency_hz=jnp.asarray(cfg.base_frequency_hz, dtype),
-            sin_coeffs=jnp.asarray(sin_coeffs, dtype),
-            cos_coeffs=jnp.asarray(cos_coeffs, dtype),
-        )
-    if cfg.kind == "spline":
-        return SplineMotion(period=jnp.asarray(cfg.period, dtype),
-                            points=jnp.asarray(np.array(cfg.points), dtype))
-    raise ConfigError(f"[motion] unknown kind {cfg.kind!r}")
-
-
 def standard_circle(dtype: jnp.dtype = jnp.float64) -> CircleMotion:
     """The standard case (SPEC 2): circle, 300 rpm, amplitude 0.017 m, phase 0."""
     return CircleMotion(rpm=jnp.asarray(300.0, dtype), amplitude=jnp.asarray(0.017, dtype),
@@ -357,7 +316,6 @@ __all__ = [
     "frequency_hz",
     "motion1",
     "motion2",
-    "motion_from_config",
     "offset",
     "spline_from_motion",
     "spline_second_derivatives",

@@ -46,12 +46,8 @@ Public API:
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import functools
-import math
-import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import flax.linen as nn
@@ -61,23 +57,17 @@ import jax.numpy as jnp
 import jraph
 import numpy as np
 
-import sgn_jax
-from sgn_jax.config import config_to_dict
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.geometry import jar_sdf, query_sdf_grid, safe_normalize, sdf_grid_from_config
+from sgn_jax.geometry import jar_sdf, query_sdf_grid, safe_normalize
 from sgn_jax.graph import (
     GraphSpec,
     SDFQuery,
     Window,
     build_graph,
-    graph_spec_from_config,
     slide_window,
-    windows_from_arrays,
 )
-from sgn_jax.io_utils import git_commit
 from sgn_jax.model import make_predict
-from sgn_jax.motion import Motion, frequency_hz, motion_from_config, offset, velocity
-from sgn_jax.prediction import save_prediction
+from sgn_jax.motion import Motion, frequency_hz, offset, velocity
 
 F64 = jnp.float64
 I32 = jnp.int32
@@ -565,168 +555,6 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
 # Host level: a trained model and a dataset -> prediction file
 
 
-def _effective_config(trained_cfg: Any, override: Any) -> Any:
-    """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``."""
-    if override is None:
-        return trained_cfg
-    for section, fields in (("balls", ("count", "radius")), ("dem", ("dt",))):
-        for name in fields:
-            a, b = getattr(getattr(trained_cfg, section), name), getattr(getattr(override,
-                                                                                 section), name)
-            if a != b:
-                raise RolloutError(
-                    f"the override config has [{section}] {name} = {b} but the model was trained "
-                    f"with {a}; a config override may change only [jar], [motion], [sdf] and "
-                    "[rollout]")
-    return dataclasses.replace(trained_cfg, jar=override.jar, motion=override.motion,
-                               sdf=override.sdf, rollout=override.rollout)
-
-
-def initial_window(traj: Any, start_index: int, window: int, freq: float = 0.0) -> Window:
-    """The :class:`Window` of a trajectory ending at sample ``start_index`` (float64 numpy)."""
-    n_samples = int(np.shape(traj.pos)[0])
-    if not window <= start_index < n_samples:
-        raise RolloutError(
-            f"start index {start_index} is out of range: a window of {window} slots needs "
-            f"{window} earlier samples, so use {window} <= start index <= {n_samples - 1}")
-    wins = windows_from_arrays(traj.pos, traj.offset, traj.offset_vel, freq,
-                               np.array([start_index]), window)
-    return jax.tree_util.tree_map(lambda a: np.asarray(a)[0], wins)
-
-
-def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: float,
-                out_path: str | Path | None = None, cfg_override: Any = None, *,
-                save_every: int | None = None, progress: bool = True,
-                checkpoint_path: str | None = None) -> dict[str, Any]:
-    """Roll a trained SGN out from a dataset's window and save a prediction file.
-
-    Runs in jitted chunks of ``[rollout] chunk_steps`` with a progress bar, with ball-pair
-    capacity tiers of 1/4 and 1/2 of the graph's capacity (:func:`make_rollout`; speed only).
-
-    Args:
-        trained_model: :class:`sgn_jax.checkpoint.TrainedModel` (model, params, stats, config).
-        init_traj: a :class:`sgn_jax.dataset.Trajectory`; the initial window ends at sample
-            ``start_index`` (W <= start_index < T), time ``t0 = traj.t[start_index]``.
-        duration: seconds of rollout; S = round(duration / dt) steps, a multiple of save_every.
-        out_path: prediction ``.npz`` (:func:`sgn_jax.prediction.save_prediction`), or None.
-        cfg_override: a config whose [jar], [motion], [sdf] and [rollout] replace the trained
-            model's (balls and dt must agree).
-        save_every: steps between saved frames (default ``[rollout] save_every``).
-        progress: tqdm bar (steps, rate, ETA).
-        checkpoint_path: recorded in the meta.
-
-    Returns:
-        a summary dict (steps, energy, counts, wall and compile time, ms per step); the arrays
-        and meta under "arrays" and "meta".
-    """
-    from tqdm.auto import tqdm
-
-    cfg = _effective_config(trained_model.config, cfg_override)
-    rcfg = cfg.rollout
-    k = int(save_every or rcfg.save_every)
-    dt = float(cfg.dem.dt)
-    if not duration > 0:
-        raise RolloutError(f"duration must be > 0 s, got {duration}")
-    n_steps = int(round(duration / dt))
-    if n_steps < k or n_steps % k:
-        raise RolloutError(f"duration {duration:g} s = {n_steps} steps of dt = {dt:g} s must be a "
-                           f"positive multiple of save_every = {k} steps")
-    traj_dt = float(init_traj.meta["dt"]) if "dt" in init_traj.meta else dt
-    if not math.isclose(traj_dt, dt, rel_tol=1e-9):
-        raise RolloutError(f"the initial dataset has dt = {traj_dt:g} s but the model uses "
-                           f"dt = {dt:g} s")
-    radius = init_traj.meta.get("ball_radius", cfg.balls.radius)
-    if not math.isclose(float(radius), cfg.balls.radius, rel_tol=1e-9):
-        raise RolloutError(f"the initial dataset's balls have radius {radius} m, the model's "
-                           f"{cfg.balls.radius} m")
-    spec = graph_spec_from_config(cfg, n_particles=int(np.shape(init_traj.pos)[1]))
-    window0 = initial_window(init_traj, int(start_index), spec.window)
-    t0 = float(init_traj.t[start_index])
-    motion = motion_from_config(cfg.motion)
-    sdf = sdf_grid_from_config(cfg)
-    chunk = min(int(rcfg.chunk_steps) // k * k or k, n_steps)
-    cap = spec.pp_pair_capacity
-    options = dict(checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
-                   snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
-                   snap_velocity=rcfg.snap_velocity,
-                   pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),
-                   pp_capacity_tiers=tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap))
-    predictor = model_predictor(trained_model.model)
-    params = jax.device_put(trained_model.params)
-    stats = jax.device_put(trained_model.norm_stats)
-
-    state = jax.jit(init_state, static_argnums=3)(window0, motion, t0, spec.dt)
-    compiled: dict[int, Any] = {}
-    compile_time = 0.0
-    parts: list[RolloutResult] = []
-    t_wall = time.perf_counter()
-    run_time = 0.0
-    with tqdm(total=n_steps, desc="rollout", unit="step", disable=not progress,
-              dynamic_ncols=True) as bar:
-        done = 0
-        while done < n_steps:
-            n = min(chunk, n_steps - done)
-            if n not in compiled:
-                t_c = time.perf_counter()
-                advance = make_rollout_advance(spec, predictor, n, k, **options)
-                compiled[n] = advance.lower(params, stats, state, motion, sdf, t0).compile()
-                compile_time += time.perf_counter() - t_c
-            t_r = time.perf_counter()
-            result = jax.device_get(compiled[n](params, stats, state, motion, sdf, t0))
-            run_time += time.perf_counter() - t_r
-            state = result.final
-            if not np.all(np.isfinite(result.positions)):
-                bad = int(np.flatnonzero(~np.isfinite(result.positions).all(axis=(1, 2)))[0])
-                raise RolloutError(
-                    f"the rollout diverged: non-finite positions by t = "
-                    f"{float(result.t_pos[bad]):.6g} s (step {done + (bad + 1) * k}); check the "
-                    "model and the overflow/outside counts")
-            parts.append(result)
-            done += n
-            bar.set_postfix_str(f"{1e3 * run_time / done:.3f} ms/step, "
-                                f"E={float(state.energy):.4g} J")
-            bar.update(n)
-    wall_time = time.perf_counter() - t_wall
-
-    arrays = {name: np.concatenate([p.prediction_arrays()[name] for p in parts])
-              for name in parts[0].prediction_arrays()}
-    w0 = jax.device_get(jar_state_window(window0, motion, t0, spec.dt))
-    arrays["t_pos"] = np.concatenate([[t0], arrays["t_pos"]])
-    arrays["pos"] = np.concatenate([np.asarray(w0.positions[-1])[None], arrays["pos"]])
-    arrays["offset"] = np.concatenate([np.asarray(w0.offsets[-1])[None], arrays["offset"]])
-    summary = {
-        "steps": n_steps,
-        "duration_s": n_steps * dt,
-        "t_start": t0,
-        "energy_J": float(arrays["energy_cum"][-1]),
-        "overflow_total": int(arrays["overflow"].sum()),
-        "outside_ball_steps": int(arrays["n_outside"].sum()),
-        "snapped_ball_steps": int(arrays["n_snapped"].sum()),
-        "mean_pp_pairs": float(arrays["n_pp_edges"].mean() / 2),
-        "wall_time_s": wall_time,
-        "compile_time_s": compile_time,
-        "ms_per_step": 1e3 * run_time / n_steps,
-    }
-    meta = {
-        "dt": dt, "save_every": k, "init_index": int(start_index),
-        "config": config_to_dict(cfg),
-        "checkpoint": checkpoint_path,
-        "init_dataset": getattr(init_traj, "path", None),
-        "code_version": f"sgn_jax {sgn_jax.__version__} ({git_commit()})",
-        "created": datetime.datetime.now(datetime.UTC).isoformat(),
-        "surrogate": "SGN",
-        "snap_back": bool(rcfg.snap_back), "snap_velocity": rcfg.snap_velocity,
-        "pp_max_overlap": rcfg.pp_max_overlap if rcfg.pp_separation else None,
-        "phi_sb": float(cfg.graph.phi_sb),
-        **{key: summary[key] for key in ("wall_time_s", "compile_time_s", "ms_per_step")},
-    }
-    if out_path is not None:
-        save_prediction(out_path, arrays, meta)
-        summary["out"] = str(out_path)
-    summary["arrays"], summary["meta"] = arrays, meta
-    return summary
-
-
 __all__ = [
     "Predictor",
     "ReplayTable",
@@ -737,11 +565,9 @@ __all__ = [
     "StepRecord",
     "analytic_jar_query",
     "init_state",
-    "initial_window",
     "jar_state_window",
     "make_rollout",
     "make_rollout_advance",
     "model_predictor",
     "replay_predictor",
-    "run_rollout",
 ]

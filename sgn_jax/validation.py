@@ -39,8 +39,9 @@ from sgn_jax.dem.engine import make_params
 from sgn_jax.envelope import MotionEnvelope, harmonic_axis_amplitudes
 from sgn_jax.envelope import envelope_notes as motion_envelope_notes
 from sgn_jax.errors import EnvelopeWarning
-from sgn_jax.geometry import jar_params_from_config, jar_volume
-from sgn_jax.motion import acceleration, frequency_hz, motion_from_config, velocity
+from sgn_jax.geometry import jar_volume
+from sgn_jax.motion import acceleration, frequency_hz, velocity
+from sgn_jax.pipelines.configure import jar_params_from_config, motion_from_config
 
 RSA_FILL_LIMIT = 0.38
 """Largest solid fraction of the cavity that random sequential insertion reaches (3-D jamming)."""

@@ -28,7 +28,7 @@ DEFERRED_IMPORTS: dict[tuple[str, str], str] = {
     ("sgn_jax.cli", "sgn_jax.plots"):
         "plots imports matplotlib at module level; only the plotting commands need it, so "
         "`sgn-jax --help` and the other commands do not load it",
-    ("sgn_jax.demo", "sgn_jax.plots"):
+    ("sgn_jax.pipelines.demo", "sgn_jax.plots"):
         "demo is imported by sgn_jax.api and sgn_jax.cli; only run_demo plots (matplotlib)",
 }
 
@@ -190,3 +190,99 @@ def test_the_checker_sees_cycles_and_deferred_imports():
         "sgn_jax.geometry.jar", "sgn_jax.geometry"]
     assert _with_parent_packages("sgn_jax.geometry.sdf_grid", "sgn_jax.geometry.jar") == [
         "sgn_jax.geometry.jar"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Layers: the pure JAX core never reaches the config, file I/O or the pipelines.
+
+CORE_MODULES = (
+    "sgn_jax.errors", "sgn_jax.motion", "sgn_jax.pairs",
+    "sgn_jax.geometry", "sgn_jax.geometry.common", "sgn_jax.geometry.jar",
+    "sgn_jax.geometry.sdf_grid", "sgn_jax.geometry.mesh_distance", "sgn_jax.geometry.stl",
+    "sgn_jax.dem", "sgn_jax.dem.contact", "sgn_jax.dem.engine", "sgn_jax.dem.walls",
+    "sgn_jax.dem.placement", "sgn_jax.graph", "sgn_jax.model", "sgn_jax.normalization",
+    "sgn_jax.rollout", "sgn_jax.train", "sgn_jax.design",
+)
+"""The pure JAX core (docs/architecture.md, "Layers")."""
+
+OUTSIDE_THE_CORE = (
+    "sgn_jax.config", "sgn_jax.config_reference", "sgn_jax.io_utils", "sgn_jax.records",
+    "sgn_jax.dataset", "sgn_jax.prediction", "sgn_jax.checkpoint", "sgn_jax.cache",
+    "sgn_jax.validation", "sgn_jax.envelope", "sgn_jax.pipelines", "sgn_jax.metrics",
+    "sgn_jax.plots", "sgn_jax.animation", "sgn_jax.api", "sgn_jax.cli",
+)
+"""Config, records and file I/O, pipelines, analysis and the user-facing layer."""
+
+FILE_IO_MODULES = ("pathlib", "os", "io", "json", "csv", "tomllib", "shutil", "tempfile",
+                   "orbax", "orbax.checkpoint", "trimesh.exchange", "imageio", "matplotlib")
+"""Standard-library and third-party modules of file I/O that the core must not import."""
+
+
+def _closure(edges, start: str) -> dict[str, list[str]]:
+    """Every module reachable from ``start`` -> one import chain that reaches it."""
+    chains = {start: [start]}
+    todo = [start]
+    while todo:
+        node = todo.pop()
+        for dep in sorted(edges.get(node, {})):
+            if dep not in chains:
+                chains[dep] = chains[node] + [dep]
+                todo.append(dep)
+    return chains
+
+
+def _external_imports(path: Path) -> dict[str, int]:
+    """Top-level names of non-sgn_jax modules imported at module level -> line."""
+    found = {}
+    for node, in_function in _imports(ast.parse(path.read_text())):
+        if in_function:
+            continue
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if not node.level else [])
+        for name in names:
+            if name and not name.startswith(PACKAGE):
+                found.setdefault(name, node.lineno)
+    return found
+
+
+def test_the_core_modules_exist():
+    modules = _module_files()
+    missing = [m for m in CORE_MODULES if m not in modules]
+    assert not missing, f"CORE_MODULES names modules that do not exist: {missing}"
+
+
+def test_the_core_never_imports_the_config_io_or_pipelines():
+    edges, _ = import_graph()
+    modules = _module_files()
+    problems = []
+    for core in CORE_MODULES:
+        if core not in modules:
+            continue
+        for reached, chain in _closure(edges, core).items():
+            if any(reached == o or reached.startswith(o + ".") for o in OUTSIDE_THE_CORE):
+                problems.append(f"  {core} reaches {reached}: " + " -> ".join(chain))
+    if problems:
+        pytest.fail("the core must not import the config, records/file I/O or the pipelines "
+                    "(move the adapter to sgn_jax.pipelines; docs/architecture.md, Layers):\n"
+                    + "\n".join(problems), pytrace=False)
+
+
+def test_the_core_does_no_file_io():
+    modules = _module_files()
+    problems = []
+    for core in CORE_MODULES:
+        if core not in modules:
+            continue
+        for name, line in _external_imports(modules[core]).items():
+            if name in FILE_IO_MODULES or name.split(".")[0] in ("pathlib", "os", "orbax"):
+                problems.append(f"  {_where(core, line)}: {core} imports {name}")
+    if problems:
+        pytest.fail("file I/O belongs to the pipelines and records layers:\n"
+                    + "\n".join(problems), pytrace=False)
+
+
+def test_the_layer_checker_sees_a_violation():
+    edges = {"sgn_jax.motion": {"sgn_jax.graph": 1}, "sgn_jax.graph": {"sgn_jax.config": 2},
+             "sgn_jax.config": {}}
+    chains = _closure(edges, "sgn_jax.motion")
+    assert chains["sgn_jax.config"] == ["sgn_jax.motion", "sgn_jax.graph", "sgn_jax.config"]

@@ -7,7 +7,7 @@ import pytest
 
 from sgn_jax import cache
 from sgn_jax.config import builtin_config_path, load_config, replace_section
-from sgn_jax.dem import driver
+from sgn_jax.pipelines import dem_run as driver
 
 
 @pytest.fixture

@@ -23,10 +23,12 @@ from sgn_jax.checkpoint import (
     write_checkpoint_digest,
 )
 from sgn_jax.config import builtin_config_path, config_to_dict, load_config, replace_section
-from sgn_jax.graph import GraphSpec, build_graph, windows_from_trajectory
+from sgn_jax.graph import GraphSpec, build_graph
 from sgn_jax.model import init_params, make_model, make_predict
 from sgn_jax.normalization import compute_norm_stats
-from sgn_jax.train import make_optimizer, synthetic_trajectory
+from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.testing import synthetic_trajectory
+from sgn_jax.train import make_optimizer
 
 N = 6
 
@@ -208,7 +210,7 @@ def test_intact_checkpoint_is_verified_and_loads(setup, saved, tmp_path):
 
 
 def test_shipped_model_verifies():
-    from sgn_jax.demo import shipped_model_dir
+    from sgn_jax.pipelines.demo import shipped_model_dir
 
     ck = Path(shipped_model_dir())
     steps = [p for p in ck.iterdir() if p.is_dir() and p.name.isdigit()]

@@ -14,7 +14,7 @@ import pytest
 
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config
-from sgn_jax.dem.driver import run_dem
+from sgn_jax.pipelines.dem_run import run_dem
 
 SEEDS = (0, 1, 2, 3)
 

@@ -16,7 +16,6 @@ import pytest
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.dem.contact import make_contact_law
-from sgn_jax.dem.driver import initial_state, setup_from_config
 from sgn_jax.dem.engine import (
     DEMSpec,
     init_state,
@@ -29,6 +28,7 @@ from sgn_jax.dem.engine import (
 from sgn_jax.dem.placement import PlacementError, place_balls
 from sgn_jax.motion import CircleMotion
 from sgn_jax.motion import offset as jar_offset
+from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
 
 SAMPLE_STEPS = 106  # dt_dem = 1e-4 / 106
 

@@ -40,12 +40,12 @@ def tiny(tmp_path_factory):
     and a hidden-16 SGN with random weights saved as a training run's checkpoints/best."""
     from sgn_jax.checkpoint import save_checkpoint
     from sgn_jax.config import save_config
-    from sgn_jax.geometry import sdf_grid_from_config
-    from sgn_jax.graph import build_graph, graph_spec_from_config
+    from sgn_jax.graph import build_graph
     from sgn_jax.model import SGN, init_params
     from sgn_jax.normalization import normalize_graph
-    from sgn_jax.rollout import initial_window
-    from sgn_jax.train import synthetic_trajectory
+    from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+    from sgn_jax.pipelines.rollout_run import initial_window
+    from sgn_jax.testing import synthetic_trajectory
 
     root = tmp_path_factory.mktemp("demo")
     cfg = load_config(builtin_config_path("emax_300rpm"))
@@ -193,8 +193,8 @@ def test_demo_reports_motion_checks(demo):
 
 def test_report_warns_when_the_motion_is_off(demo):
     """The user's case: energy within 1 % while the motion is wrong: the report says so."""
-    from sgn_jax.demo import format_report
     from sgn_jax.metrics import ENERGY_TRUST_WARNING, motion_checks, motion_warnings
+    from sgn_jax.pipelines.demo import format_report
 
     checks = motion_checks(jar_speed_dem_m_s=0.27, jar_speed_sgn_m_s=0.50,
                            snapped_ball_steps=118_702, ball_steps=240_000, overlap_dem_m=62e-6,
@@ -215,7 +215,7 @@ def test_report_warns_when_the_motion_is_off(demo):
 
 
 def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, capsys):
-    import sgn_jax.demo as demo_module
+    import sgn_jax.pipelines.demo as demo_module
     from sgn_jax.cli import main
 
     monkeypatch.setattr(demo_module, "SHIPPED_MODELS_DIR", tmp_path / "models")
@@ -249,7 +249,7 @@ def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, cap
 
 def test_bad_inputs_are_refused_before_the_dem(tiny, tmp_path):
     from sgn_jax.config import save_config
-    from sgn_jax.demo import DemoError, run_demo
+    from sgn_jax.pipelines.demo import DemoError, run_demo
 
     with pytest.raises(DemoError, match="multiple of"):
         run_demo(tmp_path / "a", checkpoint=tiny["run"], config=tiny["case"], duration=0.00105)
@@ -272,7 +272,8 @@ def test_jar_sections_lie_on_the_jar_walls():
     import jax.numpy as jnp
 
     from sgn_jax.animation import jar_sections
-    from sgn_jax.geometry import jar_params_from_config, jar_sdf
+    from sgn_jax.geometry import jar_sdf
+    from sgn_jax.pipelines.configure import jar_params_from_config
 
     jar = replace_section(load_config(builtin_config_path("emax_300rpm")), "jar",
                           post_radius=0.006).jar

@@ -14,7 +14,7 @@ import pytest
 
 import sgn_jax  # noqa: F401  (x64)
 from sgn_jax.config import builtin_config_path, load_config, replace_section, save_config
-from sgn_jax.demo import shipped_model_dir
+from sgn_jax.pipelines.demo import shipped_model_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,18 +17,20 @@ from sgn_jax.geometry import (
     GeometryError,
     JarParams,
     jar_mesh,
-    jar_mesh_from_config,
-    jar_params_from_config,
     jar_patch_sdf,
     jar_patch_sdf_and_normal,
     jar_sdf,
     jar_volume,
-    load_stl,
-    mesh_report,
     mesh_signed_distance,
     patch_names,
 )
 from sgn_jax.geometry.mesh_distance import signed_distance_grid
+from sgn_jax.pipelines.configure import (
+    jar_mesh_from_config,
+    jar_params_from_config,
+    load_stl,
+    mesh_report,
+)
 
 DEFAULT = JarParams()
 POST = JarParams(post_radius=0.006, has_post=True)

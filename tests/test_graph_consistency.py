@@ -6,7 +6,7 @@ rounding, so the window it assembles at step j must be the dataset's window endi
 START + j. The graphs the rollout builds are compared with the graphs the training code path
 builds for the same windows from the dataset file (:func:`sgn_jax.graph.windows_from_trajectory`
 + :func:`sgn_jax.graph.make_graph_builder`, and the compact rows of
-:func:`sgn_jax.train.featurize_trajectory`, what training actually stores).
+:func:`sgn_jax.pipelines.features.featurize_trajectory`, what training actually stores).
 
 What the comparison covers on the rollout side: the slide order of the window, the integration
 of the newest position, the time at which the jar offset and offset velocity of each new slot are
@@ -34,18 +34,20 @@ import pytest
 
 import sgn_jax  # noqa: F401  (x64)
 from sgn_jax.config import replace_section
-from sgn_jax.geometry import sdf_grid_from_config
 from sgn_jax.graph import (
     build_graph,
     dissipation_per_interval,
-    graph_spec_from_config,
     make_graph_builder,
     targets_from_arrays,
-    windows_from_trajectory,
 )
-from sgn_jax.motion import motion_from_config
-from sgn_jax.rollout import ReplayTable, initial_window, make_rollout, replay_predictor
-from sgn_jax.train import featurize_trajectory
+from sgn_jax.pipelines.configure import (
+    graph_spec_from_config,
+    motion_from_config,
+    sdf_grid_from_config,
+)
+from sgn_jax.pipelines.features import featurize_trajectory, windows_from_trajectory
+from sgn_jax.pipelines.rollout_run import initial_window
+from sgn_jax.rollout import ReplayTable, make_rollout, replay_predictor
 
 START = 12  # window end of the rollout's first step (>= W = 7)
 STEPS = 20  # > W: the final window holds no slot of the initial (dataset) window
@@ -59,7 +61,7 @@ def dem(tmp_path_factory):
     (41 samples), saved and loaded back as training reads it."""
     from sgn_jax.config import builtin_config_path, load_config
     from sgn_jax.dataset import load_trajectory, save_trajectory
-    from sgn_jax.dem.driver import run_dem
+    from sgn_jax.pipelines.dem_run import run_dem
 
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "dem", settle_time=0.05)

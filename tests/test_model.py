@@ -8,8 +8,8 @@ import pytest
 
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config
-from sgn_jax.geometry import jar_params_from_config, jar_sdf
-from sgn_jax.graph import GraphSpec, Window, build_graph, windows_from_trajectory
+from sgn_jax.geometry import jar_sdf
+from sgn_jax.graph import GraphSpec, Window, build_graph
 from sgn_jax.model import SGN, count_params, init_params, make_predict
 from sgn_jax.normalization import (
     compute_norm_stats,
@@ -21,7 +21,9 @@ from sgn_jax.normalization import (
     stats_from_arrays,
     stats_to_arrays,
 )
-from sgn_jax.train import synthetic_trajectory
+from sgn_jax.pipelines.configure import jar_params_from_config
+from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.testing import synthetic_trajectory
 
 N, W = 8, 3
 
@@ -191,7 +193,7 @@ def test_checkpoint_from_before_the_restructuring_predicts_the_same():
     from pathlib import Path
 
     from sgn_jax.checkpoint import restore_checkpoint
-    from sgn_jax.train import synthetic_trajectory as trajectory
+    from sgn_jax.testing import synthetic_trajectory as trajectory
 
     directory = Path(__file__).parent / "data" / "sgn_checkpoint_v1"
     expected = json.loads((directory / "expected_predictions.json").read_text())

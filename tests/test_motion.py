@@ -17,13 +17,13 @@ from sgn_jax.motion import (
     frequency_hz,
     motion1,
     motion2,
-    motion_from_config,
     offset,
     spline_from_motion,
     stack_motions,
     standard_circle,
     velocity,
 )
+from sgn_jax.pipelines.configure import motion_from_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "experiments" / "configs"
 TIMES = np.linspace(-0.05, 0.73, 157)  # not commensurate with the 0.2 s period

@@ -12,30 +12,33 @@ import pytest
 
 import sgn_jax  # noqa: F401  (x64)
 from sgn_jax.config import config_to_dict, replace_section
-from sgn_jax.geometry import JarParams, query_sdf_grid, sdf_grid_from_config
+from sgn_jax.geometry import JarParams, query_sdf_grid
 from sgn_jax.graph import (
     GraphSpec,
     Window,
     build_graph,
     dissipation_per_interval,
-    graph_spec_from_config,
     targets_from_arrays,
 )
 from sgn_jax.metrics import pairs_within
 from sgn_jax.model import SGN, init_params
-from sgn_jax.motion import CircleMotion, motion_from_config, offset
+from sgn_jax.motion import CircleMotion, offset
 from sgn_jax.normalization import Moments, NormStats, normalize_graph
+from sgn_jax.pipelines.configure import (
+    graph_spec_from_config,
+    motion_from_config,
+    sdf_grid_from_config,
+)
+from sgn_jax.pipelines.rollout_run import initial_window, run_rollout
 from sgn_jax.rollout import (
     ReplayTable,
     RolloutError,
     analytic_jar_query,
-    initial_window,
     jar_state_window,
     make_rollout,
     make_rollout_advance,
     model_predictor,
     replay_predictor,
-    run_rollout,
     separate_pairs,
 )
 
@@ -48,7 +51,7 @@ def dem(tmp_path_factory):
     """A short real DEM trajectory of the standard case (0.101 s of motion, 1011 samples)."""
     from sgn_jax.config import builtin_config_path, load_config
     from sgn_jax.dataset import load_trajectory, save_trajectory
-    from sgn_jax.dem.driver import run_dem
+    from sgn_jax.pipelines.dem_run import run_dem
 
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "dem", settle_time=0.05)

@@ -26,12 +26,11 @@ from sgn_jax.geometry import (
     jar_patch_sdf_and_normal,
     jar_sdf,
     query_sdf_grid,
-    sdf_grid_from_config,
     sdf_grid_from_fn,
     sdf_grid_from_jar,
-    sdf_grid_from_mesh,
 )
 from sgn_jax.geometry.accuracy import ARC_LEFT, ARC_RIGHT, CORNER, PLANAR_PIECES, POST, piece_labels
+from sgn_jax.pipelines.configure import sdf_grid_from_config, sdf_grid_from_mesh
 
 DEFAULT = JarParams()
 POST_JAR = JarParams(post_radius=0.006, has_post=True)

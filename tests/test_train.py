@@ -9,16 +9,18 @@ import pytest
 
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config, replace_section
-from sgn_jax.geometry import sdf_grid_from_config
-from sgn_jax.graph import graph_spec_from_config, make_graph_builder, windows_from_trajectory
+from sgn_jax.graph import make_graph_builder
 from sgn_jax.model import SGN, init_params, make_apply, make_predict
+from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+from sgn_jax.pipelines.features import featurize_trajectory, windows_from_trajectory
+from sgn_jax.pipelines.train_run import read_metrics, train
+from sgn_jax.testing import synthetic_trajectory
 from sgn_jax.train import (
     BatchPacker,
     TrainingError,
     TrainState,
     add_velocity_noise,
     batch_edge_capacity,
-    featurize_trajectory,
     huber_eq30,
     loss_sums,
     lr_at,
@@ -26,9 +28,6 @@ from sgn_jax.train import (
     make_train_step,
     norm_stats_from_dataset,
     normalize_dataset,
-    read_metrics,
-    synthetic_trajectory,
-    train,
 )
 
 N = 8

@@ -11,8 +11,8 @@ import pytest
 
 from sgn_jax.cli import main
 from sgn_jax.config import ConfigError, builtin_config_path, load_config, replace_section
-from sgn_jax.dem import driver
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
+from sgn_jax.pipelines import dem_run as driver
 from sgn_jax.validation import (
     check_dem_config,
     check_duration,

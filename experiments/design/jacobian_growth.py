@@ -28,10 +28,12 @@ import numpy as np
 
 import sgn_jax.api as sj
 from sgn_jax.design import anchored_window, apply_parameters
-from sgn_jax.geometry import jar_params_from_config
-from sgn_jax.graph import graph_spec_from_config
 from sgn_jax.io_utils import atomic_write
-from sgn_jax.motion import motion_from_config
+from sgn_jax.pipelines.configure import (
+    graph_spec_from_config,
+    jar_params_from_config,
+    motion_from_config,
+)
 from sgn_jax.rollout import RolloutState, analytic_jar_query, make_rollout_advance, model_predictor
 
 OUT = Path("runs/design")

@@ -9,7 +9,7 @@ process (issue 10's evaluation).
 Does what ``experiments/run_experiments.py`` does (the same files under
 ``runs/experiments/NAME``: ``rollouts/{case}_seed{S}.npz/.json``, ``eval/{case}/run_XX/
 metrics.json``, ``eval/{case}/ensemble.json`` and ``curves.png``, ``results.json``), but loads
-the model once and runs every rollout in this process with ``sgn_jax.rollout.run_rollout``
+the model once and runs every rollout in this process with ``sgn_jax.pipelines.rollout_run.run_rollout``
 and every comparison with ``sgn_jax.metrics.evaluate``. On this 2-core machine under load a
 ``sgn-jax rollout`` process spent up to 80 s starting and compiling for a 0.05-s rollout; here
 the compiled programs are reused (JAX's persistent cache) and only the first rollout of a shape
@@ -43,10 +43,11 @@ from sgn_jax.cache import enable_compilation_cache  # noqa: E402
 from sgn_jax.checkpoint import load_trained_model  # noqa: E402
 from sgn_jax.config import load_config  # noqa: E402
 from sgn_jax.dataset import load_trajectory  # noqa: E402
-from sgn_jax.demo import resolve_checkpoint  # noqa: E402
 from sgn_jax.io_utils import git_commit, machine_info, write_json  # noqa: E402
 from sgn_jax.metrics import ensemble_summary, evaluate  # noqa: E402
-from sgn_jax.rollout import RolloutError, run_rollout  # noqa: E402
+from sgn_jax.pipelines.demo import resolve_checkpoint  # noqa: E402
+from sgn_jax.pipelines.rollout_run import run_rollout  # noqa: E402
+from sgn_jax.rollout import RolloutError  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -185,20 +185,6 @@ def make_params(
     )
 
 
-def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DEMParams:
-    """DEMParams of an experiment config (balls, material, gravity, jar patches, motion)."""
-    if geometry is None:
-        geometry = geometry_from_config(cfg).geometry
-    if motion is None:
-        motion = motion_mod.motion_from_config(cfg.motion)
-    m = cfg.material
-    return make_params(
-        radius=cfg.balls.radius, density=cfg.balls.density, young=m.young, poisson=m.poisson,
-        restitution=m.restitution, friction=m.friction, rolling_friction=m.rolling_friction,
-        gravity=tuple(cfg.dem.gravity), geometry=geometry, motion=motion,
-    )
-
-
 class JarGeometry(NamedTuple):
     """The jar of a config as the DEM sees it.
 
@@ -218,42 +204,21 @@ class JarGeometry(NamedTuple):
     upper: np.ndarray
 
 
-def _emax_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+def emax_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     return geo.jar_patch_sdf_and_normal(g, x_jar)
 
 
-def _emax_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
+def emax_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
     return geo.jar_sdf(g, x_jar)
 
 
-def _grid_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+def grid_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     phi, normal = geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
     return phi[..., None].astype(x_jar.dtype), normal[..., None, :].astype(x_jar.dtype)
 
 
-def _grid_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
+def grid_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
     return geo.grid_sdf(g, x_jar)
-
-
-def geometry_from_config(cfg: Any) -> JarGeometry:
-    """The jar of a config for the DEM.
-
-    The parametric jar gives one contact per wall patch (floor, lid, side[, post]), each its own
-    analytic SDF. An STL jar is a single patch read from an SDF grid (float64, ``[sdf]``
-    spacing): a ball in a concave edge of an STL jar then feels only the nearer wall, and the
-    wall is only as smooth as the trilinear grid (documented limitation, SPEC 3).
-    """
-    if cfg.jar.kind == "emax":
-        params = geo.jar_params_from_config(cfg.jar)
-        params = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params)
-        lower, upper = geo.jar_bounds(params)
-        return JarGeometry(params, _emax_wall_fn, _emax_sdf_fn, geo.patch_names(params),
-                           lower, upper)
-    grid = geo.sdf_grid_from_config(cfg, dtype=jnp.float64)
-    margin = float(cfg.sdf.margin)
-    lower = np.asarray(grid.origin, np.float64) + margin
-    upper = np.asarray(grid.upper, np.float64) - margin
-    return JarGeometry(grid, _grid_wall_fn, _grid_sdf_fn, ("mesh",), lower, upper)
 
 
 @flax.struct.dataclass

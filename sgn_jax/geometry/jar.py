@@ -28,7 +28,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
-from sgn_jax.geometry.stl import load_stl
 
 
 @flax.struct.dataclass
@@ -44,22 +43,6 @@ class JarParams:
     height: float | jax.Array = 0.047
     post_radius: float | jax.Array = 0.0
     has_post: bool = flax.struct.field(pytree_node=False, default=False)
-
-
-def jar_params_from_config(jar_cfg: Any) -> JarParams:
-    """``JarParams`` of a ``[jar]`` config section of kind "emax" (``has_post = post_radius > 0``)."""
-    if jar_cfg.kind != "emax":
-        raise GeometryError(
-            f"jar_params_from_config needs a [jar] section of kind 'emax', got {jar_cfg.kind!r}; "
-            "an STL jar has no parameters: use jar_mesh_from_config / load_stl instead"
-        )
-    return JarParams(
-        radius=float(jar_cfg.radius),
-        straight_length=float(jar_cfg.straight_length),
-        height=float(jar_cfg.height),
-        post_radius=float(jar_cfg.post_radius),
-        has_post=float(jar_cfg.post_radius) > 0,
-    )
 
 
 def jar_volume(params: JarParams) -> float | jax.Array:
@@ -233,29 +216,3 @@ def jar_mesh(params: JarParams, segments: int = 256) -> Any:
     return mesh
 
 
-def jar_mesh_from_config(jar_cfg: Any) -> Any:
-    """The jar of a ``[jar]`` config section as a trimesh: kind "emax" -> :func:`jar_mesh`,
-    kind "stl" -> :func:`sgn_jax.geometry.load_stl` of ``stl_path`` in ``stl_units``."""
-    if jar_cfg.kind == "emax":
-        return jar_mesh(jar_params_from_config(jar_cfg))
-    if jar_cfg.kind == "stl":
-        return load_stl(jar_cfg.stl_path, jar_cfg.stl_units)
-    raise GeometryError(f"[jar] kind must be 'emax' or 'stl', got {jar_cfg.kind!r}")
-
-
-def mesh_report(mesh: Any, jar_cfg: Any) -> dict[str, Any]:
-    """JSON-able summary of a jar mesh: volume_ml, watertight, winding_consistent, n_faces,
-    bounds (m, [[xmin, ymin, zmin], [xmax, ymax, zmax]]) and, for an "emax" jar,
-    analytic_volume_ml and volume_error_percent (mesh vs analytic)."""
-    report: dict[str, Any] = {
-        "volume_ml": float(mesh.volume) * 1e6,
-        "watertight": bool(mesh.is_watertight),
-        "winding_consistent": bool(mesh.is_winding_consistent),
-        "n_faces": int(len(mesh.faces)),
-        "bounds": np.asarray(mesh.bounds, dtype=float).tolist(),
-    }
-    if jar_cfg.kind == "emax":
-        analytic_ml = float(jar_volume(jar_params_from_config(jar_cfg))) * 1e6
-        report["analytic_volume_ml"] = analytic_ml
-        report["volume_error_percent"] = 100 * (report["volume_ml"] - analytic_ml) / analytic_ml
-    return report

@@ -19,10 +19,7 @@ a kink; trilinear interpolation is exact across a kink that lies on a node plane
 
 from __future__ import annotations
 
-import hashlib
-import os
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import flax.struct
@@ -33,16 +30,11 @@ import numpy as np
 from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
 from sgn_jax.geometry.jar import (
     JarParams,
-    jar_mesh_from_config,
-    jar_params_from_config,
     jar_patch_sdf,
     jar_sdf,
 )
-from sgn_jax.geometry.mesh_distance import signed_distance_grid
-from sgn_jax.io_utils import atomic_write
 
 # Bump when the way a mesh grid is computed changes, so that old cache files are not reused.
-MESH_GRID_CACHE_VERSION = 1
 _EVAL_CHUNK = 1 << 18  # points per jitted evaluation of an analytic SDF
 
 
@@ -206,84 +198,6 @@ def sdf_grid_from_jar(
     return sdf_grid_from_fn(
         lambda x: jar_sdf(params64, x), lower - margin, upper + margin, spacing, dtype
     )
-
-
-def default_cache_dir() -> Path:
-    """``$SGN_JAX_CACHE`` if set, else ``~/.cache/sgn_jax``."""
-    env = os.environ.get("SGN_JAX_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "sgn_jax"
-
-
-def mesh_grid_cache_key(mesh: Any, spacing: float, margin: float) -> str:
-    """sha256 of the mesh's vertices and faces, the spacing, the margin and the cache version."""
-    digest = hashlib.sha256()
-    digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
-    digest.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    digest.update(f"|spacing={float(spacing)!r}|margin={float(margin)!r}|".encode())
-    digest.update(f"v{MESH_GRID_CACHE_VERSION}".encode())
-    return digest.hexdigest()
-
-
-def _load_cached_grid(path: Path) -> tuple[np.ndarray, np.ndarray, float] | None:
-    try:
-        with np.load(path) as data:
-            values = np.asarray(data["values"], dtype=np.float64)
-            origin = np.asarray(data["origin"], dtype=np.float64)
-            spacing = float(data["spacing"])
-    except (OSError, KeyError, ValueError):
-        return None  # unreadable or stale cache file: recompute and overwrite it
-    if values.ndim != 3 or origin.shape != (3,) or not np.all(np.isfinite(values)):
-        return None
-    return values, origin, spacing
-
-
-def sdf_grid_from_mesh(
-    mesh: Any,
-    spacing: float = 5e-4,
-    margin: float = 3e-3,
-    dtype: Any = jnp.float32,
-    cache_dir: str | Path | None = None,
-) -> SDFGrid:
-    """Grid of the signed distance to a closed cavity mesh (SPEC sign: negative inside).
-
-    The mesh's bounding box grown by ``margin`` is sampled with
-    :func:`sgn_jax.geometry.mesh_distance.signed_distance_grid` (exact distances by
-    branch-and-bound over blocks of nodes, sign from angle-weighted pseudonormals). The float64 result is cached as
-    ``sdf_grid_<sha256>.npz`` in ``cache_dir`` (default :func:`default_cache_dir`), keyed by
-    :func:`mesh_grid_cache_key`, and written atomically.
-    """
-    lower = np.asarray(mesh.bounds[0], dtype=np.float64) - margin
-    upper = np.asarray(mesh.bounds[1], dtype=np.float64) + margin
-    origin, shape = grid_layout(lower, upper, spacing)
-    cache_path = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    cache_path = cache_path / f"sdf_grid_{mesh_grid_cache_key(mesh, spacing, margin)}.npz"
-
-    cached = _load_cached_grid(cache_path) if cache_path.is_file() else None
-    if cached is not None and cached[0].shape == shape and cached[2] == float(spacing):
-        values, origin = cached[0], cached[1]
-    else:
-        values = signed_distance_grid(
-            mesh, origin, shape, spacing, progress=int(np.prod(shape)) > 200_000
-        )
-        with atomic_write(cache_path, "wb") as fh:
-            np.savez(fh, values=values, origin=origin, spacing=np.float64(spacing))
-    return SDFGrid(
-        values=jnp.asarray(values, dtype=dtype),
-        origin=jnp.asarray(origin, dtype=dtype),
-        spacing=float(spacing),
-    )
-
-
-def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32, per_patch: bool = True) -> SDFGrid:
-    """The SDF grid of a whole config: ``[jar]`` kind "emax" -> :func:`sdf_grid_from_jar`
-    (patch-stacked unless ``per_patch=False``), kind "stl" -> the mesh of ``stl_path`` (a single
-    patch); spacing and margin from ``[sdf]``."""
-    if cfg.jar.kind == "emax":
-        return sdf_grid_from_jar(
-            jar_params_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype, per_patch
-        )
-
-    return sdf_grid_from_mesh(jar_mesh_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype)
 
 
 # --------------------------------------------------------------------------------------------

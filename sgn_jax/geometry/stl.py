@@ -9,7 +9,6 @@ to repair it. The mesh describes the cavity (where the balls are) in jar-frame c
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -71,26 +70,3 @@ def check_closed_mesh(mesh: Any, name: str = "mesh") -> Any:
     return mesh
 
 
-def load_stl(path: str | Path, units: str = "m") -> Any:
-    """Load a cavity STL in ``units`` ("m" or "mm"), return a validated trimesh in m.
-
-    Vertices are merged (an STL is a triangle soup); the mesh must be watertight and
-    consistently wound (see :func:`check_closed_mesh`). Raises GeometryError on a missing or
-    unreadable file, unknown units or a bad mesh.
-    """
-    import trimesh
-
-    if units not in UNIT_SCALES:
-        raise GeometryError(f"STL units must be one of {sorted(UNIT_SCALES)}, got {units!r}")
-    path = Path(path)
-    if not path.is_file():
-        raise GeometryError(f"STL file not found: {path} (check [jar] stl_path)")
-    try:
-        mesh = trimesh.load(str(path), file_type="stl", force="mesh", process=True)
-    except Exception as exc:  # trimesh raises a variety of parse errors
-        raise GeometryError(f"{path}: cannot read as STL: {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise GeometryError(f"{path}: expected a single triangle mesh, got {type(mesh).__name__}")
-    if UNIT_SCALES[units] != 1.0:
-        mesh.apply_scale(UNIT_SCALES[units])
-    return check_closed_mesh(mesh, name=str(path))

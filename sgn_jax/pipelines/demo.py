@@ -51,7 +51,6 @@ from sgn_jax.animation import select_frames, write_comparison_gif
 from sgn_jax.checkpoint import CheckpointError, latest_step, load_trained_model
 from sgn_jax.config import resolve_config
 from sgn_jax.dataset import load_trajectory
-from sgn_jax.dem.driver import run_dem
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.io_utils import machine_info, write_json
 from sgn_jax.metrics import (
@@ -64,12 +63,13 @@ from sgn_jax.metrics import (
     motion_warning_lines,
     position_mse,
 )
+from sgn_jax.pipelines.dem_run import run_dem
+from sgn_jax.pipelines.rollout_run import run_rollout
 from sgn_jax.prediction import load_prediction
-from sgn_jax.rollout import run_rollout
 from sgn_jax.validation import check_duration, warn_outside_envelope
 
 DEFAULT_CASE = "emax_300rpm"
-SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
+SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "data" / "models"
 """Where the trained models shipped with the package live (one directory per model)."""
 PAPER_MODEL = "emax_300rpm"
 """The paper-setting one-trajectory model of the reproduction (docs/results.md)."""

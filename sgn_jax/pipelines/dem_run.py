@@ -42,16 +42,15 @@ from sgn_jax.dem.engine import (
     DEMSpec,
     DEMState,
     JarGeometry,
-    geometry_from_config,
     init_state,
     make_sampler,
     observe,
-    params_from_config,
     reset_ledger_totals,
 )
 from sgn_jax.dem.placement import place_balls
 from sgn_jax.io_utils import atomic_write
 from sgn_jax.motion import offset
+from sgn_jax.pipelines.configure import geometry_from_config, params_from_config
 from sgn_jax.validation import check_dem_config, check_duration
 
 PARTIAL_FORMAT = 1
@@ -185,14 +184,16 @@ def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
 # --------------------------------------------------------------------------------------------
 # Settled packings, cached across runs and processes
 
-_DEM_SOURCES = ("engine.py", "contact.py", "placement.py", "walls.py", "driver.py")
+_DEM_DIR = Path(__file__).resolve().parent.parent / "dem"
+_DEM_SOURCES = (_DEM_DIR / "engine.py", _DEM_DIR / "contact.py", _DEM_DIR / "placement.py",
+                _DEM_DIR / "walls.py", Path(__file__).resolve())
 
 
 def _dem_source_digest() -> str:
     """SHA-256 of the DEM's source files: a cached state is reused only by the same code."""
     h = hashlib.sha256()
-    for name in _DEM_SOURCES:
-        h.update((Path(__file__).with_name(name)).read_bytes())
+    for name in _DEM_SOURCES:  # a Path each
+        h.update(name.read_bytes())
     return h.hexdigest()
 
 

@@ -1,0 +1,18 @@
+"""The pipeline layer: where a config meets the pure JAX core, and where the host drivers live.
+
+The core (``sgn_jax.motion``, ``sgn_jax.geometry``, ``sgn_jax.dem`` engine and contact laws,
+``sgn_jax.graph``, ``sgn_jax.model``, ``sgn_jax.normalization``, ``sgn_jax.rollout``,
+``sgn_jax.train`` step and loss, ``sgn_jax.design``) never imports ``sgn_jax.config`` or file
+I/O (``tests/test_architecture.py`` checks the import graph). Everything that reads a config or
+touches files is here:
+
+- :mod:`sgn_jax.pipelines.configure` - every ``*_from_config`` adapter (config -> core spec,
+  params, motion, jar geometry, SDF grid), and the STL / SDF-grid file cache;
+- :mod:`sgn_jax.pipelines.features` - dataset trajectory -> graph windows and training samples
+  (the frequency feature from the same motion object the rollout uses);
+- :mod:`sgn_jax.pipelines.dem_run` - the resumable, chunked DEM driver (``sgn-jax dem``);
+- :mod:`sgn_jax.pipelines.train_run` - the training loop (``sgn-jax train``);
+- :mod:`sgn_jax.pipelines.rollout_run` - checkpoint + dataset -> prediction file
+  (``sgn-jax rollout``);
+- :mod:`sgn_jax.pipelines.demo` - ``sgn-jax demo`` and the shipped models.
+"""

@@ -1,0 +1,278 @@
+"""Config -> core: every ``*_from_config`` adapter of the package, in one place.
+
+The core modules take plain values, specs and pytrees; this module reads the typed config
+(:mod:`sgn_jax.config`) and builds them. It also holds the two file-reading parts of the jar
+geometry (STL loading, the on-disk cache of mesh SDF grids), so the core geometry stays pure.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from sgn_jax import geometry as geo
+from sgn_jax.config import ConfigError, MotionConfig
+from sgn_jax.dem.engine import (
+    DEMParams,
+    JarGeometry,
+    emax_sdf_fn,
+    emax_wall_fn,
+    grid_sdf_fn,
+    grid_wall_fn,
+    make_params,
+)
+from sgn_jax.geometry import GeometryError, JarParams, SDFGrid, check_closed_mesh
+from sgn_jax.geometry.jar import jar_mesh, jar_volume
+from sgn_jax.geometry.mesh_distance import signed_distance_grid
+from sgn_jax.geometry.sdf_grid import grid_layout, sdf_grid_from_jar
+from sgn_jax.geometry.stl import UNIT_SCALES
+from sgn_jax.graph import GraphSpec
+from sgn_jax.io_utils import atomic_write
+from sgn_jax.motion import CircleMotion, HarmonicMotion, Motion, SplineMotion
+
+
+def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:
+    """Build the motion pytree described by a ``[motion]`` config section, leaves of ``dtype``.
+
+    Harmonic coefficient lists that are empty mean zero; all lists of one config have the same
+    length K (checked by MotionConfig).
+    """
+    if not isinstance(cfg, MotionConfig):
+        raise TypeError(
+            f"motion_from_config expects a sgn_jax.config.MotionConfig (cfg.motion), "
+            f"got {type(cfg).__name__}"
+        )
+    if cfg.kind == "circle":
+        return CircleMotion(
+            rpm=jnp.asarray(cfg.rpm, dtype),
+            amplitude=jnp.asarray(cfg.amplitude, dtype),
+            phase=jnp.asarray(cfg.phase, dtype),
+        )
+    if cfg.kind == "harmonic":
+        lists = {name: getattr(cfg, name) for name in
+                 ("x_sin", "y_sin", "z_sin", "x_cos", "y_cos", "z_cos")}
+        n_harmonics = max(len(v) for v in lists.values())
+        sin_coeffs = np.zeros((n_harmonics, 3))
+        cos_coeffs = np.zeros((n_harmonics, 3))
+        for axis, letter in enumerate("xyz"):
+            for target, kind in ((sin_coeffs, "sin"), (cos_coeffs, "cos")):
+                values = lists[f"{letter}_{kind}"]
+                if values:
+                    target[:, axis] = values
+        return HarmonicMotion(
+            base_frequency_hz=jnp.asarray(cfg.base_frequency_hz, dtype),
+            sin_coeffs=jnp.asarray(sin_coeffs, dtype),
+            cos_coeffs=jnp.asarray(cos_coeffs, dtype),
+        )
+    if cfg.kind == "spline":
+        return SplineMotion(period=jnp.asarray(cfg.period, dtype),
+                            points=jnp.asarray(np.array(cfg.points), dtype))
+    raise ConfigError(f"[motion] unknown kind {cfg.kind!r}")
+
+
+def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpec:
+    """The GraphSpec of a :class:`sgn_jax.config.Config` (balls, dem.dt and the [graph] section).
+
+    The ball-ball capacity is ``graph.pp_edges_per_particle * N`` directed edges.
+    """
+    n = cfg.balls.count if n_particles is None else int(n_particles)
+    return GraphSpec(
+        n_particles=n,
+        window=cfg.graph.window,
+        ball_radius=cfg.balls.radius,
+        dt=cfg.dem.dt,
+        pp_skin=cfg.graph.pp_skin,
+        phi_pw=cfg.graph.phi_pw,
+        pp_pair_capacity=max(1, (cfg.graph.pp_edges_per_particle * n) // 2),
+        contact_features=cfg.graph.contact_features,
+    )
+
+
+def jar_params_from_config(jar_cfg: Any) -> JarParams:
+    """``JarParams`` of a ``[jar]`` config section of kind "emax" (``has_post = post_radius > 0``)."""
+    if jar_cfg.kind != "emax":
+        raise GeometryError(
+            f"jar_params_from_config needs a [jar] section of kind 'emax', got {jar_cfg.kind!r}; "
+            "an STL jar has no parameters: use jar_mesh_from_config / load_stl instead"
+        )
+    return JarParams(
+        radius=float(jar_cfg.radius),
+        straight_length=float(jar_cfg.straight_length),
+        height=float(jar_cfg.height),
+        post_radius=float(jar_cfg.post_radius),
+        has_post=float(jar_cfg.post_radius) > 0,
+    )
+
+
+def jar_mesh_from_config(jar_cfg: Any) -> Any:
+    """The jar of a ``[jar]`` config section as a trimesh: kind "emax" -> :func:`jar_mesh`,
+    kind "stl" -> :func:`sgn_jax.geometry.load_stl` of ``stl_path`` in ``stl_units``."""
+    if jar_cfg.kind == "emax":
+        return jar_mesh(jar_params_from_config(jar_cfg))
+    if jar_cfg.kind == "stl":
+        return load_stl(jar_cfg.stl_path, jar_cfg.stl_units)
+    raise GeometryError(f"[jar] kind must be 'emax' or 'stl', got {jar_cfg.kind!r}")
+
+
+def load_stl(path: str | Path, units: str = "m") -> Any:
+    """Load a cavity STL in ``units`` ("m" or "mm"), return a validated trimesh in m.
+
+    Vertices are merged (an STL is a triangle soup); the mesh must be watertight and
+    consistently wound (see :func:`check_closed_mesh`). Raises GeometryError on a missing or
+    unreadable file, unknown units or a bad mesh.
+    """
+    if units not in UNIT_SCALES:
+        raise GeometryError(f"STL units must be one of {sorted(UNIT_SCALES)}, got {units!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise GeometryError(f"STL file not found: {path} (check [jar] stl_path)")
+    try:
+        mesh = trimesh.load(str(path), file_type="stl", force="mesh", process=True)
+    except Exception as exc:  # trimesh raises a variety of parse errors
+        raise GeometryError(f"{path}: cannot read as STL: {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise GeometryError(f"{path}: expected a single triangle mesh, got {type(mesh).__name__}")
+    if UNIT_SCALES[units] != 1.0:
+        mesh.apply_scale(UNIT_SCALES[units])
+    return check_closed_mesh(mesh, name=str(path))
+
+
+MESH_GRID_CACHE_VERSION = 1
+
+
+def default_cache_dir() -> Path:
+    """``$SGN_JAX_CACHE`` if set, else ``~/.cache/sgn_jax``."""
+    env = os.environ.get("SGN_JAX_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "sgn_jax"
+
+
+def mesh_grid_cache_key(mesh: Any, spacing: float, margin: float) -> str:
+    """sha256 of the mesh's vertices and faces, the spacing, the margin and the cache version."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    digest.update(f"|spacing={float(spacing)!r}|margin={float(margin)!r}|".encode())
+    digest.update(f"v{MESH_GRID_CACHE_VERSION}".encode())
+    return digest.hexdigest()
+
+
+def _load_cached_grid(path: Path) -> tuple[np.ndarray, np.ndarray, float] | None:
+    try:
+        with np.load(path) as data:
+            values = np.asarray(data["values"], dtype=np.float64)
+            origin = np.asarray(data["origin"], dtype=np.float64)
+            spacing = float(data["spacing"])
+    except (OSError, KeyError, ValueError):
+        return None  # unreadable or stale cache file: recompute and overwrite it
+    if values.ndim != 3 or origin.shape != (3,) or not np.all(np.isfinite(values)):
+        return None
+    return values, origin, spacing
+
+
+def sdf_grid_from_mesh(
+    mesh: Any,
+    spacing: float = 5e-4,
+    margin: float = 3e-3,
+    dtype: Any = jnp.float32,
+    cache_dir: str | Path | None = None,
+) -> SDFGrid:
+    """Grid of the signed distance to a closed cavity mesh (SPEC sign: negative inside).
+
+    The mesh's bounding box grown by ``margin`` is sampled with
+    :func:`sgn_jax.geometry.mesh_distance.signed_distance_grid` (exact distances by
+    branch-and-bound over blocks of nodes, sign from angle-weighted pseudonormals). The float64 result is cached as
+    ``sdf_grid_<sha256>.npz`` in ``cache_dir`` (default :func:`default_cache_dir`), keyed by
+    :func:`mesh_grid_cache_key`, and written atomically.
+    """
+    lower = np.asarray(mesh.bounds[0], dtype=np.float64) - margin
+    upper = np.asarray(mesh.bounds[1], dtype=np.float64) + margin
+    origin, shape = grid_layout(lower, upper, spacing)
+    cache_path = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    cache_path = cache_path / f"sdf_grid_{mesh_grid_cache_key(mesh, spacing, margin)}.npz"
+
+    cached = _load_cached_grid(cache_path) if cache_path.is_file() else None
+    if cached is not None and cached[0].shape == shape and cached[2] == float(spacing):
+        values, origin = cached[0], cached[1]
+    else:
+        values = signed_distance_grid(
+            mesh, origin, shape, spacing, progress=int(np.prod(shape)) > 200_000
+        )
+        with atomic_write(cache_path, "wb") as fh:
+            np.savez(fh, values=values, origin=origin, spacing=np.float64(spacing))
+    return SDFGrid(
+        values=jnp.asarray(values, dtype=dtype),
+        origin=jnp.asarray(origin, dtype=dtype),
+        spacing=float(spacing),
+    )
+
+
+def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32, per_patch: bool = True) -> SDFGrid:
+    """The SDF grid of a whole config: ``[jar]`` kind "emax" -> :func:`sdf_grid_from_jar`
+    (patch-stacked unless ``per_patch=False``), kind "stl" -> the mesh of ``stl_path`` (a single
+    patch); spacing and margin from ``[sdf]``."""
+    if cfg.jar.kind == "emax":
+        return sdf_grid_from_jar(
+            jar_params_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype, per_patch
+        )
+
+    return sdf_grid_from_mesh(jar_mesh_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype)
+
+
+def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DEMParams:
+    """DEMParams of an experiment config (balls, material, gravity, jar patches, motion)."""
+    if geometry is None:
+        geometry = geometry_from_config(cfg).geometry
+    if motion is None:
+        motion = motion_from_config(cfg.motion)
+    m = cfg.material
+    return make_params(
+        radius=cfg.balls.radius, density=cfg.balls.density, young=m.young, poisson=m.poisson,
+        restitution=m.restitution, friction=m.friction, rolling_friction=m.rolling_friction,
+        gravity=tuple(cfg.dem.gravity), geometry=geometry, motion=motion,
+    )
+
+
+def geometry_from_config(cfg: Any) -> JarGeometry:
+    """The jar of a config for the DEM.
+
+    The parametric jar gives one contact per wall patch (floor, lid, side[, post]), each its own
+    analytic SDF. An STL jar is a single patch read from an SDF grid (float64, ``[sdf]``
+    spacing): a ball in a concave edge of an STL jar then feels only the nearer wall, and the
+    wall is only as smooth as the trilinear grid (documented limitation, SPEC 3).
+    """
+    if cfg.jar.kind == "emax":
+        params = jar_params_from_config(cfg.jar)
+        params = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params)
+        lower, upper = geo.jar_bounds(params)
+        return JarGeometry(params, emax_wall_fn, emax_sdf_fn, geo.patch_names(params),
+                           lower, upper)
+    grid = sdf_grid_from_config(cfg, dtype=jnp.float64)
+    margin = float(cfg.sdf.margin)
+    lower = np.asarray(grid.origin, np.float64) + margin
+    upper = np.asarray(grid.upper, np.float64) - margin
+    return JarGeometry(grid, grid_wall_fn, grid_sdf_fn, ("mesh",), lower, upper)
+
+
+def mesh_report(mesh: Any, jar_cfg: Any) -> dict[str, Any]:
+    """JSON-able summary of a jar mesh: volume_ml, watertight, winding_consistent, n_faces,
+    bounds (m, [[xmin, ymin, zmin], [xmax, ymax, zmax]]) and, for an "emax" jar,
+    analytic_volume_ml and volume_error_percent (mesh vs analytic)."""
+    report: dict[str, Any] = {
+        "volume_ml": float(mesh.volume) * 1e6,
+        "watertight": bool(mesh.is_watertight),
+        "winding_consistent": bool(mesh.is_winding_consistent),
+        "n_faces": int(len(mesh.faces)),
+        "bounds": np.asarray(mesh.bounds, dtype=float).tolist(),
+    }
+    if jar_cfg.kind == "emax":
+        analytic_ml = float(jar_volume(jar_params_from_config(jar_cfg))) * 1e6
+        report["analytic_volume_ml"] = analytic_ml
+        report["volume_error_percent"] = 100 * (report["volume_ml"] - analytic_ml) / analytic_ml
+    return report
