@@ -41,7 +41,6 @@ Edges use the newest slot: ball-ball where ``|x_j - x_i| <= 2 R + pp_skin``, bal
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import flax.struct
@@ -51,14 +50,11 @@ import jraph
 import numpy as np
 
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.geometry import query_sdf_grid
+from sgn_jax.scene import SDFQuery, grid_query
 
 # One slot's particle columns: velocity (0..2), phi (3), unit normal (4..6).
 SLOT_DIM = 7
 VELOCITY_COLUMNS_IN_SLOT = (0, 1, 2)
-
-SDFQuery = Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
-"""``query(sdf, points_lab (..., 3), offset (3,)) -> (phi (...), unit normal (..., 3))``."""
 
 
 class GraphError(SGNJaxError, ValueError):
@@ -188,7 +184,7 @@ class EdgeCounts(NamedTuple):
 
 
 def _default_query() -> SDFQuery:
-    return query_sdf_grid
+    return grid_query
 
 
 def _check_window(window: Window, spec: GraphSpec) -> None:

@@ -48,7 +48,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax.linen as nn
 import flax.struct
@@ -58,16 +58,15 @@ import jraph
 import numpy as np
 
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.geometry import jar_sdf, query_sdf_grid, safe_normalize
 from sgn_jax.graph import (
     GraphSpec,
-    SDFQuery,
     Window,
     build_graph,
     slide_window,
 )
 from sgn_jax.model import make_predict
 from sgn_jax.motion import Motion, frequency_hz, offset, velocity
+from sgn_jax.scene import SDFQuery, analytic_jar_query, grid_query
 
 F64 = jnp.float64
 I32 = jnp.int32
@@ -209,21 +208,8 @@ def replay_predictor() -> Predictor:
     return predictor
 
 
-def analytic_jar_query(jar: Any, points: jax.Array, jar_offset: jax.Array
-                       ) -> tuple[jax.Array, jax.Array]:
-    """Exact SDF of a :class:`sgn_jax.geometry.JarParams` jar in the ``query`` form of
-    :func:`sgn_jax.graph.build_graph`: ``(phi (...), unit normal (..., 3))`` at lab points
-    ``(..., 3)`` for a jar at ``jar_offset`` (3,). The normal is the autodiff gradient of
-    :func:`sgn_jax.geometry.jar_sdf`; both are differentiable in the points, the offset and the
-    jar parameters (a kink only on the medial surfaces, where two walls are equally near)."""
-    x = jnp.asarray(points) - jnp.asarray(jar_offset)
-    flat = x.reshape(-1, 3)
-    phi, grad = jax.vmap(jax.value_and_grad(lambda p: jar_sdf(jar, p)))(flat)
-    return phi.reshape(x.shape[:-1]), safe_normalize(grad).reshape(x.shape)
-
-
 def _default_query() -> SDFQuery:
-    return query_sdf_grid
+    return grid_query
 
 
 # --------------------------------------------------------------------------------------------
@@ -432,30 +418,89 @@ def _as_predictor(predictor: Any) -> Predictor:
     return model_predictor(predictor) if isinstance(predictor, nn.Module) else predictor
 
 
+@dataclasses.dataclass(frozen=True)
+class RolloutOptions:
+    """How a rollout steps (the keyword options of every rollout factory).
+
+    Attributes:
+        checkpoint_steps: steps per ``jax.checkpoint`` chunk (a multiple of save_every;
+            default min(S, 100 save_every)); only matters under reverse-mode differentiation.
+        snap_back, phi_sb, snap_velocity: the snap-back (module docstring); off for replays.
+        query: ``query(sdf, points, offset) -> (phi, normal)`` (:data:`sgn_jax.scene.SDFQuery`);
+            default the SDF grid (:data:`sgn_jax.scene.grid_query`);
+            :data:`sgn_jax.scene.analytic_jar_query` for JarParams.
+        unroll: ``lax.scan`` unroll factor of the inner step loop (speed only).
+        pp_capacity_tiers: smaller ball-pair capacities (increasing, below
+            ``spec.pp_pair_capacity``); each step runs the network on the smallest tier that
+            holds its pairs (``lax.switch``), the same prediction on fewer padded edge rows.
+            Speed only, for single rollouts: under ``vmap`` every tier runs.
+        pp_max_overlap: ball-ball separation (:func:`separate_pairs`, not in the paper): after
+            each step, pairs overlapping by more than this (m) are moved apart to it, with the
+            velocity rule of ``snap_velocity``; None (default) = off, as in the paper.
+    """
+
+    checkpoint_steps: int | None = None
+    snap_back: bool = True
+    phi_sb: float = -0.0049
+    snap_velocity: str = "keep"
+    query: SDFQuery | None = None
+    unroll: int = 1
+    pp_capacity_tiers: Any = ()
+    pp_max_overlap: float | None = None
+
+
+class _Stepping(NamedTuple):
+    predictor: Predictor
+    query: SDFQuery
+    snap: SnapBack
+    tiers: tuple[int, ...]
+
+
+def _stepping(spec: GraphSpec, predictor: Any, options: RolloutOptions) -> _Stepping:
+    """Check the options and resolve the predictor, the query, the snap rules and the tiers."""
+    o = options
+    if o.snap_velocity not in ("keep", "position"):
+        raise RolloutError(f"snap_velocity must be 'keep' or 'position', got {o.snap_velocity!r}")
+    if o.pp_max_overlap is not None and o.pp_max_overlap < 0:
+        raise RolloutError(f"pp_max_overlap must be >= 0 m or None, got {o.pp_max_overlap}")
+    snap = SnapBack(bool(o.snap_back), float(o.phi_sb), o.snap_velocity == "keep",
+                    None if o.pp_max_overlap is None else float(o.pp_max_overlap))
+    return _Stepping(_as_predictor(predictor), _default_query() if o.query is None else o.query,
+                     snap, check_tiers(spec, o.pp_capacity_tiers))
+
+
+def make_rollout_step(spec: GraphSpec, predictor: Any, **options: Any) -> Callable[..., Any]:
+    """The rollout's ``step`` of the ``init``/``step`` pair (``init`` is :func:`init_state`).
+
+    ``step(params, stats, state, motion, sdf, t0) -> (state, StepRecord)`` advances a
+    :class:`RolloutState` by one surrogate step of ``spec.dt`` (``t0``: the rollout's start
+    time, so the step's time is ``t0 + (state.step + 1) dt``). Pure and jittable; the scan of
+    :func:`make_rollout` is this step. ``options``: :class:`RolloutOptions` (``unroll`` and
+    ``checkpoint_steps`` do not apply to one step).
+    """
+    s = _stepping(spec, predictor, RolloutOptions(**options))
+
+    def step(params: Any, stats: Any, state: RolloutState, motion: Motion, sdf: Any,
+             t0: Any) -> tuple[RolloutState, StepRecord]:
+        return _make_step(spec, s.predictor, s.query, s.snap, params, stats, motion, sdf,
+                          jnp.asarray(t0, F64), s.tiers)(state, None)
+
+    return step
+
+
 def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
-                         checkpoint_steps: int | None = None, snap_back: bool = True,
-                         phi_sb: float = -0.0049, snap_velocity: str = "keep",
-                         query: SDFQuery | None = None, unroll: int = 1,
-                         pp_capacity_tiers: Any = (), jit: bool = True,
-                         pp_max_overlap: float | None = None
-                         ) -> Callable[..., RolloutResult]:
+                         jit: bool = True, **options: Any) -> Callable[..., RolloutResult]:
     """``advance(params, stats, state, motion, sdf, t0) -> RolloutResult`` of ``n_steps`` steps.
 
     Continues ``state`` (a :class:`RolloutState`, e.g. ``result.final``); frames are saved after
     every ``save_every`` steps (P = n_steps / save_every, no frame of the initial state). ``t0``
     is the rollout's start time (step 0), not the time of ``state``. Arguments as in
-    :func:`make_rollout`.
+    :func:`make_rollout`; ``options``: :class:`RolloutOptions`.
     """
-    if snap_velocity not in ("keep", "position"):
-        raise RolloutError(f"snap_velocity must be 'keep' or 'position', got {snap_velocity!r}")
-    checkpoint_steps = _check_counts(n_steps, save_every, checkpoint_steps)
-    predictor = _as_predictor(predictor)
-    query = _default_query() if query is None else query
-    if pp_max_overlap is not None and pp_max_overlap < 0:
-        raise RolloutError(f"pp_max_overlap must be >= 0 m or None, got {pp_max_overlap}")
-    snap = SnapBack(bool(snap_back), float(phi_sb), snap_velocity == "keep",
-                    None if pp_max_overlap is None else float(pp_max_overlap))
-    tiers = check_tiers(spec, pp_capacity_tiers)
+    opts = RolloutOptions(**options)
+    s = _stepping(spec, predictor, opts)
+    predictor, query, snap, tiers, unroll = s.predictor, s.query, s.snap, s.tiers, opts.unroll
+    checkpoint_steps = _check_counts(n_steps, save_every, opts.checkpoint_steps)
     n_frames = n_steps // save_every
     frames_per_chunk = min(checkpoint_steps // save_every, n_frames)
     n_chunks, rest = divmod(n_frames, frames_per_chunk)
@@ -496,12 +541,7 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
 
 
 def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int = 1, *,
-                 checkpoint_steps: int | None = None, snap_back: bool = True,
-                 phi_sb: float = -0.0049, snap_velocity: str = "keep",
-                 query: SDFQuery | None = None, unroll: int = 1,
-                 pp_capacity_tiers: Any = (), jit: bool = True,
-                 pp_max_overlap: float | None = None
-                 ) -> Callable[..., RolloutResult]:
+                 jit: bool = True, **options: Any) -> Callable[..., RolloutResult]:
     """A rollout of ``n_steps`` surrogate steps as one pure (by default jitted) function.
 
     Args:
@@ -510,20 +550,8 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
             (:func:`model_predictor`, :func:`replay_predictor`, or your own).
         n_steps: S, steps per call (a multiple of ``save_every``).
         save_every: steps between saved position frames.
-        checkpoint_steps: steps per ``jax.checkpoint`` chunk (a multiple of save_every;
-            default min(S, 100 save_every)); only matters under reverse-mode differentiation.
-        snap_back, phi_sb, snap_velocity: the snap-back (module docstring); off for replays.
-        query: ``query(sdf, points, offset) -> (phi, normal)``; default the SDF grid
-            (:func:`sgn_jax.geometry.query_sdf_grid`); :func:`analytic_jar_query` for JarParams.
-        unroll: ``lax.scan`` unroll factor of the inner step loop (speed only).
-        pp_capacity_tiers: smaller ball-pair capacities (increasing, below
-            ``spec.pp_pair_capacity``); each step runs the network on the smallest tier that
-            holds its pairs (``lax.switch``), the same prediction on fewer padded edge rows.
-            Speed only, for single rollouts: under ``vmap`` every tier runs.
         jit: return the ``jax.jit``-ed function (one compilation per argument shapes/types).
-        pp_max_overlap: ball-ball separation (:func:`separate_pairs`, not in the paper): after
-            each step, pairs overlapping by more than this (m) are moved apart to it, with the
-            velocity rule of ``snap_velocity``; None (default) = off, as in the paper.
+        options: :class:`RolloutOptions` (snap-back, query, tiers, separation, memory).
 
     Returns:
         ``rollout(params, stats, window0, motion, sdf, t0) -> RolloutResult`` where ``window0``
@@ -533,11 +561,7 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
         motion) the time of the window's newest sample. P = S / save_every + 1 frames, the first
         at t0. Differentiable in ``params``, ``window0`` positions, the motion and the SDF.
     """
-    advance = make_rollout_advance(spec, predictor, n_steps, save_every,
-                                   checkpoint_steps=checkpoint_steps, snap_back=snap_back,
-                                   phi_sb=phi_sb, snap_velocity=snap_velocity, query=query,
-                                   unroll=unroll, pp_capacity_tiers=pp_capacity_tiers,
-                                   jit=False, pp_max_overlap=pp_max_overlap)
+    advance = make_rollout_advance(spec, predictor, n_steps, save_every, jit=False, **options)
 
     def rollout(params: Any, stats: Any, window0: Window, motion: Motion, sdf: Any,
                 t0: Any) -> RolloutResult:
@@ -568,6 +592,8 @@ __all__ = [
     "jar_state_window",
     "make_rollout",
     "make_rollout_advance",
+    "make_rollout_step",
+    "RolloutOptions",
     "model_predictor",
     "replay_predictor",
 ]

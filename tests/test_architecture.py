@@ -196,7 +196,7 @@ def test_the_checker_sees_cycles_and_deferred_imports():
 # Layers: the pure JAX core never reaches the config, file I/O or the pipelines.
 
 CORE_MODULES = (
-    "sgn_jax.errors", "sgn_jax.motion", "sgn_jax.pairs",
+    "sgn_jax.errors", "sgn_jax.motion", "sgn_jax.scene", "sgn_jax.pairs",
     "sgn_jax.geometry", "sgn_jax.geometry.common", "sgn_jax.geometry.jar",
     "sgn_jax.geometry.sdf_grid", "sgn_jax.geometry.mesh_distance", "sgn_jax.geometry.stl",
     "sgn_jax.dem", "sgn_jax.dem.contact", "sgn_jax.dem.engine", "sgn_jax.dem.walls",

@@ -535,3 +535,29 @@ def test_memory_of_differentiated_rollout_is_bounded():
     # Peak RSS of the whole process (compile included) barely moves from 1k to 10k steps.
     assert large["peak_rss_mb"] < small["peak_rss_mb"] + 100
     assert np.isfinite(large["grad_norm"]) and large["grad_norm"] > 0
+
+
+def test_the_init_step_pair_is_the_scan(tiny):
+    """Stepping ``init_state`` with ``make_rollout_step`` by hand gives the jitted scan's
+    states, energies and step records (the scan is this step)."""
+    from sgn_jax.rollout import init_state, make_rollout_step
+
+    t = tiny
+    spec, t0 = t["spec"], float(t["traj"].t[100])
+    whole = jax.device_get(make_rollout(spec, t["model"], 20, 10)(
+        t["params"], t["stats"], t["window0"], t["motion"], t["grid"], t0))
+    step = jax.jit(make_rollout_step(spec, t["model"]))
+    state = init_state(t["window0"], t["motion"], t0, spec.dt)
+    energies, n_pw = [], []
+    for k in range(20):
+        state, record = step(t["params"], t["stats"], state, t["motion"], t["grid"], t0)
+        energies.append(float(record.energy_cum))
+        n_pw.append(int(record.n_pw_edges))
+        if k == 9:
+            np.testing.assert_allclose(np.asarray(state.window.positions[-1]),
+                                       whole.positions[1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(state.window.positions[-1]), whole.positions[-1],
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(energies, whole.steps.energy_cum, rtol=1e-6, atol=0)
+    assert n_pw == list(whole.steps.n_pw_edges)
+    assert int(state.step) == 20

@@ -41,7 +41,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax import geometry as geo
 from sgn_jax import motion as motion_mod
 from sgn_jax.dem.contact import (
     ContactLaw,
@@ -183,42 +182,6 @@ def make_params(
         geometry=geometry,
         motion=motion,
     )
-
-
-class JarGeometry(NamedTuple):
-    """The jar of a config as the DEM sees it.
-
-    Attributes:
-        geometry: pytree given to ``wall_fn`` / ``sdf_fn`` (JarParams or SDFGrid).
-        wall_fn: ``wall_fn(geometry, x_jar) -> (phi (N,P), normal (N,P,3))``.
-        sdf_fn: ``sdf_fn(geometry, x_jar) -> phi (N,)``, the combined SDF (placement, escapes).
-        patch_names: names of the P patches.
-        lower, upper: (3,) float64 corners of the cavity's bounding box, jar frame (m).
-    """
-
-    geometry: Any
-    wall_fn: WallFn
-    sdf_fn: Callable[[Any, jnp.ndarray], jnp.ndarray]
-    patch_names: tuple[str, ...]
-    lower: np.ndarray
-    upper: np.ndarray
-
-
-def emax_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    return geo.jar_patch_sdf_and_normal(g, x_jar)
-
-
-def emax_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
-    return geo.jar_sdf(g, x_jar)
-
-
-def grid_wall_fn(g: Any, x_jar: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    phi, normal = geo.query_sdf_grid(g, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
-    return phi[..., None].astype(x_jar.dtype), normal[..., None, :].astype(x_jar.dtype)
-
-
-def grid_sdf_fn(g: Any, x_jar: jnp.ndarray) -> jnp.ndarray:
-    return geo.grid_sdf(g, x_jar)
 
 
 @flax.struct.dataclass

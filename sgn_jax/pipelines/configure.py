@@ -12,22 +12,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from sgn_jax import geometry as geo
 from sgn_jax.config import ConfigError, MotionConfig
-from sgn_jax.dem.engine import (
-    DEMParams,
-    JarGeometry,
-    emax_sdf_fn,
-    emax_wall_fn,
-    grid_sdf_fn,
-    grid_wall_fn,
-    make_params,
-)
+from sgn_jax.dem.engine import DEMParams, make_params
 from sgn_jax.geometry import GeometryError, JarParams, SDFGrid, check_closed_mesh
 from sgn_jax.geometry.jar import jar_mesh, jar_volume
 from sgn_jax.geometry.mesh_distance import signed_distance_grid
@@ -36,6 +26,7 @@ from sgn_jax.geometry.stl import UNIT_SCALES
 from sgn_jax.graph import GraphSpec
 from sgn_jax.io_utils import atomic_write
 from sgn_jax.motion import CircleMotion, HarmonicMotion, Motion, SplineMotion
+from sgn_jax.scene import JarGeometry, grid_jar, parametric_jar
 
 
 def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:
@@ -248,16 +239,8 @@ def geometry_from_config(cfg: Any) -> JarGeometry:
     wall is only as smooth as the trilinear grid (documented limitation, SPEC 3).
     """
     if cfg.jar.kind == "emax":
-        params = jar_params_from_config(cfg.jar)
-        params = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), params)
-        lower, upper = geo.jar_bounds(params)
-        return JarGeometry(params, emax_wall_fn, emax_sdf_fn, geo.patch_names(params),
-                           lower, upper)
-    grid = sdf_grid_from_config(cfg, dtype=jnp.float64)
-    margin = float(cfg.sdf.margin)
-    lower = np.asarray(grid.origin, np.float64) + margin
-    upper = np.asarray(grid.upper, np.float64) - margin
-    return JarGeometry(grid, grid_wall_fn, grid_sdf_fn, ("mesh",), lower, upper)
+        return parametric_jar(jar_params_from_config(cfg.jar))
+    return grid_jar(sdf_grid_from_config(cfg, dtype=jnp.float64), float(cfg.sdf.margin))
 
 
 def mesh_report(mesh: Any, jar_cfg: Any) -> dict[str, Any]:

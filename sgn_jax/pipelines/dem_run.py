@@ -41,7 +41,6 @@ from sgn_jax.dem.engine import (
     DEMParams,
     DEMSpec,
     DEMState,
-    JarGeometry,
     init_state,
     make_sampler,
     observe,
@@ -51,6 +50,7 @@ from sgn_jax.dem.placement import place_balls
 from sgn_jax.io_utils import atomic_write
 from sgn_jax.motion import offset
 from sgn_jax.pipelines.configure import geometry_from_config, params_from_config
+from sgn_jax.scene import JarGeometry
 from sgn_jax.validation import check_dem_config, check_duration
 
 PARTIAL_FORMAT = 1
