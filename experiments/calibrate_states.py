@@ -15,7 +15,7 @@ motion, three regime indicators:
 It writes ``OUT/{case}_states.json`` (per-run rows, the gap between the two clusters of the
 speed, the threshold in use and whether it separates them) and ``OUT/{case}_states.png``
 (speed vs contacts and power vs contacts, one point per 1-s window). The threshold
-``sgn_jax.metrics.AGITATED_SPEED_M_S`` was chosen from this output (docs/results.md, "States").
+``sgn_jax.regime.AGITATED_SPEED_M_S`` was chosen from this output (docs/results.md, "States").
 """
 
 from __future__ import annotations
@@ -30,9 +30,12 @@ import numpy as np
 FRAME_STRIDE = 10  # samples between the frames the speed is computed from (1 ms at 1e-4 s)
 
 
-def indicators(path: Path, window_s: float = 1.0) -> dict:
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.metrics import jar_frame_speed, pp_contact_counts
+def indicators(path: Path, window_s: float | None = None) -> dict:
+    """Per-run and per-window indicators (windows of ``window_s``, default
+    ``sgn_jax.regime.REGIME_WINDOW_S`` = 1 s)."""
+    from sgn_jax.api import REGIME_WINDOW_S, jar_frame_speed, load_trajectory, pp_contact_counts
+
+    window_s = REGIME_WINDOW_S if window_s is None else window_s
 
     traj = load_trajectory(path)
     t = np.asarray(traj.t)
@@ -60,9 +63,14 @@ def indicators(path: Path, window_s: float = 1.0) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.io_utils import git_commit, write_json
-    from sgn_jax.metrics import AGITATED_SPEED_M_S
-    from sgn_jax.plots import _new_figure, _save
+    from sgn_jax.api import (
+        AGITATED_SPEED_M_S,
+        REGIME_PP_CONTACTS_PER_BALL,
+        git_commit,
+        new_figure,
+        save_figure,
+        write_json,
+    )
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--case", default="standard")
@@ -70,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="runs/states")
     p.add_argument("--contacts-threshold", type=float, default=None,
                    help="DEM ball-ball contacts that separate bed (>=) from agitated (default: "
-                   "generate_data.REGIME_PP_CONTACTS_PER_BALL x balls, 14 for 24 balls)")
+                   "sgn_jax.regime.REGIME_PP_CONTACTS_PER_BALL x balls, 14 for 24 balls)")
     args = p.parse_args(argv)
     files = sorted(Path(args.data).glob(f"{args.case}_seed*.npz"),
                    key=lambda f: int(f.stem.rsplit("seed", 1)[1]))
@@ -80,9 +88,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = [indicators(f) for f in files]
     if args.contacts_threshold is None:  # the manifest's regime rule, per ball
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from generate_data import REGIME_PP_CONTACTS_PER_BALL
-
         args.contacts_threshold = REGIME_PP_CONTACTS_PER_BALL * rows[0]["n_balls"]
     windows = [w for r in rows for w in r["windows"]]
     bed = [w["jar_speed_m_s"] for w in windows if w["pp_contacts"] >= args.contacts_threshold]
@@ -100,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     write_json(out / f"{args.case}_states.json", result)
 
-    fig = _new_figure(10.0, 4.0, layout="constrained")
+    fig = new_figure(10.0, 4.0, layout="constrained")
     left, right = fig.subplots(1, 2)
     c = np.array([w["pp_contacts"] for w in windows])
     left.scatter(c, [w["jar_speed_m_s"] for w in windows], s=12)
@@ -113,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     right.set_xlabel("DEM ball-ball contacts (1-s window mean)")
     right.set_ylabel("dissipation power (W)")
     fig.suptitle(f"{args.case}: {len(rows)} DEM runs, {len(windows)} 1-s windows")
-    _save(fig, out / f"{args.case}_states.png")
+    save_figure(fig, out / f"{args.case}_states.png")
     for r in rows:
         print(f"seed {r['seed']:>3}: speed {r['jar_speed_m_s']:.3f} m/s, contacts "
               f"{r['pp_contacts']:5.1f}, power {r['power_W']:.3f} W")

@@ -49,11 +49,14 @@ def one_step(model_dir: str, data: str, train_time: float = 4.5, stride: int = 7
              limit: int = 600) -> dict:
     import jax
 
-    from sgn_jax.checkpoint import load_trained_model
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.graph import build_graph
-    from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
-    from sgn_jax.pipelines.features import windows_from_trajectory
+    from sgn_jax.api import (
+        build_graph,
+        graph_spec_from_config,
+        load_trained_model,
+        load_trajectory,
+        sdf_grid_from_config,
+        windows_from_trajectory,
+    )
 
     trained = load_trained_model(model_dir)
     cfg = trained.config
@@ -99,10 +102,7 @@ def one_step(model_dir: str, data: str, train_time: float = 4.5, stride: int = 7
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.io_utils import write_json
-    from sgn_jax.metrics import align
-    from sgn_jax.prediction import load_prediction
+    from sgn_jax.api import align, load_prediction, load_trajectory, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", required=True)

@@ -28,16 +28,14 @@ After every finished run ``OUT/manifest.json`` is rewritten atomically: one entr
 power, mean ball-ball contacts, regime label, ...) and a per-case summary (states of the
 training and evaluation packings, mean power and spread).
 
-The regime label is SPEC 7's state from the regime indicator "mean ball-ball contact count" of
-the DEM: "bed" when the mean number of ball-ball contacts per ball is >=
-:data:`REGIME_PP_CONTACTS_PER_BALL` (14 contacts for 24 balls), else "agitated"; it is also
-given per 1-s window (``regime_windows``) because a run can switch. Why this indicator and
-threshold: on the standard case the agitated seed 0 has 9-11 contacts (0.30 W) in every second
-of its 10 s, the bed seeds 1-3 have 17-21 (0.09-0.14 W) (docs/dem.md, and 1-s reruns of seeds 1
-and 3); 14 lies between. The rule of ``sgn-jax evaluate`` (ball pairs within ``2 R + [graph]
-pp_skin`` per ball >= ``sgn_jax.metrics.BED_PAIRS_PER_BALL`` = 0.75) does not separate them:
-1.45-1.59 pairs per ball for the agitated seed 0, 1.66-1.76 for the bed seeds 1 and 3, all
-"bed". Its label is recorded too (``regime_evaluate_rule``) with the value it thresholds.
+The regime label is SPEC 7's state from the DEM's mean ball-ball contact count
+(``sgn_jax.regime.regime_of``: "bed" when the mean number of ball-ball contacts per ball is >=
+``sgn_jax.regime.REGIME_PP_CONTACTS_PER_BALL``, 14 contacts for 24 balls, else "agitated"); it
+is also given per ``sgn_jax.regime.REGIME_WINDOW_S`` = 1-s window (``regime_windows``) because a
+run can switch. The rule, its threshold and their provenance are documented in
+``sgn_jax.regime``. The old rule of ``sgn-jax evaluate`` (ball pairs within ``2 R + [graph]
+pp_skin`` per ball >= ``sgn_jax.regime.BED_PAIRS_PER_BALL``) does not separate the states; its
+label is recorded too (``regime_evaluate_rule``) with the value it thresholds.
 
 Exit status: 0 when every selected run is complete, 1 if a run failed (the others still run),
 2 for a bad ensembles file or argument, 130 when interrupted.
@@ -52,7 +50,6 @@ import datetime
 import json
 import math
 import os
-import re
 import shlex
 import shutil
 import subprocess
@@ -62,156 +59,29 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from sgn_jax.api import (
+    Case,
+    EnsembleError,
+    last_json_line,
+    load_ensembles,
+    select_cases,
+    sgn_jax_command,
+    usable_cores,
+)
+
 HERE = Path(__file__).resolve().parent
 DEFAULT_ENSEMBLES = HERE / "ensembles.toml"
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = 1
-REGIME_WINDOW_S = 1.0  # length of the windows of ``regime_windows`` (s of motion)
-REGIME_PP_CONTACTS_PER_BALL = 14.0 / 24.0
-"""Bed/agitated threshold on the DEM's mean ball-ball contacts per ball (module docstring)."""
 # Wall time per simulated second of one DEM process (settling included), for estimates before
 # any run has finished: 11 s uncontended (95k steps/s), ~30 s with a busy second core
 # (docs/dem.md: 308 s for 0.5 s of settling + 10 s of motion).
 WALL_PER_SIM_SECOND_RANGE = (11.0, 30.0)
 POLL_S = 1.0
 
-_CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
-_CASE_KEYS = {"config", "duration", "seeds", "train_seeds", "description"}
 # Config sections that determine the DEM trajectory of a seed (the rest configure the SGN).
 _DEM_SECTIONS = ("jar", "motion", "balls", "material", "dem")
 _DEM_KEYS_NOT_COMPARED = ("seed", "duration", "chunk_samples")
-
-
-class EnsembleError(ValueError):
-    """The ensembles file or an argument is wrong; the message says what and how to fix it."""
-
-
-# --------------------------------------------------------------------------------------------
-# The ensembles file
-
-
-@dataclasses.dataclass(frozen=True)
-class Case:
-    """One case of the ensembles file: a config run from several seeds (packings).
-
-    ``duration`` is seconds of motion after settling; ``train_seeds`` is a subset of ``seeds``
-    (the packings the SGN may train on); the other seeds are held-out evaluation packings.
-    """
-
-    name: str
-    config: str
-    config_path: Path
-    duration: float
-    seeds: tuple[int, ...]
-    train_seeds: tuple[int, ...]
-    description: str = ""
-
-    @property
-    def eval_seeds(self) -> tuple[int, ...]:
-        return tuple(s for s in self.seeds if s not in self.train_seeds)
-
-    def split_of(self, seed: int) -> str:
-        return "train" if seed in self.train_seeds else "eval"
-
-
-def _resolve_config(value: str, base: Path) -> Path:
-    """A config named in the ensembles file: a ``.toml`` path (relative to the file's folder)
-    or a name looked up in ``<folder>/configs/NAME.toml``, then in the package's configs."""
-    if value.endswith(".toml") or "/" in value:
-        path = Path(value)
-        return path if path.is_absolute() else base / path
-    local = base / "configs" / f"{value}.toml"
-    if local.is_file():
-        return local
-    from sgn_jax.config import ConfigError, builtin_config_path
-
-    try:
-        return builtin_config_path(value)
-    except ConfigError as exc:
-        raise EnsembleError(f"config {value!r}: not in {base / 'configs'} and {exc}") from None
-
-
-def _seed_list(value: Any, where: str) -> tuple[int, ...]:
-    if not isinstance(value, list) or not all(
-            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in value):
-        raise EnsembleError(f"{where} must be a list of integers >= 0, got {value!r}")
-    duplicates = sorted({s for s in value if value.count(s) > 1})
-    if duplicates:
-        raise EnsembleError(f"{where} lists seed(s) {duplicates} more than once")
-    return tuple(value)
-
-
-def load_ensembles(path: str | Path) -> dict[str, Case]:
-    """Read and check an ensembles file (see experiments/ensembles.toml for the format).
-
-    Returns:
-        {case name: Case}, in file order.
-    Raises:
-        EnsembleError naming the file, the case and the problem.
-    """
-    from sgn_jax.config import read_toml
-
-    path = Path(path)
-    data = read_toml(path, EnsembleError, "ensembles file")
-    tables = data.get("cases")
-    unknown_top = sorted(set(data) - {"cases"})
-    if unknown_top:
-        raise EnsembleError(f"{path}: unknown top-level key(s) {unknown_top}; cases go in "
-                            "[cases.NAME] tables")
-    if not isinstance(tables, dict) or not tables:
-        raise EnsembleError(f"{path}: no cases; add [cases.NAME] tables with config, duration, "
-                            "seeds and train_seeds")
-    cases: dict[str, Case] = {}
-    for name, table in tables.items():
-        where = f"{path}: [cases.{name}]"
-        if not _CASE_NAME.match(name):
-            raise EnsembleError(f"{where}: a case name may hold only letters, digits, '_' and "
-                                "'-' (it names the data files)")
-        if not isinstance(table, dict):
-            raise EnsembleError(f"{where} must be a table")
-        unknown = sorted(set(table) - _CASE_KEYS)
-        missing = sorted({"config", "duration", "seeds"} - set(table))
-        if unknown or missing:
-            raise EnsembleError(f"{where}: unknown key(s) {unknown}, missing key(s) {missing}; "
-                                f"allowed: {sorted(_CASE_KEYS)}")
-        config = table["config"]
-        if not isinstance(config, str) or not config:
-            raise EnsembleError(f"{where}: config must be a config name or a .toml path")
-        config_path = _resolve_config(config, path.parent)
-        if not config_path.is_file():
-            raise EnsembleError(f"{where}: config file {config_path} does not exist")
-        duration = table["duration"]
-        if isinstance(duration, bool) or not isinstance(duration, (int, float)) \
-                or not duration > 0 or not math.isfinite(duration):
-            raise EnsembleError(f"{where}: duration must be a number of seconds > 0, got "
-                                f"{duration!r}")
-        seeds = _seed_list(table["seeds"], f"{where} seeds")
-        if not seeds:
-            raise EnsembleError(f"{where}: seeds is empty")
-        train = _seed_list(table.get("train_seeds", []), f"{where} train_seeds")
-        stray = [s for s in train if s not in seeds]
-        if stray:
-            raise EnsembleError(f"{where}: train_seeds {stray} are not in seeds {list(seeds)}; "
-                                "every training seed must also be listed in seeds")
-        description = table.get("description", "")
-        if not isinstance(description, str):
-            raise EnsembleError(f"{where}: description must be a string")
-        cases[name] = Case(name=name, config=config, config_path=config_path,
-                           duration=float(duration), seeds=seeds, train_seeds=train,
-                           description=description)
-    return cases
-
-
-def select_cases(cases: dict[str, Case], names: str | None) -> list[Case]:
-    """The cases named in a comma-separated list (all if None), in the file's order."""
-    if not names:
-        return list(cases.values())
-    wanted = [n.strip() for n in names.split(",") if n.strip()]
-    unknown = [n for n in wanted if n not in cases]
-    if unknown or not wanted:
-        raise EnsembleError(f"--cases {names!r}: unknown case(s) {unknown}; the ensembles file "
-                            f"has {list(cases)}")
-    return [case for name, case in cases.items() if name in wanted]
 
 
 # --------------------------------------------------------------------------------------------
@@ -261,7 +131,7 @@ def plan_runs(cases: Iterable[Case], out_dir: str | Path, split: str = "all") ->
 
 def dem_relevant_config(cfg: Any) -> dict[str, Any]:
     """The parts of a config that determine a seed's DEM trajectory, as plain data."""
-    from sgn_jax.config import config_to_dict
+    from sgn_jax.api import config_to_dict
 
     full = config_to_dict(cfg)
     out = {section: full[section] for section in _DEM_SECTIONS}
@@ -296,7 +166,7 @@ def partial_progress(run: Run, cfg: Any) -> float:
     The DEM driver writes chunk 0 (the settled state) after settling, then one chunk file per
     ``[dem] chunk_samples`` samples of motion.
     """
-    from sgn_jax.pipelines.dem_run import partial_dir
+    from sgn_jax.api import partial_dir
 
     folder = partial_dir(run.out_path)
     if not folder.is_dir():
@@ -310,8 +180,7 @@ def partial_progress(run: Run, cfg: Any) -> float:
 
 def inspect_output(run: Run, cfg: Any) -> FileStatus:
     """Classify the run's output file; a valid one comes with its loaded Trajectory."""
-    from sgn_jax.config import config_from_dict
-    from sgn_jax.dataset import DatasetError, load_trajectory
+    from sgn_jax.api import DatasetError, config_from_dict, load_trajectory
 
     path = run.out_path
     if not path.exists():
@@ -340,20 +209,18 @@ def inspect_output(run: Run, cfg: Any) -> FileStatus:
     return FileStatus("valid", trajectory=traj)
 
 
-def regime_of(pp_contacts_per_ball: float) -> str:
-    """SPEC 7 state from the DEM's mean ball-ball contacts per ball (module docstring)."""
-    return "bed" if pp_contacts_per_ball >= REGIME_PP_CONTACTS_PER_BALL else "agitated"
-
-
 def file_record(run: Run, traj: Any, cfg: Any, sha256: str) -> dict[str, Any]:
     """The manifest entry of a valid file, from the file itself (wall times added by caller)."""
     import numpy as np
 
-    from sgn_jax.metrics import (
+    from sgn_jax.api import (
         BED_PAIRS_PER_BALL,
+        REGIME_PP_CONTACTS_PER_BALL,
         classify_state,
         pairs_within,
         pp_contact_counts,
+        regime_of,
+        regime_windows,
     )
 
     arrays = traj.arrays
@@ -365,10 +232,7 @@ def file_record(run: Run, traj: Any, cfg: Any, sha256: str) -> dict[str, Any]:
     cutoff = 2.0 * float(traj.meta["ball_radius"]) + float(cfg.graph.pp_skin)
     mean_pairs = float(np.mean(pairs_within(traj.pos, cutoff))) / n_balls
     contacts = pp_contact_counts(traj.pp_pairs)
-    n_windows = max(1, int(round(duration / REGIME_WINDOW_S)))
-    windows = [regime_of(float(np.mean(part)) / n_balls)
-               for part in np.array_split(contacts[1:] if contacts.size > 1 else contacts,
-                                          n_windows)]
+    windows, window_s = regime_windows(contacts, n_balls, duration)
     return {
         "case": run.case.name,
         "seed": run.seed,
@@ -390,7 +254,7 @@ def file_record(run: Run, traj: Any, cfg: Any, sha256: str) -> dict[str, Any]:
         "regime": regime_of(float(np.mean(contacts)) / n_balls),
         "regime_threshold_pp_contacts_per_ball": REGIME_PP_CONTACTS_PER_BALL,
         "regime_windows": windows,
-        "regime_window_s": duration / n_windows,
+        "regime_window_s": window_s,
         "pp_pairs_within_skin_per_ball": mean_pairs,
         "pp_cutoff_m": cutoff,
         "regime_evaluate_rule": classify_state(mean_pairs, BED_PAIRS_PER_BALL, "contacts"),
@@ -406,22 +270,6 @@ def dem_command(run: Run, base: Sequence[str] | None = None) -> list[str]:
     return [*base, "dem", "--config", str(run.case.config_path), "--duration",
             repr(run.case.duration), "--seed", str(run.seed), "--out", str(run.out_path),
             "--no-progress"]
-
-
-def sgn_jax_command() -> list[str]:
-    """How to call the CLI: this interpreter's ``sgn-jax`` script, else ``python -m``."""
-    script = Path(sys.executable).with_name("sgn-jax")
-    if script.is_file():
-        return [str(script)]
-    found = shutil.which("sgn-jax")
-    return [found] if found else [sys.executable, "-m", "sgn_jax.cli"]
-
-
-def usable_cores() -> list[int]:
-    try:
-        return sorted(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return list(range(os.cpu_count() or 1))
 
 
 # --------------------------------------------------------------------------------------------
@@ -491,7 +339,7 @@ def case_summaries(cases: Iterable[Case], entries: dict[str, dict[str, Any]]
 def write_manifest(out_dir: Path, ensembles_path: Path, cases: Sequence[Case],
                    entries: dict[str, dict[str, Any]]) -> list[str]:
     """Rewrite ``out_dir/manifest.json`` atomically; returns the case warnings."""
-    from sgn_jax.io_utils import git_commit, sha256_file, write_json
+    from sgn_jax.api import git_commit, sha256_file, write_json
 
     summaries, warnings = case_summaries(cases, entries)
     write_json(out_dir / MANIFEST_NAME, {
@@ -534,25 +382,6 @@ def _format_duration(seconds: float | None) -> str:
     return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
-def last_json_line(path: Path, offset: int = 0, key: str = "total_dissipation_J"
-                   ) -> dict[str, Any] | None:
-    """The last JSON object with ``key`` in the log ``path`` after byte ``offset`` (the summary
-    line a ``sgn-jax`` command prints: ``dem`` has total_dissipation_J, ``rollout`` ms_per_step)."""
-    with open(path, "rb") as fh:
-        fh.seek(offset)
-        text = fh.read().decode("utf-8", "replace")
-    for line in reversed(text.splitlines()):
-        line = line.strip()
-        if line.startswith("{"):
-            try:
-                data = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(data, dict) and key in data:
-                return data
-    return None
-
-
 def _log_tail(path: Path, offset: int, lines: int = 6) -> str:
     with open(path, "rb") as fh:
         fh.seek(offset)
@@ -566,7 +395,7 @@ class Generator:
     def __init__(self, ensembles_path: Path, cases: dict[str, Case], selected: list[Case],
                  out_dir: Path, split: str, jobs: int, pin: bool, progress: bool,
                  echo=print) -> None:
-        from sgn_jax.config import load_config
+        from sgn_jax.api import load_config
 
         self.ensembles_path = ensembles_path
         self.all_cases = list(cases.values())
@@ -596,7 +425,7 @@ class Generator:
     # ---- scan
     def scan(self, dry_run: bool) -> tuple[list[tuple[Run, FileStatus]], dict[str, Any]]:
         """Check every planned run's file; returns (runs to do with their status, entries)."""
-        from sgn_jax.io_utils import sha256_file
+        from sgn_jax.api import sha256_file
 
         entries = read_manifest(self.out_dir)
         todo = []
@@ -740,7 +569,7 @@ class Generator:
 
     def finish(self, item: Active, entries: dict[str, Any], write) -> bool:
         """Validate and record a finished process's file; False (with the log's tail) if not."""
-        from sgn_jax.io_utils import sha256_file
+        from sgn_jax.api import sha256_file
 
         run = item.run
         wall = time.perf_counter() - item.started
@@ -809,7 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from sgn_jax.config import ConfigError
+    from sgn_jax.api import ConfigError
 
     try:
         if args.jobs < 1:

@@ -26,13 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+DEFAULT_ENSEMBLES = Path(__file__).resolve().parent / "ensembles.toml"
+
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.io_utils import write_json
-    from sgn_jax.metrics import mse_plateau, position_mse
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from generate_data import DEFAULT_ENSEMBLES, load_ensembles
+    from sgn_jax.api import load_ensembles, mse_plateau, position_mse, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--case", default="standard")

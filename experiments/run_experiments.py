@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shlex
 import subprocess
 import sys
@@ -49,101 +48,35 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-from generate_data import (  # noqa: E402  (the sibling script is the ensembles' one reader)
-    DEFAULT_ENSEMBLES,
+from sgn_jax.api import (
+    CLASSIFIERS,
+    CheckpointError,
     EnsembleError,
+    ExperimentError,
+    case_config,
+    case_result,
+    git_commit,
     last_json_line,
     load_ensembles,
+    load_trained_model,
+    machine_info,
+    parse_rollout_settings,
+    plot_case_curves,
+    prediction_ok,
+    rollout_duration,
     select_cases,
     sgn_jax_command,
     usable_cores,
+    write_json,
 )
 
+HERE = Path(__file__).resolve().parent
+DEFAULT_ENSEMBLES = HERE / "ensembles.toml"
 POLL_S = 1.0
 
-
-class ExperimentError(ValueError):
-    """A bad argument or missing input; the message says what and how to fix it."""
-
-
-# --------------------------------------------------------------------------------------------
-# Planning
-
-
-def rollout_duration(reference: Path, window: int, dt: float, save_every: int) -> float:
-    """Seconds of rollout that the DEM file ``reference`` covers from its first full window.
-
-    The rollout starts at sample ``window`` (time ``t[window]``) and runs whole multiples of
-    ``save_every`` steps of ``dt`` up to the reference's last sample.
-    """
-    with np.load(reference, allow_pickle=False) as data:
-        t = np.asarray(data["t"])
-    span = float(t[-1] - t[window])
-    block = save_every * dt
-    blocks = math.floor(span / block + 1e-6)
-    if blocks < 1:
-        raise ExperimentError(f"{reference}: covers only {span:.4g} s after its first window; "
-                              f"a rollout needs at least {block:.4g} s")
-    return round(blocks * block, 9)
-
-
-def _prediction_ok(path: Path) -> bool:
-    from sgn_jax.prediction import PredictionError, load_prediction
-
-    if not path.is_file():
-        return False
-    try:
-        load_prediction(path)
-    except (PredictionError, OSError, ValueError):
-        return False
-    return True
-
-
-def parse_rollout_settings(items: Sequence[str]) -> dict[str, Any]:
-    """``["pp_separation=false", "pp_max_overlap=1e-4"]`` -> typed [rollout] field values."""
-    import dataclasses
-
-    from sgn_jax.config import RolloutConfig
-
-    fields = {f.name: f for f in dataclasses.fields(RolloutConfig)}
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or key not in fields:
-            raise ExperimentError(f"--rollout {item!r}: expected KEY=VALUE with KEY one of "
-                                  f"{sorted(fields)}")
-        kind = type(getattr(RolloutConfig(), key))
-        text = text.strip()
-        if kind is bool:
-            if text.lower() not in ("true", "false"):
-                raise ExperimentError(f"--rollout {item!r}: {key} takes true or false")
-            out[key] = text.lower() == "true"
-        else:
-            try:
-                out[key] = kind(text)
-            except ValueError as exc:
-                raise ExperimentError(f"--rollout {item!r}: {key} takes a {kind.__name__}") \
-                    from exc
-    return out
-
-
-def case_config(case: Any, settings: dict[str, Any], out: Path) -> Path:
-    """The config a case's rollouts use: the case's own, or a copy with ``settings`` applied
-    to its [rollout] section, written to ``OUT/configs/{case}.toml``."""
-    if not settings:
-        return case.config_path
-    from sgn_jax.config import load_config, replace_section, save_config
-
-    cfg = replace_section(load_config(case.config_path), "rollout", **settings)
-    path = out / "configs" / f"{case.name}.toml"
-    save_config(cfg, path)
-    return path
+# The planning (rollout_duration, parse_rollout_settings, case_config) and summary
+# (case_result, plot_case_curves) steps live in sgn_jax.pipelines.experiments and sgn_jax.plots,
+# shared with experiments/envelope/evaluate_model.py; they are imported above from sgn_jax.api.
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,84 +120,6 @@ def run_pinned(jobs: list[tuple[str, list[str], Path]], n_jobs: int, pin: bool
     return status
 
 
-def _stats(values: Sequence[float | None]) -> dict[str, Any]:
-    vals = [float(v) for v in values if v is not None and np.isfinite(v)]
-    if not vals:
-        return {"n": 0, "mean": None, "min": None, "max": None}
-    return {"n": len(vals), "mean": float(np.mean(vals)), "median": float(np.median(vals)),
-            "min": float(np.min(vals)), "max": float(np.max(vals))}
-
-
-def case_result(case: Any, seeds: Sequence[int], out: Path) -> dict[str, Any]:
-    """The summary of one case from its rollout JSON lines and its evaluation files."""
-    from sgn_jax.metrics import headline
-
-    eval_dir = out / "eval" / case.name
-    ensemble = json.loads((eval_dir / "ensemble.json").read_text())
-    runs = []
-    for i, seed in enumerate(seeds):
-        metrics = json.loads((eval_dir / f"run_{i:02d}" / "metrics.json").read_text())
-        roll_json = out / "rollouts" / f"{case.name}_seed{seed}.json"
-        roll = json.loads(roll_json.read_text()) if roll_json.is_file() else {}
-        runs.append({"seed": seed, **headline(metrics), "ms_per_step": roll.get("ms_per_step"),
-                     "metrics": str(eval_dir / f"run_{i:02d}" / "metrics.json")})
-    return {
-        "case": case.name,
-        "description": case.description,
-        "config": str(case.config_path),
-        "seeds": list(seeds),
-        "runs": runs,
-        "mse_plateau_m2": _stats([r["mse_plateau_m2"] for r in runs]),
-        "energy_relative_error_final": _stats([r["energy_relative_error_final"] for r in runs]),
-        "abs_energy_relative_error_final": _stats(
-            [abs(r["energy_relative_error_final"]) for r in runs
-             if r["energy_relative_error_final"] is not None]),
-        "pearson_r": _stats([r["pearson_r"] for r in runs]),
-        "balls_outside_total": int(sum(r["balls_outside_total"] or 0 for r in runs)),
-        "overflow_total": int(sum(r["overflow_total"] or 0 for r in runs)),
-        "ms_per_step": _stats([r["ms_per_step"] for r in runs]),
-        "ensemble": ensemble,
-        "ensemble_file": str(eval_dir / "ensemble.json"),
-    }
-
-
-def plot_case_curves(title: str, preds: Sequence[Path], refs: Sequence[Path], labels:
-                     Sequence[str], path: Path) -> Path:
-    """All runs of a case in one figure: cumulative dissipated energy (DEM dashed, SGN solid)
-    and the position MSE_t (paper Eq. 33), with the paper's ~2e-4 m^2 plateau for scale."""
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.metrics import align, position_mse
-    from sgn_jax.plots import _new_figure, _save
-    from sgn_jax.prediction import load_prediction
-
-    fig = _new_figure(10.0, 7.0, layout="constrained")
-    top, bottom = fig.subplots(2, 1, sharex=True)
-    colors = [f"C{i % 10}" for i in range(len(preds))]
-    for pred_path, ref_path, label, color in zip(preds, refs, labels, colors, strict=True):
-        pred, ref = load_prediction(pred_path), load_trajectory(ref_path)
-        al = align(pred, ref)
-        cum = np.asarray(ref.cumulative_dissipation("normal+tangential", "pp+pw"))
-        zero = cum[al.start_ref_index] if al.start_ref_index >= 0 else cum[al.step_ref_index[0]]
-        t = np.asarray(pred.t_step)[al.step_index]
-        top.plot(t, np.asarray(pred.energy_cum)[al.step_index], color=color, lw=1.0,
-                 label=label)
-        top.plot(t, cum[al.step_ref_index] - zero, color=color, lw=1.0, ls="--")
-        mse = position_mse(np.asarray(pred.pos)[al.frame_index], ref.pos[al.frame_ref_index])
-        bottom.plot(np.asarray(pred.t_pos)[al.frame_index], mse, color=color, lw=0.6)
-    bottom.axhline(2e-4, color="k", ls=":", lw=1.0, label="paper plateau ~2e-4 m²")
-    top.set_ylabel("cumulative dissipated energy (J)")
-    top.set_title("SGN solid, DEM dashed (normal + tangential damping)", fontsize=10)
-    top.legend(fontsize=7, ncols=4, loc="upper left")
-    top.grid(True, alpha=0.3)
-    bottom.set_yscale("log")
-    bottom.set_ylabel("MSE_t (m²)")
-    bottom.set_xlabel("time since the start of motion (s)")
-    bottom.legend(fontsize=8, loc="lower right")
-    bottom.grid(True, which="both", alpha=0.3)
-    fig.suptitle(title)
-    return _save(fig, path)
-
-
 # --------------------------------------------------------------------------------------------
 # Main
 
@@ -293,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="set a [rollout] field of every case's config for these rollouts, e.g. "
                    "pp_separation=false (the paper's rollout); repeatable. The configs used "
                    "are written to OUT/configs/")
-    p.add_argument("--classify-by", choices=("speed", "contacts", "power"), default=None,
+    p.add_argument("--classify-by", choices=CLASSIFIERS, default=None,
                    help="passed to sgn-jax evaluate (default: its own)")
     p.add_argument("--threshold", type=float, default=None, help="passed to sgn-jax evaluate")
     return p
@@ -301,9 +156,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from sgn_jax.checkpoint import CheckpointError, load_trained_model
-    from sgn_jax.io_utils import git_commit, machine_info, write_json
-
     try:
         cases = select_cases(load_ensembles(args.ensembles), args.cases)
         settings = parse_rollout_settings(args.rollout)
@@ -339,7 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                       file=sys.stderr)
                 return 2
             pred = out / "rollouts" / f"{case.name}_seed{seed}.npz"
-            if _prediction_ok(pred):
+            if prediction_ok(pred):
                 print(f"skip  {pred.name}: done")
                 continue
             duration = (args.duration if args.duration is not None

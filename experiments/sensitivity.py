@@ -30,10 +30,9 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+from sgn_jax.api import sgn_jax_command
 
-from generate_data import sgn_jax_command  # noqa: E402
+HERE = Path(__file__).resolve().parent
 
 # variant -> {section: {field: value}}; the paper's appendix, Table 3 being the baseline
 VARIANTS: dict[str, dict[str, dict[str, float | int]]] = {
@@ -64,7 +63,7 @@ PAPER: dict[str, str] = {
 
 
 def variant_config(name: str, base: Path, out: Path, epochs: int) -> Path:
-    from sgn_jax.config import load_config, replace_section, save_config
+    from sgn_jax.api import load_config, replace_section, save_config
 
     cfg = load_config(base)
     for section, changes in VARIANTS[name].items():
@@ -85,7 +84,7 @@ def _run(argv: list[str], log: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.io_utils import git_commit, machine_info, write_json
+    from sgn_jax.api import git_commit, machine_info, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--variants", default=",".join(VARIANTS),
@@ -163,13 +162,13 @@ def main(argv: list[str] | None = None) -> int:
 def _plot(summary: dict, path: Path) -> None:
     import numpy as np
 
-    from sgn_jax.plots import _new_figure, _save
+    from sgn_jax.api import new_figure, save_figure
 
     rows = summary.get("variants", {})
     if not rows:
         return
     names = list(rows)
-    fig = _new_figure(11.0, 4.0, layout="constrained")
+    fig = new_figure(11.0, 4.0, layout="constrained")
     left, right = fig.subplots(1, 2)
     y = np.arange(len(names))
     err = [100 * (rows[n]["power_pred_W"] - rows[n]["power_ref_W"]) / rows[n]["power_ref_W"]
@@ -183,7 +182,7 @@ def _plot(summary: dict, path: Path) -> None:
     right.set_xlabel("mean MSE_t plateau (m²)")
     fig.suptitle(f"Sensitivity at {summary.get('epochs')} epochs, "
                  f"{next(iter(rows.values()))['rollout_seconds']:g}-s rollouts, 8 held-out packings")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

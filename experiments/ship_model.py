@@ -32,9 +32,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.checkpoint import DIGEST_FILE, load_trained_model, write_checkpoint_digest
-    from sgn_jax.io_utils import git_commit, sha256_file, write_json
-    from sgn_jax.pipelines.demo import SHIPPED_MODELS_DIR
+    from sgn_jax.api import (
+        DIGEST_FILE,
+        SHIPPED_MODELS_DIR,
+        git_commit,
+        load_trained_model,
+        sha256_file,
+        write_checkpoint_digest,
+        write_json,
+    )
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, help="training run directory")

@@ -33,10 +33,27 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.cache import enable_compilation_cache
-from sgn_jax.checkpoint import TrainedModel, load_trained_model
-from sgn_jax.config import Config, replace_section, resolve_config
+from sgn_jax.checkpoint import (
+    DIGEST_FILE,
+    CheckpointError,
+    TrainedModel,
+    load_trained_model,
+    write_checkpoint_digest,
+)
+from sgn_jax.config import (
+    Config,
+    ConfigError,
+    config_from_dict,
+    config_to_dict,
+    config_to_toml,
+    replace_section,
+    resolve_config,
+    save_config,
+)
+from sgn_jax.dataset import DatasetError, Trajectory, load_trajectory, save_trajectory
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.design import (
+    PARAMETER_UNITS,
     DesignError,
     EnsemblePower,
     anchored_window,
@@ -48,25 +65,85 @@ from sgn_jax.design import (
     parameter_values,
     summarize_estimate,
 )
+from sgn_jax.ensembles import Case, EnsembleError, load_ensembles, select_cases
+from sgn_jax.envelope import latin_hypercube_motions, load_envelope, motion_label
+from sgn_jax.errors import EnvelopeWarning, SGNJaxError, SGNJaxWarning
 from sgn_jax.geometry import JarParams
-from sgn_jax.graph import GraphSpec, Window
+from sgn_jax.graph import GraphSpec, Window, build_graph
+from sgn_jax.io_utils import (
+    append_jsonl,
+    atomic_write,
+    git_commit,
+    machine_info,
+    read_jsonl,
+    sha256_file,
+    write_json,
+)
+from sgn_jax.metrics import (
+    align,
+    compare,
+    ensemble_summary,
+    evaluate,
+    headline,
+    jar_frame_speed,
+    mse_plateau,
+    position_mse,
+    pp_contact_counts,
+)
 from sgn_jax.motion import Motion, frequency_hz, offset
+from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
     motion_from_config,
+    sdf_grid_from_config,
 )
 from sgn_jax.pipelines.dem_run import (
+    DEMRun,
     initial_state,
     load_settled,
+    partial_dir,
     run_dem,
     save_settled,
     settle_sample_count,
     setup_from_config,
 )
-from sgn_jax.pipelines.demo import resolve_checkpoint
-from sgn_jax.pipelines.rollout_run import initial_window
-from sgn_jax.rollout import RolloutResult, analytic_jar_query, make_rollout, model_predictor
+from sgn_jax.pipelines.demo import SHIPPED_MODELS_DIR, resolve_checkpoint, shipped_model_dir
+from sgn_jax.pipelines.experiments import (
+    ExperimentError,
+    case_config,
+    case_result,
+    last_json_line,
+    parse_rollout_settings,
+    prediction_ok,
+    rollout_duration,
+    sgn_jax_command,
+    usable_cores,
+)
+from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.pipelines.rollout_run import initial_window, run_rollout
+from sgn_jax.prediction import Prediction, PredictionError, load_prediction, save_prediction
+from sgn_jax.regime import (
+    AGITATED_SPEED_M_S,
+    BED_PAIRS_PER_BALL,
+    CLASSIFIERS,
+    REGIME_PP_CONTACTS_PER_BALL,
+    REGIME_WINDOW_S,
+    classify_state,
+    default_threshold,
+    regime_of,
+    regime_windows,
+)
+from sgn_jax.rollout import (
+    RolloutError,
+    RolloutResult,
+    RolloutState,
+    analytic_jar_query,
+    init_state,
+    make_rollout,
+    make_rollout_advance,
+    model_predictor,
+)
 from sgn_jax.validation import check_dem_config, check_duration, warn_outside_envelope
 
 # A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
@@ -82,6 +159,40 @@ def load_config(name_or_path: str | Path) -> Config:
 def load_surrogate(checkpoint: str | Path | None = None, which: str = "best") -> TrainedModel:
     """The trained surrogate: the shipped default model, or a training run / checkpoint dir."""
     return load_trained_model(resolve_checkpoint(checkpoint), which=which)
+
+
+def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool = False
+                 ) -> dict[str, np.ndarray]:
+    """The DEM in memory: settle the balls of ``cfg`` (placement ``seed``) and run ``duration``
+    s of its motion; returns the dataset arrays (``pos`` (T, N, 3) m, ``vel``, ``offset``, the
+    cumulative dissipation per kind, ...; docs/dem.md). :func:`run_dem` is the same run with its
+    metadata and summary, and with ``out_path=`` it writes the dataset file (resumable)."""
+    return run_dem(cfg, duration=duration, seed=seed, progress=progress).arrays
+
+
+def new_figure(width: float, height: float, **kwargs: Any) -> Any:
+    """:func:`sgn_jax.plots.new_figure`: a matplotlib ``Figure`` on the Agg canvas (no pyplot).
+
+    matplotlib is imported on the first call only (``sgn-jax --help`` does not load it)."""
+    from sgn_jax import plots
+
+    return plots.new_figure(width, height, **kwargs)
+
+
+def save_figure(fig: Any, path: str | Path) -> Path:
+    """:func:`sgn_jax.plots.save_figure`: write ``fig`` to a ``.png`` atomically."""
+    from sgn_jax import plots
+
+    return plots.save_figure(fig, path)
+
+
+def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str | Path],
+                     labels: Sequence[str], path: str | Path) -> Path:
+    """:func:`sgn_jax.plots.plot_case_curves`: every run of an ensemble case in one figure
+    (cumulative dissipated energy, SGN solid and DEM dashed; MSE_t)."""
+    from sgn_jax import plots
+
+    return plots.plot_case_curves(title, preds, refs, labels, path)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -564,20 +675,138 @@ def ensemble_mean(values: Sequence[float]) -> tuple[float, float]:
     return float(arr.mean()), se
 
 
+# The public API: the first list is the small one that the package root also exports
+# (``import sgn_jax as sj``; ``sgn_jax.__all__``, docs/api.md); the second is what the experiment
+# scripts (experiments/) need beyond it, since they import nothing from the package but
+# ``sgn_jax`` and ``sgn_jax.api`` (tests/test_architecture.py).
 __all__ = [
-    "DEMEnsemble",
-    "DesignStudy",
-    "Packings",
-    "design_config",
-    "default_step",
-    "design_study",
-    "ensemble_mean",
+    # configs and the trained model
+    "Config",
     "load_config",
+    "replace_section",
+    "TrainedModel",
     "load_surrogate",
+    # the DEM
+    "simulate_dem",
+    "run_dem",
+    "DEMRun",
     "make_packings",
-    "parameter_unit",
-    "parameter_values_of",
+    "Packings",
+    "DEMEnsemble",
+    # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
+    "init_state",
+    "make_rollout_advance",
+    "make_rollout",
+    "model_predictor",
+    "RolloutState",
+    "RolloutResult",
     "rollout_ensemble",
-    "sensitivity",
     "shard_packings",
+    "run_rollout",
+    # records
+    "Trajectory",
+    "load_trajectory",
+    "save_trajectory",
+    "Prediction",
+    "load_prediction",
+    "save_prediction",
+    # design studies: the power function and its gradient
+    "design_study",
+    "DesignStudy",
+    "sensitivity",
+    "design_config",
+    "parameter_values_of",
+    "parameter_unit",
+    "default_step",
+    "ensemble_mean",
+    # metrics
+    "evaluate",
+    "compare",
+    "ensemble_summary",
+    # the regime (bed / agitated)
+    "classify_state",
+    "default_threshold",
+    "regime_of",
+    "regime_windows",
+    "CLASSIFIERS",
+    "AGITATED_SPEED_M_S",
+    "BED_PAIRS_PER_BALL",
+    "REGIME_PP_CONTACTS_PER_BALL",
+    "REGIME_WINDOW_S",
+    # errors
+    "SGNJaxError",
+    "SGNJaxWarning",
+    "EnvelopeWarning",
+] + [
+    # configs, checkpoints and the shipped models
+    "ConfigError",
+    "config_from_dict",
+    "config_to_dict",
+    "config_to_toml",
+    "resolve_config",
+    "save_config",
+    "CheckpointError",
+    "load_trained_model",
+    "DIGEST_FILE",
+    "write_checkpoint_digest",
+    "SHIPPED_MODELS_DIR",
+    "shipped_model_dir",
+    "resolve_checkpoint",
+    "enable_compilation_cache",
+    # the pieces of a rollout and of a design study
+    "GraphSpec",
+    "Window",
+    "build_graph",
+    "windows_from_trajectory",
+    "initial_window",
+    "graph_spec_from_config",
+    "jar_params_from_config",
+    "motion_from_config",
+    "sdf_grid_from_config",
+    "analytic_jar_query",
+    "anchored_window",
+    "apply_parameters",
+    "PARAMETER_UNITS",
+    "DesignError",
+    "RolloutError",
+    "partial_dir",
+    # records and metrics
+    "DatasetError",
+    "PredictionError",
+    "align",
+    "headline",
+    "jar_frame_speed",
+    "mse_plateau",
+    "pairs_within",
+    "position_mse",
+    "pp_contact_counts",
+    # the motion envelope
+    "load_envelope",
+    "latin_hypercube_motions",
+    "motion_label",
+    # ensembles files and the experiment runner
+    "Case",
+    "EnsembleError",
+    "load_ensembles",
+    "select_cases",
+    "ExperimentError",
+    "case_config",
+    "case_result",
+    "last_json_line",
+    "parse_rollout_settings",
+    "prediction_ok",
+    "rollout_duration",
+    "sgn_jax_command",
+    "usable_cores",
+    # files, provenance and figures
+    "atomic_write",
+    "write_json",
+    "append_jsonl",
+    "read_jsonl",
+    "sha256_file",
+    "git_commit",
+    "machine_info",
+    "new_figure",
+    "save_figure",
+    "plot_case_curves",
 ]

@@ -36,6 +36,7 @@ from sgn_jax.pipelines.demo import format_report, resolve_checkpoint, run_demo
 from sgn_jax.pipelines.rollout_run import run_rollout
 from sgn_jax.pipelines.train_run import train
 from sgn_jax.prediction import load_prediction
+from sgn_jax.regime import CLASSIFIERS
 from sgn_jax.validation import check_duration, warn_outside_envelope
 
 
@@ -263,7 +264,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reference", required=True, nargs="+", metavar="DATASET",
                    help="DEM trajectory .npz file(s), one per prediction, same order")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--classify-by", choices=("speed", "contacts", "power"), default="speed",
+    p.add_argument("--classify-by", choices=CLASSIFIERS, default="speed",
                    help="state rule (SPEC 7): mean ball speed in the jar frame (default), ball "
                    "pairs within the skin per ball, or dissipation power")
     p.add_argument("--threshold", type=float, default=None,

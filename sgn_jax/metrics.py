@@ -26,21 +26,10 @@ Pure numpy. The pieces (each usable alone):
   range, thresholds in the ``MOTION_*`` constants) and :func:`motion_checks_of` (the checks
   of a :func:`compare` summary, which stores them as ``motion``).
 
-State classification (SPEC 7, "bed" vs "agitated"): by default (``classify_by="speed"``) a run
-is "agitated" when the mean ball speed in the jar frame, from finite differences of the saved
-frames (``pos - offset``, 1 ms apart at the default ``save_every``), is >=
-:data:`AGITATED_SPEED_M_S`, else "bed". The same rule is applied to the prediction and to the
-reference at the same frame times, and it reads positions only, so it does not depend on the
-surrogate's energy head (which the power comparison judges). Why this indicator and
-threshold: calibrated on the 12-packing DEM ensemble of the standard case
-(``experiments/calibrate_states.py``, docs/results.md "States"): over 1-s windows the bed
-(>= 14 DEM ball-ball contacts) moves at 0.059-0.123 m/s in the jar frame and the agitated state
-(fewer contacts) at 0.191-0.366 m/s; 0.16 m/s is near the middle of the gap (0.157). Whole 10-s runs: bed
-0.063-0.118 m/s, agitated 0.222-0.332 m/s. The older rules remain: ``"contacts"`` (mean
-ball pairs within the edge skin per ball >= :data:`BED_PAIRS_PER_BALL` = 0.75 is a "bed") does
-not separate the DEM states (1.45-1.59 agitated, 1.66-1.76 bed, all "bed"), and a surrogate
-whose balls overlap inflates it; ``"power"`` (agitated when the mean dissipation power >= an
-explicit threshold in W) judges the energy head by its own output.
+State classification (SPEC 7, "bed" vs "agitated"): the rules, their thresholds and where
+they come from live in :mod:`sgn_jax.regime` (:func:`classify_state`, :data:`AGITATED_SPEED_M_S`,
+:data:`BED_PAIRS_PER_BALL`); this module applies them to the prediction and to the reference at
+the same frame times. They are re-exported here under their old names.
 """
 
 from __future__ import annotations
@@ -54,18 +43,16 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sgn_jax.dataset import load_trajectory
+from sgn_jax.errors import SGNJaxWarning
 from sgn_jax.pairs import MetricsError, deepest_pair_overlap, pairs_within
 from sgn_jax.prediction import load_prediction
-
-BED_PAIRS_PER_BALL = 0.75
-"""``classify_by="contacts"`` threshold: mean pairs within the edge skin per ball (bed if >=)."""
-
-AGITATED_SPEED_M_S = 0.16
-"""Default state threshold: mean ball speed in the jar frame (m/s; agitated if >=), see the
-module docstring."""
-
-CLASSIFIERS = ("speed", "contacts", "power")
-"""The state rules of :func:`classify_state`."""
+from sgn_jax.regime import (
+    AGITATED_SPEED_M_S,
+    BED_PAIRS_PER_BALL,
+    CLASSIFIERS,
+    classify_state,
+    default_threshold,
+)
 
 # --------------------------------------------------------------------------------------------
 # Motion checks: the constants (one place; docs/rollout.md "The demo's honesty lines")
@@ -109,7 +96,7 @@ _ALIGN_TOL_FRACTION = 0.1  # match times within dt / 10
 _OFFSET_WARN_M = 1e-5  # jar offsets of matched frames differ by more: wrong reference or motion
 
 
-class MetricsWarning(UserWarning):
+class MetricsWarning(SGNJaxWarning):
     """Something in the comparison deserves attention (the metrics are still computed)."""
 
 
@@ -200,35 +187,6 @@ def kinetic_energy_fd(t: np.ndarray, pos: np.ndarray, ball_mass: float
     velocity = np.diff(pos, axis=0) / np.diff(t)[:, None, None]
     ke = 0.5 * ball_mass * np.sum(velocity**2, axis=(1, 2))
     return 0.5 * (t[1:] + t[:-1]), ke
-
-
-def classify_state(value: float, threshold: float, classify_by: str = "speed") -> str:
-    """SPEC 7 state of a run: "bed" or "agitated".
-
-    ``classify_by="speed"``: ``value`` = mean ball speed in the jar frame (m/s); agitated when
-    >= threshold. ``classify_by="contacts"``: ``value`` = mean pairs within the skin per ball;
-    bed when >= threshold. ``classify_by="power"``: ``value`` = mean dissipation power (W);
-    agitated when >= threshold (the agitated state dissipates 2-3x more). NaN -> "unknown".
-    """
-    if classify_by not in CLASSIFIERS:
-        raise MetricsError(f"classify_by must be one of {CLASSIFIERS}, got {classify_by!r}")
-    if value is None or not math.isfinite(value):
-        return "unknown"
-    if classify_by == "contacts":
-        return "bed" if value >= threshold else "agitated"
-    return "agitated" if value >= threshold else "bed"
-
-
-def default_threshold(classify_by: str) -> float:
-    """The default threshold of a state rule; "power" has none (it depends on the case)."""
-    if classify_by == "speed":
-        return AGITATED_SPEED_M_S
-    if classify_by == "contacts":
-        return BED_PAIRS_PER_BALL
-    if classify_by == "power":
-        raise MetricsError("classify_by='power' needs an explicit threshold in W (e.g. the "
-                           "midpoint between the bed and agitated dissipation powers)")
-    raise MetricsError(f"classify_by must be one of {CLASSIFIERS}, got {classify_by!r}")
 
 
 def jar_frame_speed(t: np.ndarray, pos: np.ndarray, offset: np.ndarray) -> np.ndarray:

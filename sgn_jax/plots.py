@@ -12,12 +12,15 @@ and returns the path.
 - :func:`plot_trajectory_xz`: a top view (x-z) of the balls at one frame, with the jar outline
   and a legend (SGN balls, DEM balls, the line joining the same ball of both, the jar).
 - :func:`plot_run`: all single-run figures from a ``sgn_jax.metrics.Comparison``.
+- :func:`plot_case_curves`: all runs of an ensemble case in one figure (energy and MSE_t).
+- :func:`new_figure`, :func:`save_figure`: the figure and the file writer every plot here uses,
+  for scripts that draw their own figures.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,21 +29,27 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
+from sgn_jax.dataset import load_trajectory
 from sgn_jax.io_utils import atomic_write
-from sgn_jax.metrics import relative_error
+from sgn_jax.metrics import align, position_mse, relative_error
+from sgn_jax.prediction import load_prediction
 
 _DPI = 150
 _PRED_COLOR = "tab:blue"
 _REF_COLOR = "black"
 
 
-def _new_figure(width: float, height: float, **kwargs: Any) -> Figure:
+def new_figure(width: float, height: float, **kwargs: Any) -> Figure:
+    """A matplotlib ``Figure`` of ``width`` x ``height`` inches on the Agg canvas (no pyplot,
+    no display); ``kwargs`` go to ``Figure`` (e.g. ``layout="constrained"``)."""
     fig = Figure(figsize=(width, height), **kwargs)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save(fig: Figure, path: str | Path) -> Path:
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` (a ``.png``) atomically at the package's resolution; returns
+    the path."""
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"plot path {str(path)!r} must end in '.png'")
@@ -67,7 +76,7 @@ def plot_position_mse(t: Any, mse: Any, path: str | Path, *, plateau: float | No
     t, mse = _as_1d(t, "t"), _as_1d(mse, "mse")
     if t.shape != mse.shape:
         raise ValueError(f"t and mse must have the same length, got {t.size} and {mse.size}")
-    fig = _new_figure(7.0, 3.6, layout="constrained")
+    fig = new_figure(7.0, 3.6, layout="constrained")
     ax = fig.add_subplot()
     shown = np.where(np.isfinite(mse) & (mse > 0), mse, np.nan)
     ax.plot(t, shown, color=_PRED_COLOR, lw=1.0, label=r"MSE$_t$ (SGN vs DEM)")
@@ -84,7 +93,7 @@ def plot_position_mse(t: Any, mse: Any, path: str | Path, *, plateau: float | No
     else:
         ax.text(0.5, 0.5, "no positive MSE values to draw", transform=ax.transAxes,
                 ha="center")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
@@ -99,7 +108,7 @@ def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
     if not t.shape == e_pred.shape == e_ref.shape:
         raise ValueError(f"t, e_pred and e_ref must have the same length, got {t.size}, "
                          f"{e_pred.size} and {e_ref.size}")
-    fig = _new_figure(7.0, 5.2, layout="constrained")
+    fig = new_figure(7.0, 5.2, layout="constrained")
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[2.2, 1.0])
     top.plot(t, e_ref, color=_REF_COLOR, lw=1.4, label="DEM (normal + tangential damping)")
     top.plot(t, e_pred, color=_PRED_COLOR, lw=1.2, ls="--", label="SGN prediction")
@@ -127,7 +136,7 @@ def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
     bottom.set_xlabel("time since start of motion (s)")
     bottom.set_ylabel("relative error (%)")
     bottom.grid(True, alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
@@ -157,7 +166,7 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
         c_pred, c_ref = column("pp_contacts_pred_mean"), column("pp_pairs_within_skin_ref_mean")
         ref_label, pred_label = "DEM (pairs within skin)", "SGN (edges / 2)"
         x_label = "mean ball pairs within the edge skin"
-    fig = _new_figure(10.0, 4.2, layout="constrained")
+    fig = new_figure(10.0, 4.2, layout="constrained")
     left, right = fig.subplots(1, 2)
 
     index = np.arange(len(rows))
@@ -207,7 +216,7 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
     right.legend(loc="best")
     right.grid(True, alpha=0.3)
     fig.suptitle(title or f"Ensemble of {len(rows)} runs")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _stadium_outline(jar: Any, offset_xz: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -243,7 +252,7 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"pos must be (N, 3) positions of one frame, got {pos.shape}")
     offset_xz = (0.0, 0.0) if offset is None else (float(offset[0]), float(offset[2]))
-    fig = _new_figure(6.4, 4.6, layout="constrained")
+    fig = new_figure(6.4, 4.6, layout="constrained")
     ax = fig.add_subplot()
     handles = [Line2D([], [], ls="none", marker="o", ms=9, mfc=_PRED_COLOR, mec=_PRED_COLOR,
                       alpha=0.6, label=f"SGN ball ({len(pos)})")]
@@ -292,7 +301,7 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
         caption += "; SGN and DEM balls matched by index"
     fig.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=8, frameon=False,
                title=caption, title_fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_run(comparison: Any, prediction: Any, reference: Any, out_dir: str | Path
@@ -330,7 +339,7 @@ def plot_sensitivity(result: Mapping[str, Any], path: str | Path) -> Path:
     through the design point (shaded: +- its standard error).
     """
     names = list(result["names"])
-    fig = _new_figure(4.2 * len(names), 3.6, layout="constrained")
+    fig = new_figure(4.2 * len(names), 3.6, layout="constrained")
     axes = fig.subplots(1, len(names), squeeze=False)[0]
     for ax, i_name in zip(axes, enumerate(names), strict=True):
         i, name = i_name
@@ -358,14 +367,49 @@ def plot_sensitivity(result: Mapping[str, Any], path: str | Path) -> Path:
         ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"Design sensitivity: {len(result['seeds'])} packings, power over "
                  f"{result['burn_in_s']:g}-{result['duration_s']:g} s", fontsize=10)
-    return _save(fig, path)
+    return save_figure(fig, path)
+
+
+def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str | Path],
+                     labels: Sequence[str], path: str | Path) -> Path:
+    """All runs of a case in one figure: cumulative dissipated energy (DEM dashed, SGN solid)
+    and the position MSE_t (paper Eq. 33), with the paper's ~2e-4 m^2 plateau for scale."""
+    fig = new_figure(10.0, 7.0, layout="constrained")
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    colors = [f"C{i % 10}" for i in range(len(preds))]
+    for pred_path, ref_path, label, color in zip(preds, refs, labels, colors, strict=True):
+        pred, ref = load_prediction(pred_path), load_trajectory(ref_path)
+        al = align(pred, ref)
+        cum = np.asarray(ref.cumulative_dissipation("normal+tangential", "pp+pw"))
+        zero = cum[al.start_ref_index] if al.start_ref_index >= 0 else cum[al.step_ref_index[0]]
+        t = np.asarray(pred.t_step)[al.step_index]
+        top.plot(t, np.asarray(pred.energy_cum)[al.step_index], color=color, lw=1.0,
+                 label=label)
+        top.plot(t, cum[al.step_ref_index] - zero, color=color, lw=1.0, ls="--")
+        mse = position_mse(np.asarray(pred.pos)[al.frame_index], ref.pos[al.frame_ref_index])
+        bottom.plot(np.asarray(pred.t_pos)[al.frame_index], mse, color=color, lw=0.6)
+    bottom.axhline(2e-4, color="k", ls=":", lw=1.0, label="paper plateau ~2e-4 m²")
+    top.set_ylabel("cumulative dissipated energy (J)")
+    top.set_title("SGN solid, DEM dashed (normal + tangential damping)", fontsize=10)
+    top.legend(fontsize=7, ncols=4, loc="upper left")
+    top.grid(True, alpha=0.3)
+    bottom.set_yscale("log")
+    bottom.set_ylabel("MSE_t (m²)")
+    bottom.set_xlabel("time since the start of motion (s)")
+    bottom.legend(fontsize=8, loc="lower right")
+    bottom.grid(True, which="both", alpha=0.3)
+    fig.suptitle(title)
+    return save_figure(fig, path)
 
 
 __all__ = [
+    "new_figure",
+    "plot_case_curves",
     "plot_cumulative_energy",
     "plot_ensemble",
     "plot_position_mse",
     "plot_run",
     "plot_sensitivity",
     "plot_trajectory_xz",
+    "save_figure",
 ]

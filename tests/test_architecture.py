@@ -30,6 +30,9 @@ DEFERRED_IMPORTS: dict[tuple[str, str], str] = {
         "`sgn-jax --help` and the other commands do not load it",
     ("sgn_jax.pipelines.demo", "sgn_jax.plots"):
         "demo is imported by sgn_jax.api and sgn_jax.cli; only run_demo plots (matplotlib)",
+    ("sgn_jax.api", "sgn_jax.plots"):
+        "sgn_jax.cli imports sgn_jax.api; only its figure helpers (new_figure, save_figure, "
+        "plot_case_curves) need matplotlib",
 }
 
 
@@ -286,3 +289,74 @@ def test_the_layer_checker_sees_a_violation():
              "sgn_jax.config": {}}
     chains = _closure(edges, "sgn_jax.motion")
     assert chains["sgn_jax.config"] == ["sgn_jax.motion", "sgn_jax.graph", "sgn_jax.config"]
+
+
+# ---------------------------------------------------------------------------------------------
+# One base exception; experiments use the public API only.
+
+def _package_modules():
+    import importlib
+
+    for name in _module_files():
+        yield importlib.import_module(name)
+
+
+def test_every_exception_class_of_the_package_derives_from_sgnjaxerror():
+    """Errors and warnings alike (warnings derive from ``sgn_jax.errors.SGNJaxWarning``)."""
+    from sgn_jax.errors import SGNJaxError
+
+    pending = {
+        # checkpoint.py is being changed on another branch: derive it from SGNJaxWarning there.
+        "sgn_jax.checkpoint.CheckpointIntegrityWarning",
+    }
+    offending = set()
+    for module in _package_modules():
+        for value in vars(module).values():
+            if (isinstance(value, type) and issubclass(value, BaseException)
+                    and value.__module__.startswith(PACKAGE)
+                    and not issubclass(value, SGNJaxError)):
+                offending.add(f"{value.__module__}.{value.__qualname__}")
+    assert not offending - pending, (
+        f"exception classes that do not derive from sgn_jax.errors.SGNJaxError: "
+        f"{sorted(offending - pending)}")
+
+
+EXPERIMENTS_DIR = PACKAGE_DIR.parent / "experiments"
+PUBLIC_MODULES = {PACKAGE, f"{PACKAGE}.api"}
+
+
+def test_experiments_import_only_the_public_api():
+    """Every script under experiments/ imports from the package only ``sgn_jax`` and
+    ``sgn_jax.api`` (at any depth, inside functions too), and never another experiment script
+    through ``sys.path.insert``: what several scripts share lives in the package. benchmarks/ may
+    import deeper modules: they measure internals."""
+    scripts = sorted(EXPERIMENTS_DIR.rglob("*.py"))
+    assert len(scripts) >= 10, "found too few experiment scripts: is EXPERIMENTS_DIR right?"
+    local = {path.stem for path in scripts}
+    problems = []
+    for path in scripts:
+        tree = ast.parse(path.read_text(), filename=str(path))
+        where = path.relative_to(EXPERIMENTS_DIR.parent)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""] if not node.level else ["." * node.level]
+            else:
+                if (isinstance(node, ast.Attribute) and node.attr == "insert"
+                        and isinstance(node.value, ast.Attribute) and node.value.attr == "path"
+                        and isinstance(node.value.value, ast.Name)
+                        and node.value.value.id == "sys"):
+                    problems.append(f"  {where}:{node.lineno}: sys.path.insert")
+                continue
+            for name in names:
+                top = name.split(".")[0]
+                if name.startswith("."):
+                    problems.append(f"  {where}:{node.lineno}: relative import")
+                elif top == PACKAGE and name not in PUBLIC_MODULES:
+                    problems.append(f"  {where}:{node.lineno}: imports {name}")
+                elif top in local:
+                    problems.append(f"  {where}:{node.lineno}: imports the script {name}")
+    if problems:
+        pytest.fail("experiments import only sgn_jax / sgn_jax.api (add what they need to "
+                    "sgn_jax.api):\n" + "\n".join(problems), pytrace=False)

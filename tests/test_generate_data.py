@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import sgn_jax  # noqa: F401  (x64)
+import sgn_jax.regime
 from sgn_jax.config import builtin_config_path, load_config, replace_section, save_config
 from sgn_jax.dataset import Trajectory, load_trajectory
 from sgn_jax.io_utils import sha256_file
@@ -230,7 +230,7 @@ def test_generates_records_skips_and_redoes(tiny, capsys, monkeypatch):
     pairs[1:switch, :20] = (0, 1)
     pairs[switch:, :5] = (0, 1)
     switched = Trajectory(arrays={**traj.arrays, "pp_pairs": pairs}, meta=traj.meta)
-    monkeypatch.setattr(gd, "REGIME_WINDOW_S", DURATION / 2)
+    monkeypatch.setattr(sgn_jax.regime, "REGIME_WINDOW_S", DURATION / 2)  # moved there
     entry = gd.file_record(run, switched, cfg, "0" * 64)
     assert entry["regime_windows"] == ["bed", "agitated"]
     assert entry["mean_pp_contacts"] == pytest.approx((25 * 20 + 25 * 5) / 51)

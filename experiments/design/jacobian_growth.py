@@ -27,14 +27,18 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.design import anchored_window, apply_parameters
-from sgn_jax.io_utils import atomic_write
-from sgn_jax.pipelines.configure import (
+from sgn_jax.api import (
+    RolloutState,
+    analytic_jar_query,
+    anchored_window,
+    apply_parameters,
+    atomic_write,
     graph_spec_from_config,
     jar_params_from_config,
+    make_rollout_advance,
+    model_predictor,
     motion_from_config,
 )
-from sgn_jax.rollout import RolloutState, analytic_jar_query, make_rollout_advance, model_predictor
 
 OUT = Path("runs/design")
 SAVE_EVERY = 10

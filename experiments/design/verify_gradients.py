@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.io_utils import append_jsonl, read_jsonl
+from sgn_jax.api import append_jsonl, read_jsonl
 
 OUT = Path("runs/design")
 SEEDS = tuple(range(20, 28))  # never used for training (standard-case training used 0-3)

@@ -26,28 +26,28 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-
-from generate_data import load_ensembles, select_cases  # noqa: E402
-from run_experiments import (  # noqa: E402
-    _prediction_ok,
+from sgn_jax.api import (
+    RolloutError,
     case_config,
     case_result,
+    enable_compilation_cache,
+    ensemble_summary,
+    evaluate,
+    git_commit,
+    load_config,
+    load_ensembles,
+    load_trained_model,
+    load_trajectory,
+    machine_info,
     parse_rollout_settings,
     plot_case_curves,
+    prediction_ok,
+    resolve_checkpoint,
     rollout_duration,
+    run_rollout,
+    select_cases,
+    write_json,
 )
-
-from sgn_jax.cache import enable_compilation_cache  # noqa: E402
-from sgn_jax.checkpoint import load_trained_model  # noqa: E402
-from sgn_jax.config import load_config  # noqa: E402
-from sgn_jax.dataset import load_trajectory  # noqa: E402
-from sgn_jax.io_utils import git_commit, machine_info, write_json  # noqa: E402
-from sgn_jax.metrics import ensemble_summary, evaluate  # noqa: E402
-from sgn_jax.pipelines.demo import resolve_checkpoint  # noqa: E402
-from sgn_jax.pipelines.rollout_run import run_rollout  # noqa: E402
-from sgn_jax.rollout import RolloutError  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
             stem = f"{case.name}_seed{seed}"
             if stem in failed:
                 continue
-            if not _prediction_ok(pred):
+            if not prediction_ok(pred):
                 traj = load_trajectory(ref)
                 duration = (args.duration if args.duration is not None
                             else rollout_duration(ref, window, dt, save_every))

@@ -26,9 +26,15 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from sgn_jax.config import config_to_toml, replace_section, resolve_config
-from sgn_jax.envelope import latin_hypercube_motions, load_envelope, motion_label
-from sgn_jax.io_utils import atomic_write
+from sgn_jax.api import (
+    atomic_write,
+    config_to_toml,
+    latin_hypercube_motions,
+    load_envelope,
+    motion_label,
+    replace_section,
+    resolve_config,
+)
 
 HERE = Path(__file__).resolve().parent
 TRAIN_SEED, HELDOUT_SEED = 2026, 4711

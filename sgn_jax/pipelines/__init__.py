@@ -14,5 +14,7 @@ touches files is here:
 - :mod:`sgn_jax.pipelines.train_run` - the training loop (``sgn-jax train``);
 - :mod:`sgn_jax.pipelines.rollout_run` - checkpoint + dataset -> prediction file
   (``sgn-jax rollout``);
-- :mod:`sgn_jax.pipelines.demo` - ``sgn-jax demo`` and the shipped models.
+- :mod:`sgn_jax.pipelines.demo` - ``sgn-jax demo`` and the shipped models;
+- :mod:`sgn_jax.pipelines.experiments` - what the experiment scripts share (starting the CLI on
+  pinned cores, its JSON summary line, a model's evaluation on an ensemble).
 """
