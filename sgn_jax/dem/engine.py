@@ -4,6 +4,8 @@
 (:class:`DEMSpec`) holds everything static (sizes, dt, dtype, pair mode); ``params``
 (:class:`DEMParams`) every number that may be batched with ``jax.vmap`` (material, ball, gravity,
 jar geometry, motion); ``state`` (:class:`DEMState`) the dynamic state.
+The contact physics is the law in ``spec.contact_law`` (:mod:`sgn_jax.dem.laws`;
+Hertz-Mindlin by default), whose parameters are ``params.pp`` / ``params.pw``.
 
 Time integration: symplectic (semi-implicit) Euler,
 
@@ -535,7 +537,7 @@ def make_dem_step(
         arm_vec = pp.arm[..., None] * pp.normal
         v_rel, omega_rel = relative_kinematics(vel, omega, arm_vec, pairs)
         f_pp = law.forces(params.pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
-                              state.pp_history, dt, spec.clip_attractive)
+                          state.pp_history, dt, spec.clip_attractive)
 
         # Ball-wall contacts, one per (ball, patch).
         pw = _wall_geometry(wall_fn, params.geometry, radius, pos, state.offset)
@@ -543,7 +545,7 @@ def make_dem_step(
         v_rel_w = vel[:, None, :] + jnp.cross(omega[:, None, :], arm_w) - v_wall
         omega_rel_w = jnp.broadcast_to(omega[:, None, :], arm_w.shape)
         f_pw = law.forces(params.pw, pw.overlap, pw.normal, pw.arm, v_rel_w, omega_rel_w,
-                              state.pw_history, dt, spec.clip_attractive)
+                          state.pw_history, dt, spec.clip_attractive)
 
         force, torque = per_ball(f_pp.force, f_pp.torque_tangential, f_pp.torque_rolling,
                                  pairs)
