@@ -256,6 +256,8 @@ class DEMConfig:
         pp_capacity: slots for touching ball pairs recorded per sample (pp_pairs), 0 = 3 * count.
         neighbour_capacity: Verlet list capacity in pairs per ball (ceil(capacity * N / 2) pairs).
         neighbour_skin: m, surface gap within which a ball pair enters the Verlet list.
+        contact_law: name of the contact law (sgn_jax.dem.laws registry); "hertz_mindlin" is
+            the validated default, other laws are registered by code (docs/dem.md).
     """
 
     dt: float = 1e-4
@@ -271,8 +273,13 @@ class DEMConfig:
     # Verlet list of the DEM (sgn_jax.dem): pairs per ball it can hold, and its skin (m).
     neighbour_capacity: int = 8
     neighbour_skin: float = 0.001
+    # Contact law by registry name (sgn_jax.dem.laws); checked when the DEM is set up.
+    contact_law: str = "hertz_mindlin"
 
     def __post_init__(self) -> None:
+        if not isinstance(self.contact_law, str) or not self.contact_law:
+            raise ConfigError("[dem] contact_law must be the name of a registered contact law, "
+                              f"got {self.contact_law!r}")
         if self.neighbour_capacity < 1 or self.neighbour_skin < 0:
             raise ConfigError("[dem] neighbour_capacity must be >= 1 and neighbour_skin >= 0")
         if self.dtype not in ("float64", "float32"):

@@ -34,14 +34,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.config import Config, ConfigError
-from sgn_jax.dem.contact import MIN_CONTACT_STEPS, hertz_contact_time
+from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import make_params
 from sgn_jax.envelope import MotionEnvelope, harmonic_axis_amplitudes
 from sgn_jax.envelope import envelope_notes as motion_envelope_notes
 from sgn_jax.errors import EnvelopeWarning
 from sgn_jax.geometry import jar_volume
 from sgn_jax.motion import acceleration, frequency_hz, velocity
-from sgn_jax.pipelines.configure import jar_params_from_config, motion_from_config
+from sgn_jax.pipelines.configure import (
+    contact_law_from_config,
+    jar_params_from_config,
+    motion_from_config,
+)
 
 RSA_FILL_LIMIT = 0.38
 """Largest solid fraction of the cavity that random sequential insertion reaches (3-D jamming)."""
@@ -109,14 +113,16 @@ def motion_peaks(motion_cfg: Any, samples: int = 2048) -> MotionPeaks:
 # Physical checks of a config
 
 
-def _contact_laws(cfg: Config) -> dict[str, Any]:
-    """The DEM's own ball-ball and ball-wall contact laws of ``cfg`` (sgn_jax.dem.engine)."""
+def _contact_laws(cfg: Config) -> tuple[Any, dict[str, Any]]:
+    """The DEM's contact law of ``cfg`` ([dem] contact_law) and its ball-ball and ball-wall
+    parameters (sgn_jax.dem.engine)."""
     m = cfg.material
+    law = contact_law_from_config(cfg)
     params = make_params(radius=cfg.balls.radius, density=cfg.balls.density, young=m.young,
                          poisson=m.poisson, restitution=m.restitution, friction=m.friction,
                          rolling_friction=m.rolling_friction, gravity=cfg.dem.gravity,
-                         geometry=None, motion=None)
-    return {"ball-ball": params.pp, "ball-wall": params.pw}
+                         geometry=None, motion=None, contact_law=law)
+    return law, {"ball-ball": params.pp, "ball-wall": params.pw}
 
 
 def hertz_peak_overlap(law: Any, speed: float) -> float:
@@ -129,22 +135,24 @@ def hertz_peak_overlap(law: Any, speed: float) -> float:
 def max_resolved_impact_speed(cfg: Config) -> tuple[float, str]:
     """The largest impact speed (m/s) the DEM of ``cfg`` resolves, and the rule that sets it.
 
-    Both rules invert in closed form: t_c(v) = t_c(1) v^(-1/5) >= MIN_CONTACT_STEPS dt_dem
-    gives v <= (t_c(1) / (MIN_CONTACT_STEPS dt_dem))^5; delta(v) <= f R gives
+    The contact law ([dem] contact_law) inverts both rules
+    (``max_speed_for_duration``, ``max_speed_for_overlap``); for Hertz in closed form:
+    t_c(v) = t_c(1) v^(-1/5) >= MIN_CONTACT_STEPS dt_dem gives
+    v <= (t_c(1) / (MIN_CONTACT_STEPS dt_dem))^5; delta(v) <= f R gives
     v^2 <= 16 Y* sqrt(R*) (f R)^(5/2) / (15 m*).
     """
     dt_dem = cfg.dem.dt_dem
     best = (math.inf, "")
-    for name, law in _contact_laws(cfg).items():
-        v_time = (hertz_contact_time(law, 1.0) / (MIN_CONTACT_STEPS * dt_dem)) ** 5
+    law, laws = _contact_laws(cfg)
+    for name, law_params in laws.items():
+        v_time = law.max_speed_for_duration(law_params, MIN_CONTACT_STEPS * dt_dem)
         overlap = MAX_OVERLAP_FRACTION * cfg.balls.radius
-        v_overlap = math.sqrt(16 * law.young_eff * math.sqrt(law.radius_eff) * overlap**2.5
-                              / (15 * law.mass_eff))
+        v_overlap = law.max_speed_for_overlap(law_params, overlap)
         if v_time < best[0]:
             best = (v_time, f"a {name} contact must last >= {MIN_CONTACT_STEPS} DEM steps "
                             f"(dt_dem = {dt_dem:.3g} s)")
         if v_overlap < best[0]:
-            best = (v_overlap, f"the {name} Hertz overlap must stay below "
+            best = (v_overlap, f"the {name} {law.title} overlap must stay below "
                                f"{MAX_OVERLAP_FRACTION:.0%} of the ball radius")
     return best
 

@@ -1,7 +1,9 @@
-"""Hertz-Mindlin DEM in JAX (SPEC sections 3-4): contact law, engine, placement, driver."""
+"""Hertz-Mindlin DEM in JAX (SPEC sections 3-4): contact laws, engine, placement, walls."""
 
 from sgn_jax.dem.contact import (
     ContactLaw,
+    assemble_contact_forces,
+    contact_dissipation,
     contact_forces,
     damping_factor_from_restitution,
     hertz_contact_time,
@@ -23,18 +25,35 @@ from sgn_jax.dem.engine import (
     make_sampler,
     observe,
 )
+from sgn_jax.dem.laws import (
+    HERTZ_MINDLIN,
+    ContactLawError,
+    ContactModel,
+    HertzMindlin,
+    contact_law,
+    contact_law_names,
+    register_contact_law,
+)
 from sgn_jax.dem.walls import PlaneWalls, plane_wall_fn, plane_walls
 
 __all__ = [
     "DISSIPATION_KINDS",
+    "HERTZ_MINDLIN",
     "ContactLaw",
+    "ContactLawError",
+    "ContactModel",
     "DEMError",
     "DEMParams",
     "DEMSpec",
     "DEMState",
     "EnergyLedger",
+    "HertzMindlin",
     "PlaneWalls",
+    "assemble_contact_forces",
+    "contact_dissipation",
     "contact_forces",
+    "contact_law",
+    "contact_law_names",
     "damping_factor_from_restitution",
     "energies",
     "hertz_contact_time",
@@ -48,4 +67,5 @@ __all__ = [
     "observe",
     "plane_wall_fn",
     "plane_walls",
+    "register_contact_law",
 ]

@@ -20,7 +20,7 @@ All energies are in J, powers are integrated over one step of ``dt`` s.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import flax.struct
 import jax.numpy as jnp
@@ -212,7 +212,39 @@ def contact_forces(
     stiff_t = 8.0 * law.shear_eff * sqrt_rd
     gamma_n = law.damping_factor * jnp.sqrt(stiff_n * law.mass_eff)
     gamma_t = law.damping_factor * jnp.sqrt(stiff_t * law.mass_eff)
+    return assemble_contact_forces(
+        normal_spring, stiff_t, gamma_n, gamma_t, law.friction, law.rolling_friction, in_contact,
+        normal, arm, v_rel, omega_rel, history, dt, clip_attractive)
 
+
+def assemble_contact_forces(
+    normal_spring: jnp.ndarray,
+    stiff_t: jnp.ndarray,
+    gamma_n: jnp.ndarray,
+    gamma_t: jnp.ndarray,
+    friction: Any,
+    rolling_friction: Any,
+    in_contact: jnp.ndarray,
+    normal: jnp.ndarray,
+    arm: jnp.ndarray,
+    v_rel: jnp.ndarray,
+    omega_rel: jnp.ndarray,
+    history: jnp.ndarray,
+    dt: float,
+    clip_attractive: bool = False,
+) -> ContactForces:
+    """Steps 1-5 of :func:`contact_forces` from a law's normal spring force and coefficients.
+
+    The part every spring-dashpot law with a tangential spring history shares (see
+    :mod:`sgn_jax.dem.laws`): a law computes, per contact, its elastic normal force
+    ``normal_spring`` (K,) N, which must be 0 where ``in_contact`` is False (the ledger's normal
+    damping is ``normal_total - normal_spring``), its tangential stiffness ``stiff_t`` (K,) N/m
+    and its damping coefficients ``gamma_n``, ``gamma_t`` (K,) N s/m; this function adds the
+    normal damping, the rotated tangential history, the Coulomb limit on spring + damping and
+    rolling friction as documented in :func:`contact_forces`, masks open contacts, and fills
+    every field of :class:`ContactForces` that :func:`contact_dissipation` and the engine
+    read. ``friction`` and ``rolling_friction`` are mu and mu_r.
+    """
     v_n = _dot(v_rel, normal)
     normal_total = normal_spring + gamma_n * v_n
     if clip_attractive:
@@ -232,7 +264,7 @@ def contact_forces(
     damping_trial = -gamma_t[..., None] * v_t
     total_trial = spring_trial + damping_trial
     trial_sq = _dot(total_trial, total_trial)
-    limit = law.friction * jnp.abs(normal_total)
+    limit = friction * jnp.abs(normal_total)
     sliding = trial_sq > limit * limit
     scale = jnp.where(sliding, limit / jnp.sqrt(jnp.where(sliding, trial_sq, 1.0)), 1.0)
 
@@ -244,7 +276,7 @@ def contact_forces(
 
     omega_sq = _dot(omega_rel, omega_rel)
     omega_norm = jnp.sqrt(jnp.where(omega_sq > 0, omega_sq, 1.0))
-    roll_mag = law.rolling_friction * jnp.abs(normal_total) * arm
+    roll_mag = rolling_friction * jnp.abs(normal_total) * arm
     torque_rolling = jnp.where(
         (omega_sq > 0)[..., None], -(roll_mag / omega_norm)[..., None] * omega_rel, 0.0
     )

@@ -4,6 +4,8 @@
 (:class:`DEMSpec`) holds everything static (sizes, dt, dtype, pair mode); ``params``
 (:class:`DEMParams`) every number that may be batched with ``jax.vmap`` (material, ball, gravity,
 jar geometry, motion); ``state`` (:class:`DEMState`) the dynamic state.
+The contact physics is the law in ``spec.contact_law`` (:mod:`sgn_jax.dem.laws`;
+Hertz-Mindlin by default), whose parameters are ``params.pp`` / ``params.pw``.
 
 Time integration: symplectic (semi-implicit) Euler,
 
@@ -42,13 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax import motion as motion_mod
-from sgn_jax.dem.contact import (
-    ContactLaw,
-    contact_dissipation,
-    contact_forces,
-    hertz_energy,
-    make_contact_law,
-)
+from sgn_jax.dem.laws import HERTZ_MINDLIN, ContactLawError, resolve_contact_law
 from sgn_jax.errors import SGNJaxError
 
 DISSIPATION_KINDS = ("normal", "tangential", "slip", "rolling", "stiffness")
@@ -87,6 +83,9 @@ class DEMSpec:
         neighbour_capacity: capacity of the Verlet list in pairs per ball: the list holds
             ceil(neighbour_capacity * N / 2) pairs (at most all N(N-1)/2).
         neighbour_skin: m, surface gap within which a pair enters the Verlet list.
+        contact_law: the contact law (:mod:`sgn_jax.dem.laws`), an object or a registered
+            name (resolved here to the object); default Hertz-Mindlin. ``DEMParams.pp`` and
+            ``pw`` must be this law's parameters (``make_params(..., contact_law=)``).
     """
 
     n_balls: int
@@ -97,8 +96,13 @@ class DEMSpec:
     pair_mode: str = "auto"
     neighbour_capacity: int = 8
     neighbour_skin: float = 0.001
+    contact_law: Any = HERTZ_MINDLIN
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "contact_law", resolve_contact_law(self.contact_law))
+        except ContactLawError as exc:
+            raise DEMError(str(exc)) from None
         if self.n_balls < 1:
             raise DEMError(f"n_balls must be >= 1, got {self.n_balls}")
         if self.n_patches < 1:
@@ -139,8 +143,8 @@ class DEMParams:
         radius: ball radius R (m).
         mass: ball mass m (kg).
         inertia: ball moment of inertia (2/5) m R^2 (kg m^2).
-        pp: ball-ball contact law.
-        pw: ball-wall contact law.
+        pp: ball-ball contact-law parameters (for Hertz-Mindlin a ContactLaw).
+        pw: ball-wall contact-law parameters.
         gravity: (3,) m/s^2.
         geometry: pytree given to ``wall_fn`` (JarParams, SDFGrid, test planes, ...).
         motion: pytree given to ``offset_fn`` / ``velocity_fn`` (a sgn_jax.motion Motion).
@@ -149,8 +153,8 @@ class DEMParams:
     radius: Any
     mass: Any
     inertia: Any
-    pp: ContactLaw
-    pw: ContactLaw
+    pp: Any
+    pw: Any
     gravity: Any
     geometry: Any
     motion: Any
@@ -167,8 +171,17 @@ def make_params(
     gravity: tuple[float, float, float],
     geometry: Any,
     motion: Any,
+    contact_law: Any = HERTZ_MINDLIN,
 ) -> DEMParams:
-    """DEMParams for identical balls of one material against walls of the same material."""
+    """DEMParams for identical balls of one material against walls of the same material.
+
+    ``contact_law`` (an object or a registered name, default Hertz-Mindlin) builds ``pp`` and
+    ``pw``; the DEMSpec the params are run with must name the same law.
+    """
+    try:
+        law = resolve_contact_law(contact_law)
+    except ContactLawError as exc:
+        raise DEMError(str(exc)) from None
     mass = density * 4.0 / 3.0 * math.pi * radius**3
     common = dict(young=young, poisson=poisson, restitution=restitution, friction=friction,
                   rolling_friction=rolling_friction)
@@ -176,8 +189,8 @@ def make_params(
         radius=float(radius),
         mass=float(mass),
         inertia=0.4 * mass * radius**2,
-        pp=make_contact_law(radius_1=radius, mass_1=mass, radius_2=radius, mass_2=mass, **common),
-        pw=make_contact_law(radius_1=radius, mass_1=mass, **common),
+        pp=law.make_params(radius_1=radius, mass_1=mass, radius_2=radius, mass_2=mass, **common),
+        pw=law.make_params(radius_1=radius, mass_1=mass, **common),
         gravity=jnp.asarray(gravity, dtype=jnp.float64),
         geometry=geometry,
         motion=motion,
@@ -425,6 +438,7 @@ def make_dem_step(
         offset_fn, velocity_fn: ``f(params.motion, t) -> (3,)``; default sgn_jax.motion.
     """
     offset_fn, velocity_fn = _default_motion_fns(offset_fn, velocity_fn)
+    law = spec.contact_law
     n = spec.n_balls
     dt = spec.dt_dem
     dtype = spec.jnp_dtype
@@ -485,16 +499,16 @@ def make_dem_step(
         pp = pair_geometry(radius, pos, pairs)
         arm_vec = pp.arm[..., None] * pp.normal
         v_rel, omega_rel = relative_kinematics(vel, omega, arm_vec, pairs)
-        f_pp = contact_forces(params.pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
-                              state.pp_history, dt, spec.clip_attractive)
+        f_pp = law.forces(params.pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
+                          state.pp_history, dt, spec.clip_attractive)
 
         # Ball-wall contacts, one per (ball, patch).
         pw = _wall_geometry(wall_fn, params.geometry, radius, pos, state.offset)
         arm_w = pw.arm[..., None] * pw.normal
         v_rel_w = vel[:, None, :] + jnp.cross(omega[:, None, :], arm_w) - v_wall
         omega_rel_w = jnp.broadcast_to(omega[:, None, :], arm_w.shape)
-        f_pw = contact_forces(params.pw, pw.overlap, pw.normal, pw.arm, v_rel_w, omega_rel_w,
-                              state.pw_history, dt, spec.clip_attractive)
+        f_pw = law.forces(params.pw, pw.overlap, pw.normal, pw.arm, v_rel_w, omega_rel_w,
+                          state.pw_history, dt, spec.clip_attractive)
 
         force, torque = per_ball(f_pp.force, f_pp.torque_tangential, f_pp.torque_rolling,
                                  pairs)
@@ -514,10 +528,10 @@ def make_dem_step(
         d_offset = offset_next - state.offset
         v_wall_mid = (d_offset / dt).astype(dtype)
         v_rel_mid, omega_rel_mid = relative_kinematics(vel_mid, omega_mid, arm_vec, pairs)
-        d_pp = contact_dissipation(f_pp, pp.normal, v_rel_mid, omega_rel_mid, dt)
+        d_pp = law.dissipation(f_pp, pp.normal, v_rel_mid, omega_rel_mid, dt)
         v_rel_w_mid = vel_mid[:, None, :] + jnp.cross(omega_mid[:, None, :], arm_w) - v_wall_mid
         omega_rel_w_mid = jnp.broadcast_to(omega_mid[:, None, :], arm_w.shape)
-        d_pw = contact_dissipation(f_pw, pw.normal, v_rel_w_mid, omega_rel_w_mid, dt)
+        d_pw = law.dissipation(f_pw, pw.normal, v_rel_w_mid, omega_rel_w_mid, dt)
 
         led = state.ledger
         f64 = jnp.float64
@@ -574,8 +588,9 @@ def energies(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
              ) -> dict[str, jnp.ndarray]:
     """Energies of the state (J, float64): ke_trans, ke_rot, pe_grav, e_elastic.
 
-    ``pe_grav = -sum m g . x`` (= m |g| y for g along -y); ``e_elastic`` is the Hertz energy of
-    every overlap now plus the tangential spring energy stored in the ledger.
+    ``pe_grav = -sum m g . x`` (= m |g| y for g along -y); ``e_elastic`` is the normal spring
+    energy of every overlap now (``spec.contact_law.elastic_energy``; Hertz by default) plus the
+    tangential spring energy stored in the ledger.
     """
     f64 = jnp.float64
     vel = state.vel.astype(f64)
@@ -585,8 +600,9 @@ def energies(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
     ke_rot = 0.5 * params.inertia * jnp.sum(omega * omega)
     pe = -params.mass * jnp.sum(pos @ jnp.asarray(params.gravity, f64))
     ov = contact_overlaps(spec, wall_fn, params, state)
-    e_el = (jnp.sum(hertz_energy(params.pp, ov.pp_overlap.astype(f64)))
-            + jnp.sum(hertz_energy(params.pw, ov.pw_overlap.astype(f64)))
+    law = spec.contact_law
+    e_el = (jnp.sum(law.elastic_energy(params.pp, ov.pp_overlap.astype(f64)))
+            + jnp.sum(law.elastic_energy(params.pw, ov.pw_overlap.astype(f64)))
             + state.ledger.spring_pp + state.ledger.spring_pw)
     return {"ke_trans": ke_trans, "ke_rot": ke_rot, "pe_grav": pe, "e_elastic": e_el}
 

@@ -18,6 +18,7 @@ import trimesh
 
 from sgn_jax.config import ConfigError, MotionConfig
 from sgn_jax.dem.engine import DEMParams, make_params
+from sgn_jax.dem.laws import ContactLawError, contact_law
 from sgn_jax.geometry import GeometryError, JarParams, SDFGrid, check_closed_mesh
 from sgn_jax.geometry.jar import jar_mesh, jar_volume
 from sgn_jax.geometry.mesh_distance import signed_distance_grid
@@ -216,6 +217,14 @@ def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32, per_patch: bool = T
     return sdf_grid_from_mesh(jar_mesh_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype)
 
 
+def contact_law_from_config(cfg: Any) -> Any:
+    """The contact law named by ``[dem] contact_law`` (sgn_jax.dem.laws registry)."""
+    try:
+        return contact_law(cfg.dem.contact_law)
+    except ContactLawError as exc:
+        raise ConfigError(f"[dem] contact_law: {exc}") from None
+
+
 def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DEMParams:
     """DEMParams of an experiment config (balls, material, gravity, jar patches, motion)."""
     if geometry is None:
@@ -227,6 +236,7 @@ def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DE
         radius=cfg.balls.radius, density=cfg.balls.density, young=m.young, poisson=m.poisson,
         restitution=m.restitution, friction=m.friction, rolling_friction=m.rolling_friction,
         gravity=tuple(cfg.dem.gravity), geometry=geometry, motion=motion,
+        contact_law=contact_law_from_config(cfg),
     )
 
 

@@ -34,7 +34,7 @@ import numpy as np
 from sgn_jax.cache import settled_dir
 from sgn_jax.config import config_to_dict, replace_section
 from sgn_jax.dataset import DatasetError, build_meta, save_trajectory
-from sgn_jax.dem.contact import MIN_CONTACT_STEPS, hertz_contact_time
+from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import (
     DISSIPATION_KINDS,
     DEMError,
@@ -49,7 +49,11 @@ from sgn_jax.dem.engine import (
 from sgn_jax.dem.placement import place_balls
 from sgn_jax.io_utils import atomic_write
 from sgn_jax.motion import offset
-from sgn_jax.pipelines.configure import geometry_from_config, params_from_config
+from sgn_jax.pipelines.configure import (
+    contact_law_from_config,
+    geometry_from_config,
+    params_from_config,
+)
 from sgn_jax.scene import JarGeometry
 from sgn_jax.validation import check_dem_config, check_duration
 
@@ -115,7 +119,8 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
     spec = DEMSpec(n_balls=n, n_patches=len(jar.patch_names), dt_dem=cfg.dem.dt_dem,
                    dtype=cfg.dem.dtype, clip_attractive=cfg.dem.clip_attractive,
                    pair_mode=pair_mode, neighbour_capacity=cfg.dem.neighbour_capacity,
-                   neighbour_skin=cfg.dem.neighbour_skin)
+                   neighbour_skin=cfg.dem.neighbour_skin,
+                   contact_law=contact_law_from_config(cfg))
     capacity = cfg.dem.pp_capacity if cfg.dem.pp_capacity > 0 else 3 * n
     return DEMSetup(cfg=cfg, spec=spec, params=params, jar=jar, substeps=cfg.dem.substeps,
                     pp_capacity=capacity)
@@ -166,6 +171,8 @@ def _fingerprint(setup: DEMSetup, seed: int) -> str:
     cfg = config_to_dict(setup.cfg)
     cfg["dem"].pop("duration", None)
     cfg["dem"].pop("chunk_samples", None)
+    if cfg["dem"].get("contact_law") == "hertz_mindlin":
+        cfg["dem"].pop("contact_law")  # the default: partial runs of older versions resume
     return json.dumps({"config": cfg, "seed": seed, "dt_dem": setup.dt_dem,
                        "pp_capacity": setup.pp_capacity, "format": PARTIAL_FORMAT},
                       sort_keys=True)
@@ -185,8 +192,8 @@ def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
 # Settled packings, cached across runs and processes
 
 _DEM_DIR = Path(__file__).resolve().parent.parent / "dem"
-_DEM_SOURCES = (_DEM_DIR / "engine.py", _DEM_DIR / "contact.py", _DEM_DIR / "placement.py",
-                _DEM_DIR / "walls.py", Path(__file__).resolve())
+_DEM_SOURCES = (_DEM_DIR / "engine.py", _DEM_DIR / "contact.py", _DEM_DIR / "laws.py",
+                _DEM_DIR / "placement.py", _DEM_DIR / "walls.py", Path(__file__).resolve())
 
 
 def _dem_source_digest() -> str:
@@ -485,8 +492,8 @@ def check_samples(setup: DEMSetup, samples: dict[str, np.ndarray], sdf: Any
 
     Causes, in the order checked per sample: a non-finite position or velocity; a ball whose
     centre is outside the cavity (phi > 0 in the jar frame); a contact that the DEM step cannot
-    resolve: the Hertz duration at the largest relative speed (any ball pair, or any ball
-    against the wall) below :data:`MIN_CONTACT_STEPS` steps.
+    resolve: the contact law's duration (Hertz by default) at the largest relative speed (any
+    ball pair, or any ball against the wall) below :data:`MIN_CONTACT_STEPS` steps.
     """
     pos, vel = samples["pos"], samples["vel"]
     found: list[tuple[int, int, str, str]] = []
@@ -504,16 +511,17 @@ def check_samples(setup: DEMSetup, samples: dict[str, np.ndarray], sdf: Any
     v = np.where(ok_rows[:, None, None], vel, 0.0)
     v_wall = np.linalg.norm(v - samples["offset_vel"][:, None, :], axis=-1)      # (S, N)
     v_pair = np.linalg.norm(v[:, :, None, :] - v[:, None, :, :], axis=-1).max(axis=2)
+    law = setup.spec.contact_law
     laws = {"ball-wall": (setup.params.pw, v_wall), "ball-ball": (setup.params.pp, v_pair)}
-    for name, (law, speed) in laws.items():
-        # t_c(v) < k dt_dem  <=>  v > v_limit (t_c decreases as v^(-1/5))
-        v_limit = float(hertz_contact_time(law, 1.0) / (MIN_CONTACT_STEPS * setup.dt_dem)) ** 5
+    for name, (law_params, speed) in laws.items():
+        # t_c(v) < k dt_dem  <=>  v > v_limit (Hertz: t_c decreases as v^(-1/5))
+        v_limit = law.max_speed_for_duration(law_params, MIN_CONTACT_STEPS * setup.dt_dem)
         hit = _first(speed > v_limit)
         if hit:
-            t_c = hertz_contact_time(law, float(speed[hit]))
+            t_c = float(law.contact_time(law_params, float(speed[hit])))
             found.append((*hit, "unresolved-contact",
-                          f"a {name} relative speed of {speed[hit]:.4g} m/s, where a Hertz "
-                          f"contact lasts {t_c / setup.dt_dem:.1f} DEM steps (need >= "
+                          f"a {name} relative speed of {speed[hit]:.4g} m/s, where a "
+                          f"{law.title} contact lasts {t_c / setup.dt_dem:.1f} DEM steps (need >= "
                           f"{MIN_CONTACT_STEPS}): reduce [dem] dt_dem_max or the motion"))
     return min(found) if found else None
 
