@@ -38,6 +38,8 @@ __all__ = [
     "TrainedModel",
     "load_surrogate",
     # the DEM: in memory, to a file, packings, ensembles at design points
+    "Scene",
+    "WallQuery",
     "simulate_dem",
     "run_dem",
     "DEMRun",
@@ -46,7 +48,9 @@ __all__ = [
     "DEMEnsemble",
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
     "init_state",
+    "make_rollout_step",
     "make_rollout_advance",
+    "RolloutOptions",
     "make_rollout",
     "model_predictor",
     "RolloutState",

@@ -136,14 +136,17 @@ from sgn_jax.regime import (
 )
 from sgn_jax.rollout import (
     RolloutError,
+    RolloutOptions,
     RolloutResult,
     RolloutState,
     analytic_jar_query,
     init_state,
     make_rollout,
     make_rollout_advance,
+    make_rollout_step,
     model_predictor,
 )
+from sgn_jax.scene import Scene, WallQuery
 from sgn_jax.validation import check_dem_config, check_duration, warn_outside_envelope
 
 # A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
@@ -696,6 +699,10 @@ __all__ = [
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
     "init_state",
     "make_rollout_advance",
+    "make_rollout_step",
+    "RolloutOptions",
+    "Scene",
+    "WallQuery",
     "make_rollout",
     "model_predictor",
     "RolloutState",
