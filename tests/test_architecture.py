@@ -204,7 +204,7 @@ CORE_MODULES = (
     "sgn_jax.geometry.sdf_grid", "sgn_jax.geometry.mesh_distance", "sgn_jax.geometry.stl",
     "sgn_jax.dem", "sgn_jax.dem.contact", "sgn_jax.dem.engine", "sgn_jax.dem.walls",
     "sgn_jax.dem.placement", "sgn_jax.graph", "sgn_jax.model", "sgn_jax.normalization",
-    "sgn_jax.rollout", "sgn_jax.train", "sgn_jax.design",
+    "sgn_jax.rollout", "sgn_jax.train", "sgn_jax.design", "sgn_jax.regime",
 )
 """The pure JAX core (docs/architecture.md, "Layers")."""
 
