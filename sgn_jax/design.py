@@ -144,7 +144,8 @@ def _motion_parameter_problem(name: str, motion: Motion) -> str | None:
         alternatives.append("motion.scale")
     if kind.coefficient_fields:
         alternatives.append("a harmonic coefficient")
-    problem = (f"{name} needs a {_or_list(owners)} motion, the config's motion is "
+    article = "an" if owners and owners[0][:1] in "aeiou" else "a"
+    problem = (f"{name} needs {article} {_or_list(owners)} motion, the config's motion is "
                f"{type(motion).__name__}")
     if alternatives:
         problem += f"; use {_or_list(alternatives)}"
