@@ -90,7 +90,7 @@ from sgn_jax.metrics import (
     position_mse,
     pp_contact_counts,
 )
-from sgn_jax.motion import Motion, frequency_hz, offset
+from sgn_jax.motion import Motion, frequency_hz, motion_kind, offset
 from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
@@ -485,26 +485,17 @@ def parameter_values_of(cfg: Config, names: Sequence[str]) -> np.ndarray:
 def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     """``cfg`` with the design parameters set to ``theta`` (for DEM runs at a design point).
 
-    ``motion.scale`` multiplies the amplitude / every harmonic coefficient.
+    ``motion.scale`` multiplies the amplitude / every harmonic coefficient. The changed motion
+    is written back by its kind's ``to_config`` (:class:`sgn_jax.motion.MotionKind`).
     """
     motion = motion_from_config(cfg.motion)
     jar = jar_params_from_config(cfg.jar)
     names = check_parameters(names, motion, jar)
     motion, jar = apply_parameters(names, jnp.asarray(theta, jnp.float64), motion, jar)
-    m = cfg.motion
-    if m.kind == "circle":
-        cfg = replace_section(cfg, "motion", rpm=float(motion.rpm),
-                              amplitude=float(motion.amplitude), phase=float(motion.phase))
-    elif m.kind == "harmonic":
-        sin_c, cos_c = np.asarray(motion.sin_coeffs), np.asarray(motion.cos_coeffs)
-        lists = {}
-        for axis, letter in enumerate("xyz"):
-            for name, coeffs in (("sin", sin_c), ("cos", cos_c)):
-                old = getattr(m, f"{letter}_{name}")
-                lists[f"{letter}_{name}"] = (tuple(float(v) for v in coeffs[:, axis])
-                                             if old or np.any(coeffs[:, axis]) else ())
-        cfg = replace_section(cfg, "motion", base_frequency_hz=float(motion.base_frequency_hz),
-                              **lists)
+    kind = motion_kind(motion)
+    if any(n.startswith("motion.") for n in names) and kind.to_config is not None:
+        old = {key: getattr(cfg.motion, key) for key in kind.config_keys}
+        cfg = replace_section(cfg, "motion", **kind.to_config(motion, old))
     if any(n.startswith("jar.") for n in names):
         cfg = replace_section(cfg, "jar", radius=float(jar.radius),
                               straight_length=float(jar.straight_length),

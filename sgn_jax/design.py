@@ -48,7 +48,14 @@ import numpy as np
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.geometry import JarParams
 from sgn_jax.graph import GraphSpec, Window
-from sgn_jax.motion import CircleMotion, HarmonicMotion, Motion, frequency_hz, offset, velocity
+from sgn_jax.motion import (
+    Motion,
+    frequency_hz,
+    motion_kind,
+    motion_kinds,
+    offset,
+    velocity,
+)
 from sgn_jax.rollout import (
     Predictor,
     RolloutState,
@@ -66,32 +73,83 @@ class DesignError(SGNJaxError, ValueError):
 # --------------------------------------------------------------------------------------------
 # Named design parameters
 
-PARAMETER_UNITS = {
-    "motion.rpm": "rpm",
-    "motion.amplitude": "m",
-    "motion.phase": "rad",
-    "motion.base_frequency_hz": "Hz",
+_COEFF = re.compile(r"^motion\.([xyz])_(sin|cos)\[(\d+)\]$")
+_FIXED_UNITS = {
     "motion.scale": "1",
     "jar.radius": "m",
     "jar.straight_length": "m",
     "jar.height": "m",
     "jar.post_radius": "m",
 }
-"""Unit of each fixed-name design parameter; harmonic coefficients ``motion.{x,y,z}_{sin,cos}[k]``
-(k = 0 is the first harmonic, as in the config lists) are in m."""
 
-_COEFF = re.compile(r"^motion\.([xyz])_(sin|cos)\[(\d+)\]$")
-_CIRCLE_ONLY = ("motion.rpm", "motion.amplitude", "motion.phase")
+
+def parameter_units() -> dict[str, str]:
+    """Unit of each fixed-name design parameter of the registered motion kinds and the jar.
+
+    A motion kind declares its own (:attr:`sgn_jax.motion.MotionKind.design_parameters`,
+    ``motion.<field>``); ``motion.scale`` multiplies the whole displacement of a kind with a
+    ``scale``; harmonic coefficients ``motion.{x,y,z}_{sin,cos}[k]`` (k = 0 is the first
+    harmonic, as in the config lists) are in m.
+    """
+    units = {}
+    for kind in motion_kinds():
+        for field, unit in kind.design_parameters.items():
+            units.setdefault(f"motion.{field}", unit)
+    units.update(_FIXED_UNITS)
+    return units
+
+
+PARAMETER_UNITS = parameter_units()
+"""Unit of each fixed-name design parameter of the built-in motion kinds and the jar (kinds
+registered later add theirs to :func:`parameter_units`); harmonic coefficients
+``motion.{x,y,z}_{sin,cos}[k]`` (k = 0 is the first harmonic, as in the config lists) are in m."""
 
 
 def parameter_unit(name: str) -> str:
     """The unit of a design parameter (``DesignError`` for an unknown name)."""
-    if name in PARAMETER_UNITS:
-        return PARAMETER_UNITS[name]
-    if _COEFF.match(name):
+    units = parameter_units()
+    if name in units:
+        return units[name]
+    if _COEFF.match(name) and any(k.coefficient_fields for k in motion_kinds()):
         return "m"
-    raise DesignError(f"unknown design parameter {name!r}; known: {sorted(PARAMETER_UNITS)} and "
+    raise DesignError(f"unknown design parameter {name!r}; known: {sorted(units)} and "
                       "harmonic coefficients like 'motion.x_sin[0]'")
+
+
+def _or_list(items: Sequence[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
+
+
+def _motion_parameter_problem(name: str, motion: Motion) -> str | None:
+    """Why ``name`` (a ``motion.*`` parameter) is not a design parameter of ``motion``'s kind,
+    or None if it is; the kinds are asked through the registry."""
+    kind = motion_kind(motion)
+    match = _COEFF.match(name)
+    if name == "motion.scale":
+        has = lambda k: k.scale is not None  # noqa: E731
+    elif match:
+        has = lambda k: match.group(2) in k.coefficient_fields  # noqa: E731
+    else:
+        field = name.split(".", 1)[1]
+        has = lambda k: field in k.design_parameters  # noqa: E731
+    if has(kind):
+        if match:
+            n_rows = np.shape(getattr(motion, kind.coefficient_fields[match.group(2)]))[0]
+            if int(match.group(3)) >= n_rows:
+                return f"{name}: the motion has {n_rows} harmonics (k counts from 0)"
+        return None
+    owners = [k.name for k in motion_kinds() if has(k)]
+    alternatives = [f"motion.{field}" for field in kind.design_parameters]
+    if kind.scale is not None:
+        alternatives.append("motion.scale")
+    if kind.coefficient_fields:
+        alternatives.append("a harmonic coefficient")
+    article = "an" if owners and owners[0][:1] in "aeiou" else "a"
+    problem = (f"{name} needs {article} {_or_list(owners)} motion, the config's motion is "
+               f"{type(motion).__name__}")
+    if alternatives:
+        problem += f"; use {_or_list(alternatives)}"
+    return problem
 
 
 def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tuple[str, ...]:
@@ -103,22 +161,10 @@ def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tu
         raise DesignError(f"design parameters repeat: {list(names)}")
     for name in names:
         parameter_unit(name)
-        if name in _CIRCLE_ONLY and not isinstance(motion, CircleMotion):
-            raise DesignError(f"{name} needs a circle motion, the config's motion is "
-                              f"{type(motion).__name__}; use motion.base_frequency_hz, "
-                              "motion.scale or a harmonic coefficient")
-        if name == "motion.base_frequency_hz" and not isinstance(motion, HarmonicMotion):
-            raise DesignError(f"{name} needs a harmonic motion; for a circle use motion.rpm")
-        match = _COEFF.match(name)
-        if match:
-            if not isinstance(motion, HarmonicMotion):
-                raise DesignError(f"{name} needs a harmonic motion")
-            k = int(match.group(3))
-            if k >= np.shape(motion.sin_coeffs)[0]:
-                raise DesignError(f"{name}: the motion has {np.shape(motion.sin_coeffs)[0]} "
-                                  "harmonics (k counts from 0)")
-        if name == "motion.scale" and not isinstance(motion, CircleMotion | HarmonicMotion):
-            raise DesignError("motion.scale needs a circle or harmonic motion")
+        if name.startswith("motion."):
+            problem = _motion_parameter_problem(name, motion)
+            if problem is not None:
+                raise DesignError(problem)
         if name == "jar.post_radius" and not jar.has_post:
             raise DesignError("jar.post_radius needs a jar with a post (post_radius > 0 in the "
                               "config); a post cannot grow from zero radius differentiably")
@@ -133,8 +179,8 @@ def parameter_values(names: Sequence[str], motion: Motion, jar: JarParams) -> np
         if name == "motion.scale":
             values.append(1.0)
         elif match:
-            axis, kind, k = "xyz".index(match.group(1)), match.group(2), int(match.group(3))
-            coeffs = motion.sin_coeffs if kind == "sin" else motion.cos_coeffs
+            axis, k = "xyz".index(match.group(1)), int(match.group(3))
+            coeffs = getattr(motion, motion_kind(motion).coefficient_fields[match.group(2)])
             values.append(float(np.asarray(coeffs)[k, axis]))
         elif name.startswith("motion."):
             values.append(float(np.asarray(getattr(motion, name.split(".", 1)[1]))))
@@ -151,14 +197,10 @@ def apply_parameters(names: Sequence[str], theta: jax.Array, motion: Motion, jar
         value = theta[i]
         match = _COEFF.match(name)
         if name == "motion.scale":
-            if isinstance(motion, CircleMotion):
-                motion = motion.replace(amplitude=motion.amplitude * value)
-            else:
-                motion = motion.replace(sin_coeffs=motion.sin_coeffs * value,
-                                        cos_coeffs=motion.cos_coeffs * value)
+            motion = motion_kind(motion).scale(motion, value)
         elif match:
-            axis, kind, k = "xyz".index(match.group(1)), match.group(2), int(match.group(3))
-            field = "sin_coeffs" if kind == "sin" else "cos_coeffs"
+            axis, k = "xyz".index(match.group(1)), int(match.group(3))
+            field = motion_kind(motion).coefficient_fields[match.group(2)]
             coeffs = jnp.asarray(getattr(motion, field), F64).at[k, axis].set(value)
             motion = motion.replace(**{field: coeffs})
         elif name.startswith("motion."):

@@ -5,7 +5,12 @@ the jar-frame origin at time ``t`` (s) since the start of motion; ``velocity`` a
 ``acceleration`` are its first and second time derivatives, computed by JAX forward-mode
 autodiff of ``offset`` (so they can never disagree with it).
 
-Three kinds, all ``flax.struct`` dataclasses whose every field is a pytree leaf, so that
+Motion kinds register themselves (:class:`MotionKind`, :func:`register_motion_kind`): each kind
+is registered once with its name, its class, its scalar offset function, its rotational
+frequency, its constructor from plain config values and its design parameters, and every
+function here dispatches through the registry by the motion's type (docs/motion-kinds.md shows
+a new kind added in one file). Three kinds are built in, all ``flax.struct`` dataclasses whose
+every field is a pytree leaf, so that
 
 - every parameter is differentiable (``jax.grad(lambda m: offset(m, t)[0])(motion)``),
 - a batch of motions of the same kind (and the same K or M) is one pytree with a leading batch
@@ -35,7 +40,10 @@ rest phase is the DEM driver's business.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+import types
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import flax.struct
 import jax
@@ -89,6 +97,141 @@ class SplineMotion:
 
 
 Motion = CircleMotion | HarmonicMotion | SplineMotion
+"""The built-in kinds, for type hints; every function here takes any registered kind."""
+
+
+# --------------------------------------------------------------------------------------------
+# The registry of motion kinds
+
+
+@dataclasses.dataclass(frozen=True)
+class MotionKind:
+    """A motion kind: its pytree class and everything the package dispatches on per kind.
+
+    Register one with :func:`register_motion_kind`; ``offset``, ``velocity``,
+    ``acceleration``, ``frequency_hz``, ``stack_motions`` and ``spline_from_motion`` then work
+    on its motions, so do the DEM, the rollout and the design study (docs/motion-kinds.md).
+
+    Attributes:
+        name: the kind's name, as in the config's ``[motion] kind`` ("circle", ...).
+        cls: the motion class, a ``flax.struct`` dataclass whose fields are pytree leaves.
+        offset: ``offset(motion, t) -> (3,)``, the jar offset (m) at one scalar time ``t`` (s);
+            jittable and differentiable (velocity and acceleration are its autodiff).
+        frequency_hz: ``frequency_hz(motion) -> ()``, the rotational frequency (Hz) fed to the
+            surrogate's wall node.
+        config_keys: the ``[motion]`` keys of the kind (besides ``kind``).
+        from_config: ``from_config(values, dtype) -> motion``, the motion of a plain dict
+            ``{key: value}`` of the kind's ``config_keys`` (lists as tuples), leaves of
+            ``dtype``; used by :func:`sgn_jax.pipelines.configure.motion_from_config`.
+        to_config: ``to_config(motion, old_values) -> values``, the inverse: plain config
+            values of a (changed) motion, ``old_values`` being those it was built from; used to
+            write a design point back into a config. None: the kind cannot be written back.
+        design_parameters: ``{field: unit}`` of the scalar fields that are design parameters
+            ``motion.<field>`` (:mod:`sgn_jax.design`).
+        scale: ``scale(motion, factor) -> motion`` multiplies the whole displacement (the
+            design parameter ``motion.scale``); None: the kind has no ``motion.scale``.
+        coefficient_fields: ``{"sin": field, "cos": field}``: the (K, 3) fields addressed by
+            the design parameters ``motion.{x,y,z}_{sin,cos}[k]``; empty: none.
+    """
+
+    name: str
+    cls: type
+    offset: Callable[[Any, jax.Array], jax.Array]
+    frequency_hz: Callable[[Any], jax.Array]
+    config_keys: tuple[str, ...] = ()
+    from_config: Callable[[Mapping[str, Any], Any], Any] | None = None
+    to_config: Callable[[Any, Mapping[str, Any]], dict[str, Any]] | None = None
+    design_parameters: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    scale: Callable[[Any, jax.Array], Any] | None = None
+    coefficient_fields: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"a motion kind needs a non-empty name, got {self.name!r}")
+        if not isinstance(self.cls, type) or not dataclasses.is_dataclass(self.cls):
+            raise TypeError(f"motion kind {self.name!r}: cls must be a flax.struct dataclass, "
+                            f"got {self.cls!r}")
+        for attr in ("offset", "frequency_hz"):
+            if not callable(getattr(self, attr)):
+                raise TypeError(f"motion kind {self.name!r}: {attr} must be callable")
+        unknown = sorted(set(self.coefficient_fields) - {"sin", "cos"})
+        if unknown:
+            raise ValueError(f"motion kind {self.name!r}: coefficient_fields keys must be 'sin' "
+                             f"and/or 'cos', got {unknown}")
+        object.__setattr__(self, "config_keys", tuple(self.config_keys))
+        object.__setattr__(self, "design_parameters",
+                           types.MappingProxyType(dict(self.design_parameters)))
+        object.__setattr__(self, "coefficient_fields",
+                           types.MappingProxyType(dict(self.coefficient_fields)))
+
+
+_KINDS: dict[str, MotionKind] = {}  # name -> kind, in registration order
+_KINDS_BY_CLASS: dict[type, MotionKind] = {}
+
+
+def register_motion_kind(kind: MotionKind, *, replace: bool = False) -> MotionKind:
+    """Register ``kind`` (returned, so a module can keep it); its name and class must be new.
+
+    ``replace=True`` replaces a kind of the same name (and its class) instead of refusing.
+    """
+    if not isinstance(kind, MotionKind):
+        raise TypeError(f"register_motion_kind expects a MotionKind, got {type(kind).__name__}")
+    old = _KINDS.get(kind.name)
+    holder = _KINDS_BY_CLASS.get(kind.cls)
+    if not replace:
+        if old is not None:
+            raise ValueError(f"motion kind {kind.name!r} is already registered (class "
+                             f"{old.cls.__name__}); pass replace=True to replace it")
+        if holder is not None:
+            raise ValueError(f"class {kind.cls.__name__} is already registered as motion kind "
+                             f"{holder.name!r}")
+    if old is not None:
+        _KINDS_BY_CLASS.pop(old.cls, None)
+    if holder is not None and holder.name != kind.name:
+        _KINDS.pop(holder.name, None)
+    _KINDS[kind.name] = kind
+    _KINDS_BY_CLASS[kind.cls] = kind
+    return kind
+
+
+def unregister_motion_kind(name: str) -> MotionKind:
+    """Remove the kind ``name`` from the registry (tests); returns it."""
+    kind = motion_kind_named(name)
+    del _KINDS[name]
+    _KINDS_BY_CLASS.pop(kind.cls, None)
+    return kind
+
+
+def motion_kinds() -> tuple[MotionKind, ...]:
+    """The registered kinds, in registration order (the built-ins first)."""
+    return tuple(_KINDS.values())
+
+
+def motion_kind_named(name: str) -> MotionKind:
+    """The registered kind called ``name`` (ValueError listing the kinds if there is none)."""
+    try:
+        return _KINDS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown motion kind {name!r}; registered kinds: "
+                         f"{sorted(_KINDS)}") from None
+
+
+def motion_kind(motion: Any) -> MotionKind:
+    """The registered kind of ``motion`` (an instance or a class), found by its type.
+
+    A subclass of a registered class has its parent's kind unless registered itself.
+    """
+    cls = motion if isinstance(motion, type) else type(motion)
+    for base in cls.__mro__:
+        kind = _KINDS_BY_CLASS.get(base)
+        if kind is not None:
+            return kind
+    classes = ", ".join(k.cls.__name__ for k in _KINDS.values())
+    raise TypeError(
+        f"expected a motion of a registered kind ({classes}), got {cls.__name__}; "
+        "build one with motion_from_config(cfg.motion) or register its kind with "
+        "register_motion_kind"
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -193,17 +336,89 @@ def _spline_offset(motion: SplineMotion, t: jax.Array) -> jax.Array:
     )
 
 
+# --------------------------------------------------------------------------------------------
+# The built-in kinds register themselves
+
+
+def _circle_from_config(values: Mapping[str, Any], dtype: Any) -> CircleMotion:
+    return CircleMotion(rpm=jnp.asarray(values["rpm"], dtype),
+                        amplitude=jnp.asarray(values["amplitude"], dtype),
+                        phase=jnp.asarray(values["phase"], dtype))
+
+
+def _circle_to_config(motion: CircleMotion, old: Mapping[str, Any]) -> dict[str, Any]:
+    return {"rpm": float(motion.rpm), "amplitude": float(motion.amplitude),
+            "phase": float(motion.phase)}
+
+
+_HARMONIC_LISTS = ("x_sin", "y_sin", "z_sin", "x_cos", "y_cos", "z_cos")
+
+
+def _harmonic_from_config(values: Mapping[str, Any], dtype: Any) -> HarmonicMotion:
+    """Coefficient lists that are empty mean zero; the others all have length K."""
+    n_harmonics = max(len(values[name]) for name in _HARMONIC_LISTS)
+    sin_coeffs = np.zeros((n_harmonics, 3))
+    cos_coeffs = np.zeros((n_harmonics, 3))
+    for axis, letter in enumerate("xyz"):
+        for target, kind in ((sin_coeffs, "sin"), (cos_coeffs, "cos")):
+            coeffs = values[f"{letter}_{kind}"]
+            if coeffs:
+                target[:, axis] = coeffs
+    return HarmonicMotion(base_frequency_hz=jnp.asarray(values["base_frequency_hz"], dtype),
+                          sin_coeffs=jnp.asarray(sin_coeffs, dtype),
+                          cos_coeffs=jnp.asarray(cos_coeffs, dtype))
+
+
+def _harmonic_to_config(motion: HarmonicMotion, old: Mapping[str, Any]) -> dict[str, Any]:
+    """A list that was empty stays empty while its coefficients stay zero."""
+    sin_c, cos_c = np.asarray(motion.sin_coeffs), np.asarray(motion.cos_coeffs)
+    values: dict[str, Any] = {"base_frequency_hz": float(motion.base_frequency_hz)}
+    for axis, letter in enumerate("xyz"):
+        for name, coeffs in (("sin", sin_c), ("cos", cos_c)):
+            key = f"{letter}_{name}"
+            values[key] = (tuple(float(v) for v in coeffs[:, axis])
+                           if old.get(key) or np.any(coeffs[:, axis]) else ())
+    return values
+
+
+def _spline_from_config(values: Mapping[str, Any], dtype: Any) -> SplineMotion:
+    return SplineMotion(period=jnp.asarray(values["period"], dtype),
+                        points=jnp.asarray(np.array(values["points"]), dtype))
+
+
+def _spline_to_config(motion: SplineMotion, old: Mapping[str, Any]) -> dict[str, Any]:
+    return {"period": float(motion.period),
+            "points": tuple(tuple(float(c) for c in p) for p in np.asarray(motion.points))}
+
+
+register_motion_kind(MotionKind(
+    name="circle", cls=CircleMotion, offset=_circle_offset,
+    frequency_hz=lambda m: jnp.asarray(m.rpm) / 60.0,
+    config_keys=("rpm", "amplitude", "phase"),
+    from_config=_circle_from_config, to_config=_circle_to_config,
+    design_parameters={"rpm": "rpm", "amplitude": "m", "phase": "rad"},
+    scale=lambda m, factor: m.replace(amplitude=m.amplitude * factor),
+))
+register_motion_kind(MotionKind(
+    name="harmonic", cls=HarmonicMotion, offset=_harmonic_offset,
+    frequency_hz=lambda m: jnp.asarray(m.base_frequency_hz),
+    config_keys=("base_frequency_hz",) + _HARMONIC_LISTS,
+    from_config=_harmonic_from_config, to_config=_harmonic_to_config,
+    design_parameters={"base_frequency_hz": "Hz"},
+    scale=lambda m, factor: m.replace(sin_coeffs=m.sin_coeffs * factor,
+                                      cos_coeffs=m.cos_coeffs * factor),
+    coefficient_fields={"sin": "sin_coeffs", "cos": "cos_coeffs"},
+))
+register_motion_kind(MotionKind(
+    name="spline", cls=SplineMotion, offset=_spline_offset,
+    frequency_hz=lambda m: 1.0 / jnp.asarray(m.period),
+    config_keys=("period", "points"),
+    from_config=_spline_from_config, to_config=_spline_to_config,
+))
+
+
 def _scalar_offset(motion: Motion, t: jax.Array) -> jax.Array:
-    if isinstance(motion, CircleMotion):
-        return _circle_offset(motion, t)
-    if isinstance(motion, HarmonicMotion):
-        return _harmonic_offset(motion, t)
-    if isinstance(motion, SplineMotion):
-        return _spline_offset(motion, t)
-    raise TypeError(
-        f"expected a CircleMotion, HarmonicMotion or SplineMotion, got {type(motion).__name__}; "
-        "build one with motion_from_config(cfg.motion)"
-    )
+    return motion_kind(motion).offset(motion, t)
 
 
 def _scalar_velocity(motion: Motion, t: jax.Array) -> jax.Array:
@@ -222,7 +437,7 @@ def offset(motion: Motion, t: float | jax.Array) -> jax.Array:
     """Lab-frame position (m) of the jar-frame origin at time ``t`` (s) since the start of motion.
 
     Args:
-        motion: a CircleMotion, HarmonicMotion or SplineMotion.
+        motion: a motion of a registered kind (CircleMotion, HarmonicMotion, SplineMotion, ...).
         t: scalar time (s), or an array of times (vmapped).
     Returns:
         (3,) for scalar ``t``, ``t.shape + (3,)`` for an array. Jittable and differentiable in
@@ -244,16 +459,10 @@ def acceleration(motion: Motion, t: float | jax.Array) -> jax.Array:
 def frequency_hz(motion: Motion) -> jax.Array:
     """The "rotational frequency" (Hz) fed to the surrogate's wall node (SPEC section 5).
 
-    ``rpm / 60`` for a circle, ``base_frequency_hz`` for a harmonic series, ``1 / period`` for a
-    spline.
+    The kind's ``frequency_hz``: ``rpm / 60`` for a circle, ``base_frequency_hz`` for a
+    harmonic series, ``1 / period`` for a spline.
     """
-    if isinstance(motion, CircleMotion):
-        return jnp.asarray(motion.rpm) / 60.0
-    if isinstance(motion, HarmonicMotion):
-        return jnp.asarray(motion.base_frequency_hz)
-    if isinstance(motion, SplineMotion):
-        return 1.0 / jnp.asarray(motion.period)
-    raise TypeError(f"expected a Motion, got {type(motion).__name__}")
+    return motion_kind(motion).frequency_hz(motion)
 
 
 def standard_circle(dtype: jnp.dtype = jnp.float64) -> CircleMotion:
@@ -311,15 +520,21 @@ __all__ = [
     "CircleMotion",
     "HarmonicMotion",
     "Motion",
+    "MotionKind",
     "SplineMotion",
     "acceleration",
     "frequency_hz",
     "motion1",
     "motion2",
+    "motion_kind",
+    "motion_kind_named",
+    "motion_kinds",
     "offset",
+    "register_motion_kind",
     "spline_from_motion",
     "spline_second_derivatives",
     "stack_motions",
     "standard_circle",
+    "unregister_motion_kind",
     "velocity",
 ]

@@ -26,47 +26,33 @@ from sgn_jax.geometry.sdf_grid import grid_layout, sdf_grid_from_jar
 from sgn_jax.geometry.stl import UNIT_SCALES
 from sgn_jax.graph import GraphSpec
 from sgn_jax.io_utils import atomic_write
-from sgn_jax.motion import CircleMotion, HarmonicMotion, Motion, SplineMotion
+from sgn_jax.motion import Motion, motion_kind_named
 from sgn_jax.scene import JarGeometry, grid_jar, parametric_jar
 
 
 def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:
     """Build the motion pytree described by a ``[motion]`` config section, leaves of ``dtype``.
 
-    Harmonic coefficient lists that are empty mean zero; all lists of one config have the same
-    length K (checked by MotionConfig).
+    Built through the motion-kind registry: the kind named ``cfg.kind``
+    (:func:`sgn_jax.motion.motion_kind_named`) gets the plain values of its ``config_keys``
+    and constructs the motion (:attr:`sgn_jax.motion.MotionKind.from_config`). Harmonic
+    coefficient lists that are empty mean zero; all lists of one config have the same length K
+    (checked by MotionConfig).
     """
     if not isinstance(cfg, MotionConfig):
         raise TypeError(
             f"motion_from_config expects a sgn_jax.config.MotionConfig (cfg.motion), "
             f"got {type(cfg).__name__}"
         )
-    if cfg.kind == "circle":
-        return CircleMotion(
-            rpm=jnp.asarray(cfg.rpm, dtype),
-            amplitude=jnp.asarray(cfg.amplitude, dtype),
-            phase=jnp.asarray(cfg.phase, dtype),
-        )
-    if cfg.kind == "harmonic":
-        lists = {name: getattr(cfg, name) for name in
-                 ("x_sin", "y_sin", "z_sin", "x_cos", "y_cos", "z_cos")}
-        n_harmonics = max(len(v) for v in lists.values())
-        sin_coeffs = np.zeros((n_harmonics, 3))
-        cos_coeffs = np.zeros((n_harmonics, 3))
-        for axis, letter in enumerate("xyz"):
-            for target, kind in ((sin_coeffs, "sin"), (cos_coeffs, "cos")):
-                values = lists[f"{letter}_{kind}"]
-                if values:
-                    target[:, axis] = values
-        return HarmonicMotion(
-            base_frequency_hz=jnp.asarray(cfg.base_frequency_hz, dtype),
-            sin_coeffs=jnp.asarray(sin_coeffs, dtype),
-            cos_coeffs=jnp.asarray(cos_coeffs, dtype),
-        )
-    if cfg.kind == "spline":
-        return SplineMotion(period=jnp.asarray(cfg.period, dtype),
-                            points=jnp.asarray(np.array(cfg.points), dtype))
-    raise ConfigError(f"[motion] unknown kind {cfg.kind!r}")
+    try:
+        kind = motion_kind_named(cfg.kind)
+    except ValueError:
+        raise ConfigError(f"[motion] unknown kind {cfg.kind!r}") from None
+    if kind.from_config is None:
+        raise ConfigError(f"[motion] kind {cfg.kind!r} cannot be built from a config (its "
+                          "MotionKind has no from_config)")
+    values = {key: getattr(cfg, key) for key in kind.config_keys}
+    return kind.from_config(values, dtype)
 
 
 def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpec:
