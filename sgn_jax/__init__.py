@@ -8,7 +8,7 @@ The public API (docs/api.md)::
     packings = sj.make_packings(cfg, seeds=range(8))
     study = sj.design_study(model, cfg, ["motion.rpm"], packings)
 
-Its names (``__all__``) are those of :mod:`sgn_jax.api` listed below, loaded on first use (PEP
+Its names (``__all__``, small on purpose) come from :mod:`sgn_jax.api`, loaded on first use (PEP
 562 module ``__getattr__``): ``import sgn_jax`` itself imports no package module, so the pure
 core (:mod:`sgn_jax.motion`, :mod:`sgn_jax.dem`, ...) imports nothing through the root and
 ``import sgn_jax.motion`` stays light. :mod:`sgn_jax.api` holds these and the helpers the
@@ -32,37 +32,27 @@ __version__ = "0.1.0"
 __all__ = [
     "__version__",
     # configs and the trained model
-    "Config",
     "load_config",
     "replace_section",
-    "TrainedModel",
     "load_surrogate",
-    # the DEM: in memory, to a file, packings, ensembles at design points
+    # the scene both simulators share
     "Scene",
-    "WallQuery",
+    # the DEM: in memory, to a file, packings, ensembles at design points
     "simulate_dem",
     "run_dem",
-    "DEMRun",
     "make_packings",
     "Packings",
     "DEMEnsemble",
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
     "init_state",
     "make_rollout_step",
-    "make_rollout_advance",
-    "RolloutOptions",
     "make_rollout",
-    "model_predictor",
-    "RolloutState",
-    "RolloutResult",
     "rollout_ensemble",
     "shard_packings",
     "run_rollout",
     # records
-    "Trajectory",
     "load_trajectory",
     "save_trajectory",
-    "Prediction",
     "load_prediction",
     "save_prediction",
     # design studies: the power function and its gradient
@@ -76,22 +66,10 @@ __all__ = [
     "ensemble_mean",
     # metrics
     "evaluate",
-    "compare",
     "ensemble_summary",
-    # the regime (bed / agitated)
-    "classify_state",
-    "default_threshold",
-    "regime_of",
-    "regime_windows",
-    "CLASSIFIERS",
-    "AGITATED_SPEED_M_S",
-    "BED_PAIRS_PER_BALL",
-    "REGIME_PP_CONTACTS_PER_BALL",
-    "REGIME_WINDOW_S",
     # errors
     "SGNJaxError",
     "SGNJaxWarning",
-    "EnvelopeWarning",
 ]
 
 _API_MODULE = "sgn_jax.api"
