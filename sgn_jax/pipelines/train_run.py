@@ -218,11 +218,7 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     if sdf is None:
         sdf = sdf_grid_from_config(cfg)
 
-    t0 = time.perf_counter()
-    train_raw, val_raw, spec = prepare_datasets(trajectories, cfg, sdf, query=query, names=names,
-                                                progress=progress)
-    featurize_s = time.perf_counter() - t0
-
+    # The model kind and the devices are checked before the (slow) featurization.
     try:
         factory = model_factory(model_kind(cfg.model))
     except ModelKindError as exc:
@@ -236,6 +232,12 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
             strategy = DataParallel.over(tcfg.devices)
         except ValueError as exc:
             raise TrainingError(f"[train] devices = {tcfg.devices}: {exc}") from exc
+
+    t0 = time.perf_counter()
+    train_raw, val_raw, spec = prepare_datasets(trajectories, cfg, sdf, query=query, names=names,
+                                                progress=progress)
+    featurize_s = time.perf_counter() - t0
+
     restored = None
     if existing is not None:
         restored = restore_checkpoint(ckpt_latest)
