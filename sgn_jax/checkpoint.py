@@ -36,7 +36,7 @@ import numpy as np
 
 from sgn_jax.config import ConfigError, config_from_dict
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.model import make_model, make_predict
+from sgn_jax.model import ModelKindError, make_predict, model_factory, model_kind
 from sgn_jax.normalization import NormStats, stats_from_arrays, stats_to_arrays
 
 ITEMS = ("params", "opt_state", "norm", "meta")
@@ -338,7 +338,10 @@ def restore_checkpoint(directory: str | Path, step: int | None = None, *,
 
 @dataclass
 class TrainedModel:
-    """A trained SGN ready for prediction (see :func:`load_trained_model`)."""
+    """A trained surrogate ready for prediction (see :func:`load_trained_model`).
+
+    ``model`` is the flax module of the config's ``[model] kind`` (an ``SGN`` by default),
+    built by :func:`sgn_jax.model.model_factory`."""
 
     model: Any
     params: Any
@@ -363,5 +366,11 @@ def load_trained_model(path: str | Path, which: str = "best") -> TrainedModel:
         cfg = config_from_dict(restored.meta["config"])
     except (KeyError, ConfigError) as exc:
         raise CheckpointError(f"checkpoint {ckpt_dir} has no valid config: {exc}") from exc
-    return TrainedModel(model=make_model(cfg.model), params=restored.params,
+    try:
+        factory = model_factory(model_kind(cfg.model))
+    except ModelKindError as exc:
+        raise CheckpointError(
+            f"checkpoint {ckpt_dir} holds a model of kind {model_kind(cfg.model)!r}: {exc}; "
+            "import the module that registers it before loading") from exc
+    return TrainedModel(model=factory.build(cfg.model), params=restored.params,
                         norm_stats=restored.norm_stats, config=cfg, meta=restored.meta)

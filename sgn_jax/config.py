@@ -373,19 +373,28 @@ class ModelConfig:
     or "differences" (older slots enter as ``v_k - v_{k+1}``; same information, trains much
     faster; see docs/sgn.md and ``sgn_jax.normalization.encode_velocities``).
 
+    ``kind`` names the surrogate in the model registry (:func:`sgn_jax.model.register_model`;
+    "sgn" is the paper's SGN, the only built-in kind); the other keys are its hyperparameters.
+
     Attributes:
+        kind: registered surrogate kind ("sgn"; others after sgn_jax.model.register_model).
         hidden: width of the MLPs' hidden layers and of the node and edge embeddings.
         mlp_layers: linear layers per MLP (>= 2).
         interaction_layers: message-passing (interaction) layers (>= 1).
         velocity_encoding: "absolute" (the paper) or "differences" (see above).
     """
 
+    kind: str = "sgn"
     hidden: int = 256
     mlp_layers: int = 4
     interaction_layers: int = 1
     velocity_encoding: str = "absolute"
 
     def __post_init__(self) -> None:
+        # Whether the kind is registered is checked where the model is built (the registry
+        # lives in the core, sgn_jax.model): a config naming a kind registered later loads.
+        if not self.kind or not self.kind.strip():
+            raise ConfigError("[model] kind must be a non-empty string (default 'sgn')")
         if self.velocity_encoding not in ("absolute", "differences"):
             raise ConfigError("[model] velocity_encoding must be 'absolute' or 'differences', "
                               f"got {self.velocity_encoding!r}")
@@ -429,6 +438,9 @@ class TrainConfig:
         envelope: the motion envelope the model is trained for and promises to cover: "" (its
             single training motion), "default" (sgn_jax/data/envelope.toml) or a TOML path;
             stored in the checkpoint meta (key ``envelope``).
+        devices: data-parallel training over this many local devices (1 = one device, the
+            default); each step's ``batch_size`` graphs are split evenly over the devices, so
+            batch_size must be a multiple (docs/sgn.md, "Data-parallel training").
     """
 
     batch_size: int = 2
@@ -445,10 +457,14 @@ class TrainConfig:
     window_stride: int = 1
     position_noise_std: float = 0.0
     envelope: str = ""
+    devices: int = 1
 
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.epochs < 1:
             raise ConfigError("[train] batch_size and epochs must be >= 1")
+        if self.devices < 1 or self.batch_size % self.devices:
+            raise ConfigError(f"[train] devices must be >= 1 and divide batch_size, got devices "
+                              f"= {self.devices}, batch_size = {self.batch_size}")
         if not 0 < self.lr_final <= self.lr_init:
             raise ConfigError(
                 f"[train] need 0 < lr_final <= lr_init, got {self.lr_final}, {self.lr_init}"

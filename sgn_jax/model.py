@@ -36,10 +36,16 @@ message layers (plus the edge block), against seven hidden x hidden matmuls befo
 Padding is handled with the boolean masks of the graph (jraph's ``zero_out_padding`` is broken
 on current JAX): padding edges carry no message, padding nodes are never read by a real node.
 All computation is in ``float32`` (parameters and activations).
+
+The model registry (end of this module): ``[model] kind`` names a registered
+:class:`ModelFactory` ("sgn", the default, is this SGN); :func:`make_model` builds the module of
+a config section through it, so training and checkpoint loading work for any registered kind
+(:func:`register_model`; docs/sgn.md, "Adding a surrogate model").
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -48,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import jraph
 
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.normalization import (
     NormStats,
     denormalize_accel,
@@ -242,19 +249,26 @@ class SGN(nn.Module):
         return accel, de
 
 
-def make_model(model_cfg: Any) -> SGN:
-    """An :class:`SGN` from a ``[model]`` config section (:class:`sgn_jax.config.ModelConfig`)."""
+def make_model(model_cfg: Any) -> nn.Module:
+    """The flax module of a ``[model]`` config section (:class:`sgn_jax.config.ModelConfig`),
+    built by the factory registered for its ``kind`` (default "sgn": an :class:`SGN`)."""
+    return model_factory(model_kind(model_cfg)).build(model_cfg)
+
+
+def make_sgn(model_cfg: Any) -> SGN:
+    """An :class:`SGN` from a ``[model]`` config section (the factory of kind "sgn")."""
     return SGN(hidden=model_cfg.hidden, mlp_layers=model_cfg.mlp_layers,
                interaction_layers=model_cfg.interaction_layers)
 
 
-def init_params(model: SGN, example_graph: jraph.GraphsTuple, seed: int | jax.Array = 0) -> Any:
+def init_params(model: nn.Module, example_graph: jraph.GraphsTuple,
+                seed: int | jax.Array = 0) -> Any:
     """Initial parameters (flax default init: LeCun-normal kernels, zero biases)."""
     key = jax.random.PRNGKey(seed) if isinstance(seed, int) else seed
     return model.init(key, example_graph)["params"]
 
 
-def make_apply(model: SGN) -> Callable[[Any, jraph.GraphsTuple], tuple[jax.Array, jax.Array]]:
+def make_apply(model: nn.Module) -> Callable[[Any, jraph.GraphsTuple], tuple[jax.Array, jax.Array]]:
     """Pure ``apply(params, normalised_graph) -> (accel_norm, dE_norm)``."""
 
     def apply(params: Any, graph: jraph.GraphsTuple) -> tuple[jax.Array, jax.Array]:
@@ -263,7 +277,7 @@ def make_apply(model: SGN) -> Callable[[Any, jraph.GraphsTuple], tuple[jax.Array
     return apply
 
 
-def make_predict(model: SGN) -> Callable[[Any, NormStats, jraph.GraphsTuple],
+def make_predict(model: nn.Module) -> Callable[[Any, NormStats, jraph.GraphsTuple],
                                          tuple[jax.Array, jax.Array]]:
     """Pure ``predict(params, stats, raw_graph) -> (accel (n_node, 3) m/s^2, dE (n_graph,) J)``.
 
@@ -283,3 +297,107 @@ def make_predict(model: SGN) -> Callable[[Any, NormStats, jraph.GraphsTuple],
 
 def count_params(params: Any) -> int:
     return int(sum(p.size for p in jax.tree_util.tree_leaves(params)))
+
+
+# --------------------------------------------------------------------------------------------
+# The model registry: [model] kind -> how to build, initialise, apply and predict
+
+
+DEFAULT_MODEL_KIND = "sgn"
+
+
+class ModelKindError(SGNJaxError, ValueError):
+    """A ``[model] kind`` names no registered model, or a kind is registered twice."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelFactory:
+    """How training, checkpoints and rollouts make and use one kind of surrogate.
+
+    The contract of a surrogate module: ``module.apply({"params": p}, graph)`` on a normalised,
+    possibly batched and padded graph of :mod:`sgn_jax.graph` returns ``(accel_norm (n_node, 3),
+    dE_norm (n_graph,))``, float32, like :class:`SGN`. Everything downstream (the loss, the
+    jitted steps, :func:`make_predict`, :func:`sgn_jax.rollout.model_predictor`) only uses
+    that contract, so a new kind needs nothing but ``build``.
+
+    Attributes:
+        kind: the name in ``[model] kind``.
+        build: ``build(model_cfg) -> flax module`` from the ``[model]`` section (its ``hidden``,
+            ``mlp_layers``, ``interaction_layers``; the section's ``velocity_encoding`` is used
+            by the featurizer, not the module).
+        init: ``init(module, example_graph, seed) -> params`` (default :func:`init_params`:
+            flax's own initialisation).
+        description: one line for listings and error messages.
+    """
+
+    kind: str
+    build: Callable[[Any], nn.Module]
+    init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] = init_params
+    description: str = ""
+
+    def init_params(self, model: nn.Module, example_graph: jraph.GraphsTuple,
+                    seed: int | jax.Array = 0) -> Any:
+        return self.init(model, example_graph, seed)
+
+    def make_apply(self, model: nn.Module) -> Callable:
+        """Pure ``apply(params, normalised_graph) -> (accel_norm, dE_norm)``."""
+        return make_apply(model)
+
+    def make_predict(self, model: nn.Module) -> Callable:
+        """Pure ``predict(params, stats, raw_graph) -> (accel m/s^2, dE J)``."""
+        return make_predict(model)
+
+
+_REGISTRY: dict[str, ModelFactory] = {}
+
+
+def register_model(kind: str, build: Callable[[Any], nn.Module], *,
+                   init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] | None = None,
+                   description: str = "", replace: bool = False) -> ModelFactory:
+    """Register a surrogate kind: ``[model] kind = "<kind>"`` then builds it with ``build``.
+
+    ``build(model_cfg)`` returns a flax module honouring the contract of :class:`ModelFactory`.
+    Registering a kind that exists is an error unless ``replace=True``. Registration is per
+    process: a checkpoint of a kind defined outside sgn-jax loads only after the module that
+    registers it has been imported. Returns the factory.
+    """
+    if not isinstance(kind, str) or not kind:
+        raise ModelKindError(f"a model kind must be a non-empty string, got {kind!r}")
+    if kind in _REGISTRY and not replace:
+        raise ModelKindError(f"model kind {kind!r} is already registered "
+                             "(pass replace=True to override it)")
+    factory = ModelFactory(kind=kind, build=build, init=init or init_params,
+                           description=description)
+    _REGISTRY[kind] = factory
+    return factory
+
+
+def unregister_model(kind: str) -> None:
+    """Remove a registered kind (tests; "sgn" cannot be removed)."""
+    if kind == DEFAULT_MODEL_KIND:
+        raise ModelKindError(f"the built-in model kind {kind!r} cannot be unregistered")
+    _REGISTRY.pop(kind, None)
+
+
+def registered_models() -> tuple[str, ...]:
+    """The registered kinds, sorted."""
+    return tuple(sorted(_REGISTRY))
+
+
+def model_factory(kind: str) -> ModelFactory:
+    """The factory of a registered kind; :class:`ModelKindError` listing the kinds if none."""
+    try:
+        return _REGISTRY[kind]
+    except KeyError:
+        raise ModelKindError(
+            f"unknown model kind {kind!r}; registered kinds: {', '.join(registered_models())} "
+            "(register a new one with sgn_jax.model.register_model)") from None
+
+
+def model_kind(model_cfg: Any) -> str:
+    """The ``kind`` of a ``[model]`` section; "sgn" for objects without one."""
+    return getattr(model_cfg, "kind", DEFAULT_MODEL_KIND)
+
+
+register_model(DEFAULT_MODEL_KIND, make_sgn,
+               description="the SDF graph network of the paper (section 2.2.1)")

@@ -289,6 +289,102 @@ def batch_edge_capacity(edges_per_sample: np.ndarray, max_graphs: int, multiple:
     return int(math.ceil(cap / multiple) * multiple)
 
 
+class ShardedPacker:
+    """Packs steps of ``n_shards`` static-shape sub-batches, one per device (data parallel).
+
+    ``base`` packs each sub-batch (its ``max_graphs`` and ``edge_capacity`` are per device).
+    :meth:`plan` packs greedily as :meth:`BatchPacker.plan` and groups ``n_shards`` consecutive
+    sub-batches into one step (the last step's missing sub-batches are empty: every graph slot
+    masked); :meth:`make` stacks them on a new leading axis of length ``n_shards``, the axis
+    that :func:`make_train_step` splits over the devices. A step holds the samples of all its
+    sub-batches, up to ``n_shards * base.max_graphs`` graphs.
+    """
+
+    def __init__(self, base: BatchPacker, n_shards: int):
+        if n_shards < 1:
+            raise ValueError(f"n_shards must be >= 1, got {n_shards}")
+        self.base, self.n_shards = base, int(n_shards)
+        self.ds = base.ds
+
+    def plan(self, order: np.ndarray) -> list[list[np.ndarray]]:
+        subs = self.base.plan(order)
+        empty = np.zeros(0, np.int64)
+        steps = [subs[i:i + self.n_shards] for i in range(0, len(subs), self.n_shards)]
+        return [s + [empty] * (self.n_shards - len(s)) for s in steps]
+
+    def make(self, group: Sequence[np.ndarray]) -> Batch:
+        if len(group) != self.n_shards:
+            raise ValueError(f"a step has {self.n_shards} sub-batches, got {len(group)}")
+        parts = [self.base.make(np.asarray(idx, np.int64)) for idx in group]
+        return jax.tree_util.tree_map(lambda *a: np.stack(a), *parts)
+
+    def batches(self, order: np.ndarray) -> Iterator[Batch]:
+        for group in self.plan(order):
+            yield self.make(group)
+
+
+def step_samples(group: np.ndarray | Sequence[np.ndarray]) -> int:
+    """Samples in one planned step of :meth:`BatchPacker.plan` or :meth:`ShardedPacker.plan`."""
+    if isinstance(group, np.ndarray):
+        return len(group)
+    return sum(len(idx) for idx in group)
+
+
+# --------------------------------------------------------------------------------------------
+# Devices
+
+BATCH_AXIS = "batch"
+
+
+@dataclasses.dataclass(frozen=True)
+class DataParallel:
+    """Data-parallel placement over a 1-D :class:`jax.sharding.Mesh` (axis ``"batch"``).
+
+    Parameters and optimiser state are replicated on every device; a stacked batch of
+    :class:`ShardedPacker` (leading axis = one sub-batch per device) is split over the devices.
+    Build one with :meth:`over`.
+    """
+
+    mesh: jax.sharding.Mesh
+
+    @classmethod
+    def over(cls, devices: int | Sequence[Any] | None = None) -> DataParallel:
+        """Over the first ``devices`` local devices (an int), the given devices, or all."""
+        available = jax.local_devices()
+        if devices is None:
+            chosen = available
+        elif isinstance(devices, int):
+            if not 1 <= devices <= len(available):
+                raise ValueError(f"asked for {devices} devices, {len(available)} available "
+                                 f"({available[0].platform}); on CPU set XLA_FLAGS="
+                                 "--xla_force_host_platform_device_count=N before JAX starts")
+            chosen = available[:devices]
+        else:
+            chosen = list(devices)
+        return cls(jax.sharding.Mesh(np.array(chosen), (BATCH_AXIS,)))
+
+    @property
+    def n_devices(self) -> int:
+        return int(self.mesh.devices.size)
+
+    @property
+    def replicated(self) -> jax.sharding.NamedSharding:
+        return jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec())
+
+    @property
+    def split(self) -> jax.sharding.NamedSharding:
+        """Leading axis split over the devices (stacked batches)."""
+        return jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec(BATCH_AXIS))
+
+    def replicate(self, tree: Any) -> Any:
+        """``tree`` (parameters, optimiser or train state) copied onto every device."""
+        return jax.device_put(tree, self.replicated)
+
+    def shard_batch(self, batch: Batch) -> Batch:
+        """A stacked batch (leading axis ``n_devices``) with sub-batch d on device d."""
+        return jax.device_put(batch, self.split)
+
+
 # --------------------------------------------------------------------------------------------
 # Loss and steps
 
@@ -339,36 +435,99 @@ def add_velocity_noise(graph: jraph.GraphsTuple, key: jax.Array, std: float,
     return graph._replace(nodes={**graph.nodes, "features": x + noise})
 
 
+def _set_lr(opt_state: Any, lr: jax.Array) -> Any:
+    return opt_state._replace(
+        hyperparams={**opt_state.hyperparams, "learning_rate": jnp.asarray(lr, jnp.float32)})
+
+
 def make_train_step(apply: Callable, tx: optax.GradientTransformation, train_cfg: Any,
-                    window: int) -> Callable:
-    """Jitted ``step(state, batch, lr, key) -> (state, sums)``; ``sums`` as in :func:`loss_sums`."""
+                    window: int, sharding: DataParallel | None = None) -> Callable:
+    """Jitted ``step(state, batch, lr, key) -> (state, sums)``; ``sums`` as in :func:`loss_sums`.
+
+    ``sharding`` None: one device, ``batch`` one :class:`Batch` of :class:`BatchPacker`.
+
+    ``sharding`` a :class:`DataParallel` over D devices: ``batch`` a stacked batch of a
+    :class:`ShardedPacker` (leading axis D), sub-batch d on device d; ``state`` replicated
+    (:meth:`DataParallel.replicate`). Each device computes the summed losses of its sub-batch
+    and their gradients, scaled by the step's total counts (summed over the devices first, so
+    the loss is the mean over all the step's real components and graphs, as on one device);
+    the gradients and sums are summed over the devices (``psum``) and every device applies the
+    same optimiser update (the parameters stay replicated). The update equals the one-device update on a batch of the same
+    samples up to float32 summation order; with ``noise_std > 0`` device d draws its noise
+    with ``fold_in(key, d)`` (same distribution, other numbers than one device).
+    """
     alpha, delta, noise = train_cfg.node_loss_weight, train_cfg.huber_delta, train_cfg.noise_std
     beta = train_cfg.global_loss_weight
 
-    def loss_fn(params, batch, key):
+    def scaled_loss(params, batch, key, node_count, graph_count):
         if noise > 0:
             batch = batch.replace(graph=add_velocity_noise(batch.graph, key, noise, window))
         sums = loss_sums(apply, params, batch, delta)
-        node = sums[0] / jnp.maximum(sums[1], 1.0)
-        glob = sums[2] / jnp.maximum(sums[3], 1.0)
+        node = sums[0] / jnp.maximum(node_count, 1.0)
+        glob = sums[2] / jnp.maximum(graph_count, 1.0)
         return alpha * node + beta * glob, jnp.stack(sums)
 
-    def step(state: TrainState, batch: Batch, lr: jax.Array, key: jax.Array):
-        grads, sums = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
-        opt_state = state.opt_state
-        opt_state = opt_state._replace(
-            hyperparams={**opt_state.hyperparams, "learning_rate": jnp.asarray(lr, jnp.float32)})
+    def update(state: TrainState, grads: Any, lr: jax.Array) -> TrainState:
+        opt_state = _set_lr(state.opt_state, lr)
         updates, opt_state = tx.update(grads, opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        return TrainState(params=params, opt_state=opt_state, step=state.step + 1), sums
+        return TrainState(params=params, opt_state=opt_state, step=state.step + 1)
 
-    return jax.jit(step, donate_argnums=(0,))
+    if sharding is None:
+        def loss_fn(params, batch, key):
+            if noise > 0:
+                batch = batch.replace(graph=add_velocity_noise(batch.graph, key, noise, window))
+            sums = loss_sums(apply, params, batch, delta)
+            node = sums[0] / jnp.maximum(sums[1], 1.0)
+            glob = sums[2] / jnp.maximum(sums[3], 1.0)
+            return alpha * node + beta * glob, jnp.stack(sums)
+
+        def step(state: TrainState, batch: Batch, lr: jax.Array, key: jax.Array):
+            grads, sums = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
+            return update(state, grads, lr), sums
+
+        return jax.jit(step, donate_argnums=(0,))
+
+    P = jax.sharding.PartitionSpec
+
+    def local_step(state: TrainState, batch: Batch, lr: jax.Array, key: jax.Array):
+        batch = jax.tree_util.tree_map(lambda a: a[0], batch)  # this device's sub-batch
+        key = jax.random.fold_in(key, jax.lax.axis_index(BATCH_AXIS))
+        particle = batch.graph.nodes["particle"].astype(jnp.float32)
+        node_count = jax.lax.psum(3.0 * jnp.sum(particle), BATCH_AXIS)
+        graph_count = jax.lax.psum(jnp.sum(batch.graph_mask.astype(jnp.float32)), BATCH_AXIS)
+        # The parameters are replicated (device-invariant) and the loss varies per device, so
+        # shard_map inserts an implicit pvary whose transpose is a psum: the gradient comes out
+        # already summed over the devices (a psum here would count it D times).
+        grads, sums = jax.grad(scaled_loss, has_aux=True)(state.params, batch, key,
+                                                           node_count, graph_count)
+        sums = jax.lax.psum(sums, BATCH_AXIS)
+        return update(state, grads, lr), sums
+
+    sharded = jax.shard_map(local_step, mesh=sharding.mesh,
+                            in_specs=(P(), P(BATCH_AXIS), P(), P()), out_specs=(P(), P()))
+    rep, split = sharding.replicated, sharding.split
+    return jax.jit(sharded, donate_argnums=(0,), in_shardings=(rep, split, rep, rep),
+                   out_shardings=(rep, rep))
 
 
-def make_eval_step(apply: Callable, train_cfg: Any) -> Callable:
-    """Jitted ``eval(params, batch) -> sums`` (no noise)."""
+def make_eval_step(apply: Callable, train_cfg: Any,
+                   sharding: DataParallel | None = None) -> Callable:
+    """Jitted ``eval(params, batch) -> sums`` (no noise). With ``sharding``, ``batch`` is a
+    stacked batch of a :class:`ShardedPacker` and the sums are summed over the devices."""
     delta = train_cfg.huber_delta
-    return jax.jit(lambda params, batch: jnp.stack(loss_sums(apply, params, batch, delta)))
+    if sharding is None:
+        return jax.jit(lambda params, batch: jnp.stack(loss_sums(apply, params, batch, delta)))
+    P = jax.sharding.PartitionSpec
+
+    def local(params, batch):
+        batch = jax.tree_util.tree_map(lambda a: a[0], batch)
+        return jax.lax.psum(jnp.stack(loss_sums(apply, params, batch, delta)), BATCH_AXIS)
+
+    sharded = jax.shard_map(local, mesh=sharding.mesh, in_specs=(P(), P(BATCH_AXIS)),
+                            out_specs=P())
+    return jax.jit(sharded, in_shardings=(sharding.replicated, sharding.split),
+                   out_shardings=sharding.replicated)
 
 
 def losses_from_sums(sums: np.ndarray, alpha: float, beta: float = 1.0) -> dict[str, float]:
@@ -378,8 +537,8 @@ def losses_from_sums(sums: np.ndarray, alpha: float, beta: float = 1.0) -> dict[
     return {"loss": alpha * node + beta * glob, "node": node, "global": glob}
 
 
-def evaluate(eval_step: Callable, params: Any, packer: BatchPacker, alpha: float,
-             beta: float = 1.0) -> dict[str, float]:
+def evaluate(eval_step: Callable, params: Any, packer: BatchPacker | ShardedPacker,
+             alpha: float, beta: float = 1.0) -> dict[str, float]:
     """Loss over a whole dataset, in chronological order (weights as in the training loss)."""
     total = jnp.zeros(4, jnp.float32)
     for batch in packer.batches(np.arange(len(packer.ds))):

@@ -24,17 +24,25 @@ import numpy as np
 
 import sgn_jax
 from sgn_jax.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-from sgn_jax.config import config_to_dict, replace_section, save_config
+from sgn_jax.config import (
+    ConfigError,
+    config_from_dict,
+    config_to_dict,
+    replace_section,
+    save_config,
+)
 from sgn_jax.envelope import ENVELOPE_PATH, load_envelope
 from sgn_jax.graph import GraphError, GraphSpec, SDFQuery, make_graph_builder
 from sgn_jax.io_utils import atomic_write, git_commit, write_json
-from sgn_jax.model import count_params, init_params, make_apply, make_model
+from sgn_jax.model import ModelKindError, count_params, model_factory, model_kind
 from sgn_jax.normalization import stats_to_arrays
 from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
 from sgn_jax.pipelines.features import featurize_trajectory
 from sgn_jax.train import (
     BatchPacker,
+    DataParallel,
     GraphDataset,
+    ShardedPacker,
     TrainingError,
     TrainState,
     batch_edge_capacity,
@@ -162,10 +170,19 @@ def prepare_datasets(trajectories: Sequence[Any], cfg: Any, sdf: Any, *,
     return train_ds, val_ds, spec
 
 
+def _with_defaults(saved_cfg: dict[str, Any]) -> dict[str, Any]:
+    """A saved config dict with the defaults of keys added since filled in (e.g. ``[model]
+    kind``), so that a run saved before a key existed resumes; as saved if it does not parse."""
+    try:
+        return config_to_dict(config_from_dict(saved_cfg))
+    except ConfigError:
+        return saved_cfg
+
+
 def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: Any = None,
           query: SDFQuery | None = None, epochs: int | None = None, resume: bool = False,
           names: Sequence[str] | None = None, progress: bool = True,
-          log: Callable[[str], None] = print) -> dict[str, Any]:
+          log: Callable[[str], None] = print, devices: int | None = None) -> dict[str, Any]:
     """Train an SGN on ``trajectories`` and write the run to ``out_dir``.
 
     Args:
@@ -177,6 +194,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
         epochs: overrides ``cfg.train.epochs`` (total epochs of the run, also when resuming).
         resume: continue from ``out_dir/checkpoints/latest``; without it an existing run in
             ``out_dir`` is an error.
+        devices: overrides ``cfg.train.devices``: data-parallel training over this many local
+            devices (1: one device, the default; docs/sgn.md, "Data-parallel training").
 
     Returns:
         a summary dict (epochs done, best validation loss and epoch, timings, capacities).
@@ -185,6 +204,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
 
     if epochs is not None:
         cfg = replace_section(cfg, "train", epochs=int(epochs))
+    if devices is not None:
+        cfg = replace_section(cfg, "train", devices=int(devices))
     tcfg = cfg.train
     out_dir = Path(out_dir)
     ckpt_latest, ckpt_best = out_dir / "checkpoints" / "latest", out_dir / "checkpoints" / "best"
@@ -197,18 +218,30 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     if sdf is None:
         sdf = sdf_grid_from_config(cfg)
 
+    # The model kind and the devices are checked before the (slow) featurization.
+    try:
+        factory = model_factory(model_kind(cfg.model))
+    except ModelKindError as exc:
+        raise TrainingError(f"[model] {exc}") from exc
+    model = factory.build(cfg.model)
+    apply = factory.make_apply(model)
+    tx = make_optimizer(tcfg.lr_init)
+    strategy = None
+    if tcfg.devices > 1:
+        try:
+            strategy = DataParallel.over(tcfg.devices)
+        except ValueError as exc:
+            raise TrainingError(f"[train] devices = {tcfg.devices}: {exc}") from exc
+
     t0 = time.perf_counter()
     train_raw, val_raw, spec = prepare_datasets(trajectories, cfg, sdf, query=query, names=names,
                                                 progress=progress)
     featurize_s = time.perf_counter() - t0
 
-    model = make_model(cfg.model)
-    apply = make_apply(model)
-    tx = make_optimizer(tcfg.lr_init)
     restored = None
     if existing is not None:
         restored = restore_checkpoint(ckpt_latest)
-        saved_cfg = restored.meta.get("config", {})
+        saved_cfg = _with_defaults(restored.meta.get("config", {}))
         for section in ("graph", "model", "balls"):
             if saved_cfg.get(section) != config_to_dict(cfg).get(section):
                 raise TrainingError(
@@ -221,7 +254,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     val_ds = normalize_dataset(val_raw, stats) if val_raw is not None else None
     del train_raw, val_raw
 
-    max_graphs = tcfg.batch_size
+    # With D devices every step packs D sub-batches of batch_size / D graphs (one per device).
+    max_graphs = tcfg.batch_size // tcfg.devices
     per = train_ds.edges_per_sample
     capacity = batch_edge_capacity(per, max_graphs)
     if val_ds is not None:
@@ -230,7 +264,11 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     val_packer = BatchPacker(val_ds, max_graphs, capacity) if val_ds is not None else None
 
     example = train_packer.make(np.arange(min(max_graphs, len(train_ds))))
-    params = init_params(model, example.graph, tcfg.seed)
+    params = factory.init_params(model, example.graph, tcfg.seed)
+    if strategy is not None:
+        train_packer = ShardedPacker(train_packer, strategy.n_devices)
+        val_packer = (ShardedPacker(val_packer, strategy.n_devices) if val_packer is not None
+                      else None)
     opt_state = tx.init(params)
     history: list[dict[str, Any]] = []
     start_epoch = 0
@@ -244,6 +282,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
                        opt_state=jax.tree_util.tree_map(jnp.asarray, opt_state),
                        step=jnp.asarray(history[-1]["step"] if history else 0, jnp.int64))
     del params, opt_state
+    if strategy is not None:
+        state = strategy.replicate(state)
 
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
@@ -251,7 +291,8 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
                {**stats_to_arrays(stats), "velocity_encoding": stats.velocity_encoding})
     info = {
         "n_train": len(train_ds), "n_val": len(val_ds) if val_ds is not None else 0,
-        "n_params": count_params(state.params), "max_graphs_per_batch": max_graphs,
+        "n_params": count_params(state.params), "model_kind": factory.kind,
+        "max_graphs_per_batch": max_graphs, "devices": tcfg.devices,
         "batch_edge_capacity": capacity, "mean_edges_per_sample": float(per.mean()),
         "max_edges_per_sample": int(per.max()), "featurize_seconds": featurize_s,
         "graph_spec": dataclasses.asdict(spec), "git_commit": git_commit(),
@@ -260,10 +301,11 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     write_json(out_dir / "run_info.json", info)
     log(f"train {info['n_train']} / validation {info['n_val']} windows, "
         f"{info['n_params']:,} parameters, batches of <= {max_graphs} graphs and <= {capacity} "
-        f"edges (mean {per.mean():.1f} edges per graph)")
+        f"edges (mean {per.mean():.1f} edges per graph)"
+        + (f", {tcfg.devices} such batches per step, one per device" if strategy else ""))
 
-    train_step = make_train_step(apply, tx, tcfg, spec.window)
-    eval_step = make_eval_step(apply, tcfg)
+    train_step = make_train_step(apply, tx, tcfg, spec.window, sharding=strategy)
+    eval_step = make_eval_step(apply, tcfg, sharding=strategy)
     base_key = jax.random.PRNGKey(tcfg.seed)
     alpha, beta = tcfg.node_loss_weight, tcfg.global_loss_weight
     best = min((r["val_loss"] if r["val_loss"] is not None else r["train_loss"]
