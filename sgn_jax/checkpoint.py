@@ -35,7 +35,7 @@ import jax
 import numpy as np
 
 from sgn_jax.config import ConfigError, config_from_dict
-from sgn_jax.errors import SGNJaxError
+from sgn_jax.errors import SGNJaxError, SGNJaxWarning
 from sgn_jax.model import ModelKindError, make_predict, model_factory, model_kind
 from sgn_jax.normalization import NormStats, stats_from_arrays, stats_to_arrays
 
@@ -51,7 +51,7 @@ class CheckpointError(SGNJaxError, RuntimeError):
     """A checkpoint is missing, incomplete, corrupt or does not match what is asked of it."""
 
 
-class CheckpointIntegrityWarning(UserWarning):
+class CheckpointIntegrityWarning(SGNJaxWarning):
     """A checkpoint has no file digest (written by an older sgn-jax), so it is not verified."""
 
 
