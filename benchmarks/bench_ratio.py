@@ -127,7 +127,7 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool) -> dict:
     spec = graph_spec_from_config(surrogate.config, n_particles=cfg.balls.count)
     motion = motion_from_config(cfg.motion)
     sdf = sdf_grid_from_config(cfg)
-    dt = float(cfg.dem.dt)
+    dt = float(spec.dt)   # the model's own step (a fast tier may step 2e-4 s)
     n_steps = max(10, round(seconds / dt) // 10 * 10)
     # Windows: each packing at rest in the jar at t0, history = the jar's motion (the DEM state
     # gives the positions; the speed of a vmapped or tiered step does not depend on them).

@@ -320,6 +320,60 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
         meta["sliced_from"] = {"path": self.path, "start": first, "stop": last}
         return Trajectory(arrays=arrays, meta=meta, path=None)
 
+    def coarsen(self, factor: int) -> Trajectory:
+        """Every ``factor``-th sample (from the first) as a trajectory sampled at ``factor * dt``.
+
+        States (positions, velocities, energies, ``work_wall``, contacts) are those at the kept
+        samples; the dissipation of each kept sample is the sum over the ``factor`` intervals
+        that end at it, so the cumulative dissipation at every kept sample is unchanged and the
+        first sample stays 0. Samples after the last multiple of ``factor`` are dropped.
+        ``meta['dt']`` (and ``[dem] dt`` of a stored config dict) become ``factor * dt``. This
+        is how a surrogate with a coarser step than the DEM's sampling trains and starts from
+        the same records (docs/sgn.md, "Surrogate step").
+        """
+        if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
+            raise ValueError(f"coarsen factor must be an integer >= 1, got {factor!r}")
+        factor = int(factor)
+        if factor == 1:
+            return self
+        n_samples = self.n_samples
+        kept = np.arange(0, n_samples, factor)
+        if kept.size < 2:
+            raise ValueError(f"coarsening a trajectory of {n_samples} samples by {factor} leaves "
+                             f"{kept.size} sample; it needs at least {factor + 1} samples")
+        arrays = {}
+        for name, value in self.arrays.items():
+            if name in _DISS_NAMES:
+                # cumulative sums at the kept samples, differenced: the dissipation of each
+                # coarse interval (first sample 0, as in the original).
+                cum = np.cumsum(np.asarray(value, np.float64))[kept]
+                value = np.concatenate([[0.0], np.diff(cum)]).astype(value.dtype)
+            elif name in REQUIRED_ARRAYS or (value.ndim >= 1 and value.shape[0] == n_samples):
+                value = np.array(value[kept])
+            value.flags.writeable = False
+            arrays[name] = value
+        meta = dict(self.meta)
+        meta["dt"] = float(self.meta["dt"]) * factor
+        config = meta.get("config")
+        if isinstance(config, dict) and isinstance(config.get("dem"), dict):
+            meta["config"] = {**config, "dem": {**config["dem"], "dt": meta["dt"]}}
+        meta["coarsened_from"] = {"path": self.path, "factor": factor,
+                                  "dt": float(self.meta["dt"])}
+        return Trajectory(arrays=arrays, meta=meta, path=None)
+
+    def at_step(self, dt: float) -> Trajectory:
+        """This trajectory sampled at ``dt`` (s): itself when ``dt`` is its own step, else
+        :meth:`coarsen` by the integer ``dt / self.dt``; a ``dt`` that is not an integer
+        multiple of the sampling step raises :class:`DatasetError`."""
+        ratio = float(dt) / self.dt
+        factor = int(round(ratio))
+        if factor < 1 or abs(ratio - factor) > 1e-6 * max(ratio, 1.0):
+            raise DatasetError(
+                f"{self.path or 'trajectory'}: a step of {dt:g} s is not an integer multiple of "
+                f"the record's sampling step {self.dt:g} s; sample the DEM at {dt:g} s or at a "
+                "divisor of it (`[dem] dt`)")
+        return self.coarsen(factor)
+
 
 def load_trajectory(path: str | Path) -> Trajectory:
     """Read and validate a trajectory file; raises DatasetError saying what is wrong."""

@@ -127,6 +127,32 @@ def test_slice(tmp_path):
         traj.slice(10, 10)
 
 
+def test_coarsen_keeps_states_and_sums_dissipation(tmp_path):
+    arrays, traj = _saved_and_loaded(tmp_path)
+    coarse = traj.coarsen(3)                       # samples 0, 3, ..., 18 of 20
+    kept = np.arange(0, T, 3)
+    assert coarse.n_samples == kept.size
+    assert coarse.dt == pytest.approx(3 * DT, rel=1e-12)
+    assert coarse.meta["config"]["dem"]["dt"] == pytest.approx(3 * DT, rel=1e-12)
+    np.testing.assert_array_equal(coarse.pos, arrays["pos"][kept])
+    np.testing.assert_array_equal(coarse.work_wall, arrays["work_wall"][kept])
+    np.testing.assert_array_equal(coarse.extra_per_sample, arrays["extra_per_sample"][kept])
+    np.testing.assert_array_equal(coarse.extra_static, arrays["extra_static"])
+    # each coarse interval holds the three fine intervals that end at its sample
+    assert coarse.diss_pw_slip[0] == 0.0
+    assert coarse.diss_pw_slip[2] == pytest.approx(arrays["diss_pw_slip"][4:7].sum(), rel=1e-12)
+    np.testing.assert_allclose(coarse.cumulative_dissipation("all", "all"),
+                               traj.cumulative_dissipation("all", "all")[kept], rtol=1e-12)
+    validate_trajectory(coarse.arrays, coarse.meta)   # a valid trajectory at 3 dt
+    np.testing.assert_allclose(coarse.energy_balance(), traj.energy_balance()[kept], atol=1e-12)
+    assert traj.at_step(DT) is traj
+    assert traj.at_step(2 * DT).n_samples == 10
+    with pytest.raises(DatasetError, match="not an integer multiple"):
+        traj.at_step(1.5 * DT)
+    with pytest.raises(ValueError, match="integer >= 1"):
+        traj.coarsen(0)
+
+
 def test_build_meta_has_required_keys():
     meta = build_meta(_config())
     assert set(REQUIRED_META) <= set(meta)

@@ -89,11 +89,14 @@ def main(argv=None) -> int:
                 continue
             if not prediction_ok(pred):
                 traj = load_trajectory(ref)
+                # A model with a coarser step than the record's (an integer factor) starts at
+                # its first full window of coarse samples: record sample window * factor.
+                start = window * max(1, round(dt / traj.dt))
                 duration = (args.duration if args.duration is not None
-                            else rollout_duration(ref, window, dt, save_every))
+                            else rollout_duration(ref, start, dt, save_every))
                 t0 = time.perf_counter()
                 try:
-                    summary = run_rollout(trained, traj, window, duration, pred, override,
+                    summary = run_rollout(trained, traj, start, duration, pred, override,
                                           progress=False, checkpoint_path=str(checkpoint))
                 except RolloutError as exc:
                     failed[stem] = str(exc)

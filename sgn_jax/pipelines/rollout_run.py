@@ -20,6 +20,7 @@ import numpy as np
 
 import sgn_jax
 from sgn_jax.config import config_to_dict
+from sgn_jax.dataset import DatasetError
 from sgn_jax.graph import Window, windows_from_arrays
 from sgn_jax.io_utils import git_commit
 from sgn_jax.pipelines.configure import (
@@ -105,9 +106,21 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
         raise RolloutError(f"duration {duration:g} s = {n_steps} steps of dt = {dt:g} s must be a "
                            f"positive multiple of save_every = {k} steps")
     traj_dt = float(init_traj.meta["dt"]) if "dt" in init_traj.meta else dt
+    record_index = int(start_index)   # the sample index in the given record (meta init_index)
     if not math.isclose(traj_dt, dt, rel_tol=1e-9):
-        raise RolloutError(f"the initial dataset has dt = {traj_dt:g} s but the model uses "
-                           f"dt = {dt:g} s")
+        # A record sampled finer than the model's step by an integer factor gives its window
+        # coarsened (start_index counts the record's own samples).
+        if not hasattr(init_traj, "at_step") or int(start_index) % max(1, round(dt / traj_dt)):
+            raise RolloutError(f"the initial dataset has dt = {traj_dt:g} s but the model uses "
+                               f"dt = {dt:g} s, and its window at sample {start_index} cannot "
+                               "be coarsened to it (dt must be an integer multiple of the "
+                               "record's step, and the start sample a multiple of that factor)")
+        try:
+            coarse = init_traj.at_step(dt)
+        except DatasetError as exc:
+            raise RolloutError(str(exc)) from exc
+        start_index = int(start_index) // round(dt / traj_dt)
+        init_traj = coarse
     radius = init_traj.meta.get("ball_radius", cfg.balls.radius)
     if not math.isclose(float(radius), cfg.balls.radius, rel_tol=1e-9):
         raise RolloutError(f"the initial dataset's balls have radius {radius} m, the model's "
@@ -181,7 +194,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
         "ms_per_step": 1e3 * run_time / n_steps,
     }
     meta = {
-        "dt": dt, "save_every": k, "init_index": int(start_index),
+        "dt": dt, "save_every": k, "init_index": record_index,
         "config": config_to_dict(cfg),
         "checkpoint": checkpoint_path,
         "init_dataset": getattr(init_traj, "path", None),

@@ -113,6 +113,17 @@ def plot_losses(history: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def at_model_step(traj: Any, dt: float) -> Any:
+    """``traj`` sampled at the surrogate step ``dt``: a record sampled finer by an integer
+    factor is coarsened (``Trajectory.at_step``); look-alikes without that method are returned
+    as they are (``check_trajectory_matches`` then compares their dt)."""
+    meta = getattr(traj, "meta", None) or {}
+    if "dt" in meta and hasattr(traj, "at_step") and not math.isclose(float(meta["dt"]), dt,
+                                                                      rel_tol=1e-9):
+        return traj.at_step(dt)
+    return traj
+
+
 def check_trajectory_matches(traj: Any, cfg: Any, name: str) -> None:
     """The data must have the config's dt, ball count and ball radius."""
     meta = getattr(traj, "meta", None) or {}
@@ -143,6 +154,7 @@ def prepare_datasets(trajectories: Sequence[Any], cfg: Any, sdf: Any, *,
     builder = make_graph_builder(query, spec)
     train_parts, val_parts = [], []
     for i, (traj, name) in enumerate(zip(trajectories, names, strict=True)):
+        traj = at_model_step(traj, cfg.dem.dt)
         check_trajectory_matches(traj, cfg, name)
         t = np.asarray(traj.t, np.float64)
         tr, va = split_window_ends(t, spec.window, cfg.train.train_time, cfg.train.val_time)
