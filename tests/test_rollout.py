@@ -461,6 +461,32 @@ def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
     np.testing.assert_allclose(pred.t_step, whole.t_step, rtol=0, atol=1e-12)
 
 
+def test_run_rollout_with_a_coarser_step_starts_from_the_coarsened_record(dem, tiny, checkpoint):
+    """A model whose step is 2 dt of the record (a fast tier at 2e-4 s on 1e-4 s data) starts
+    from the record's window coarsened by 2: the same rollout as one from ``coarsen(2)``."""
+    import dataclasses
+
+    from sgn_jax.checkpoint import load_trained_model
+
+    traj, spec, grid, motion = dem
+    run_dir, _ = checkpoint
+    trained = load_trained_model(run_dir)
+    coarse_cfg = replace_section(trained.config, "dem", dt=2 * traj.dt)
+    coarse_model = dataclasses.replace(trained, config=coarse_cfg)
+    summary = run_rollout(coarse_model, traj, 40, 0.012, run_dir / "coarse.npz", progress=False)
+    assert summary["steps"] == 60
+    assert summary["meta"]["init_index"] == 40 and summary["meta"]["dt"] == 2 * traj.dt
+    coarse = traj.coarsen(2)
+    coarse_spec = dataclasses.replace(spec, dt=2 * traj.dt)
+    whole = make_rollout(coarse_spec, tiny["model"], 60, 10,
+                         pp_max_overlap=coarse_cfg.rollout.pp_max_overlap)(
+        tiny["params"], tiny["stats"], initial_window(coarse, 20, spec.window), motion, grid,
+        coarse.t[20])
+    np.testing.assert_allclose(summary["arrays"]["pos"], whole.positions, rtol=0, atol=1e-12)
+    with pytest.raises(RolloutError, match="cannot be coarsened"):
+        run_rollout(coarse_model, traj, 41, 0.012, run_dir / "odd.npz", progress=False)
+
+
 def test_cli_rollout(dem, checkpoint, tmp_path, capsys):
     from sgn_jax.cli import main
     from sgn_jax.config import save_config
