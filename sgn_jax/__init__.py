@@ -48,6 +48,7 @@ __all__ = [
     "make_rollout_step",
     "make_rollout",
     "rollout_ensemble",
+    "rollout_sweep",
     "shard_packings",
     "run_rollout",
     # records

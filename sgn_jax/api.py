@@ -409,6 +409,26 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
                        burn_in=float(burn_in), _args=args)
 
 
+def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
+                      save_every: int | None) -> Callable:
+    """The unjitted rollout of ``cfg``'s ``[rollout]`` settings for ``duration`` s (shared by
+    :func:`rollout_ensemble` and :func:`rollout_sweep`)."""
+    check_duration(duration, "duration")
+    n_steps = _steps(duration, float(cfg.dem.dt), "duration")
+    every = int(cfg.rollout.save_every if save_every is None else save_every)
+    if every < 1 or n_steps % every:
+        raise DesignError(f"duration ({n_steps} steps) must be a multiple of save_every = "
+                          f"{every} steps")
+    spec = graph_spec_from_config(dataclasses.replace(surrogate.config, balls=cfg.balls,
+                                                      dem=cfg.dem), n_particles=cfg.balls.count)
+    r = cfg.rollout
+    return make_rollout(spec, model_predictor(surrogate.model), n_steps, every,
+                        snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
+                        snap_velocity=r.snap_velocity, query=analytic_jar_query,
+                        pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
+                        jit=False)
+
+
 def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
                      duration: float, *, save_every: int | None = None,
                      shard: bool = False) -> RolloutResult:
@@ -426,25 +446,61 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
         (K, P, N, 3) m at the times ``t_pos`` (every ``save_every`` steps, default ``[rollout]
         save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` / ``n_snapped`` (K, S).
     """
-    check_duration(duration, "duration")
-    dt = float(cfg.dem.dt)
-    n_steps = _steps(duration, dt, "duration")
-    every = int(cfg.rollout.save_every if save_every is None else save_every)
-    if every < 1 or n_steps % every:
-        raise DesignError(f"duration ({n_steps} steps) must be a multiple of save_every = "
-                          f"{every} steps")
+    rollout = _ensemble_rollout(surrogate, cfg, duration, save_every)
     frame = _surrogate_frame(surrogate, cfg, packings)
-    r = cfg.rollout
-    rollout = make_rollout(frame.spec, model_predictor(surrogate.model), n_steps, every,
-                           snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
-                           snap_velocity=r.snap_velocity, query=analytic_jar_query,
-                           pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
-                           jit=False)
     windows = shard_packings(frame.windows) if shard else frame.windows
     run = jax.jit(jax.vmap(rollout, in_axes=(None, None, 0, None, None, None)))
     return jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, frame.motion,
                               frame.jar,
                               packings.t0))
+
+
+def rollout_sweep(surrogate: TrainedModel, cfgs: Sequence[Config], packings: Packings,
+                  duration: float, *, save_every: int | None = None,
+                  shard: bool = False) -> RolloutResult:
+    """Roll the surrogate out from every packing under each of ``cfgs`` (a sweep of motions),
+    all M x K rollouts vmapped in one compiled program.
+
+    The configs may differ in their ``[motion]`` parameters only: one motion kind (one pytree
+    structure), and the jar, balls, dt and ``[rollout]`` settings of ``cfgs[0]`` (else a
+    :class:`DesignError` that names the section). Each rollout is the one
+    :func:`rollout_ensemble` gives for its config (the packings anchored to that motion).
+    ``shard``: split the M x K rollouts over all devices (:func:`shard_packings`; M x K must be
+    a multiple of the device count). A new M x K compiles once; the same sizes reuse it.
+
+    Returns:
+        a :class:`sgn_jax.rollout.RolloutResult` with leading axes (M, K): ``positions``
+        (M, K, P, N, 3) m, ``steps.energy_cum`` (M, K, S) J, ...
+    """
+    cfgs = list(cfgs)
+    if not cfgs:
+        raise DesignError("rollout_sweep needs at least one config")
+    base = cfgs[0]
+    for i, c in enumerate(cfgs[1:], start=1):
+        for section in ("jar", "balls", "dem", "rollout"):
+            if getattr(c, section) != getattr(base, section):
+                raise DesignError(f"rollout_sweep: config {i} has another [{section}] section "
+                                  f"than config 0; a sweep varies the [motion] only")
+    rollout = _ensemble_rollout(surrogate, base, duration, save_every)
+    frames = [_surrogate_frame(surrogate, c, packings) for c in cfgs]
+    kinds = {type(f.motion).__name__ for f in frames}
+    if len(kinds) != 1:
+        raise DesignError(f"rollout_sweep: the configs' motions are of kinds {sorted(kinds)}; "
+                          "a sweep vmaps one kind (run one sweep per kind)")
+    k = packings.windows.positions.shape[0]
+    windows = jax.tree_util.tree_map(lambda *a: np.concatenate(a),
+                                     *[f.windows for f in frames])
+    motions = jax.tree_util.tree_map(
+        lambda *leaves: np.repeat(np.stack([np.asarray(x) for x in leaves]), k, axis=0),
+        *[f.motion for f in frames])
+    if shard:
+        windows, motions = shard_packings(windows), shard_packings(motions)
+    run = jax.jit(jax.vmap(rollout, in_axes=(None, None, 0, 0, None, None)))
+    flat = jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, motions,
+                              frames[0].jar, packings.t0))
+    return jax.tree_util.tree_map(
+        lambda a: a.reshape((len(cfgs), k) + a.shape[1:]) if np.ndim(a) and a.shape[0] == len(
+            cfgs) * k else a, flat)
 
 
 def shard_packings(tree: Any, devices: Sequence[Any] | None = None) -> Any:
@@ -699,6 +755,7 @@ __all__ = [
     "RolloutState",
     "RolloutResult",
     "rollout_ensemble",
+    "rollout_sweep",
     "shard_packings",
     "run_rollout",
     # records
