@@ -106,9 +106,11 @@ def _surrogate(model: str):
     return load_surrogate(model)
 
 
-def worker_sgn(model: str, batch: int, seconds: float, tiers: bool) -> dict:
+def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int = 1) -> dict:
     """``batch`` surrogate rollouts of ``seconds`` (vmapped over packings; ``batch`` 1 is one
-    plain rollout, with pair-capacity tiers when ``tiers``)."""
+    plain rollout, with pair-capacity tiers when ``tiers``). ``devices`` > 1: the batch is
+    sharded over that many devices (``api.shard_packings``; on a CPU host devices, which the
+    driver makes with ``XLA_FLAGS=--xla_force_host_platform_device_count``)."""
     import jax
     import jax.numpy as jnp
 
@@ -155,6 +157,12 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool) -> dict:
     else:
         fn = jax.jit(jax.vmap(lambda win: rollout(*args, win, motion, sdf, t0)))
         inputs = windows
+        if devices > 1:
+            from sgn_jax.api import shard_packings
+
+            if len(jax.devices()) != devices:
+                raise SystemExit(f"worker_sgn: {len(jax.devices())} devices, asked for {devices}")
+            inputs = shard_packings(windows)
     t = time.perf_counter()
     res = jax.block_until_ready(fn(inputs))
     first_call = time.perf_counter() - t
@@ -166,7 +174,9 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool) -> dict:
             "seconds": n_steps * dt, "steps": n_steps, "tiers": list(tier_caps) if tiers and
             batch == 1 else [], "n_params": int(count_params(surrogate.params)),
             "hidden": int(surrogate.config.model.hidden),
-            "mlp_layers": int(surrogate.config.model.mlp_layers), "ball_steps_outside": outside}
+            "mlp_layers": int(surrogate.config.model.mlp_layers), "ball_steps_outside": outside,
+            "devices": int(devices), "dt": dt,
+            "energy_J": np.asarray(res.steps.energy_cum)[..., -1].ravel().tolist()}
 
 
 WORKERS = {"dem": worker_dem, "sgn": worker_sgn}
@@ -179,7 +189,11 @@ WORKERS = {"dem": worker_dem, "sgn": worker_sgn}
 def _spawn(cores: str, kind: str, **kwargs) -> subprocess.Popen:
     cmd = ["taskset", "-c", cores, sys.executable, __file__, "--worker", kind,
            "--worker-args", json.dumps(kwargs)]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    env = dict(os.environ)
+    if kwargs.get("devices", 1) > 1:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count="
+                            f"{kwargs['devices']}").strip()
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env)
 
 
 def _collect(proc: subprocess.Popen, what: str) -> dict:
@@ -254,10 +268,19 @@ def bench(args) -> dict:
                 "from_batch": row["batch"]}
         fastest = min([ens["dem_processes"]["wall_s"]]
                       + [ens["dem_vmapped_extrapolated"]["wall_s"]] * bool(rows))
+        ens["fastest_dem_s"] = fastest
         for model in args.models:
             sgn = run("0,1", "sgn", model=model, batch=n, seconds=secs, tiers=False)
             sgn["ratio_vs_fastest_dem"] = fastest / sgn["wall_s"]
             ens[model] = sgn
+            # the same ensemble sharded over two host devices (one per core): the same
+            # powers to float tolerance, and the time of the device strategy
+            sharded = run("0,1", "sgn", model=model, batch=n, seconds=secs, tiers=False,
+                          devices=2)
+            sharded["ratio_vs_fastest_dem"] = fastest / sharded["wall_s"]
+            a, b = np.asarray(sgn["energy_J"]), np.asarray(sharded["energy_J"])
+            sharded["max_rel_energy_diff_vs_unsharded"] = float(np.max(np.abs(a - b) / np.abs(a)))
+            ens[model + " (2 devices)"] = sharded
         out["ensemble"] = ens
     return out
 
@@ -291,7 +314,12 @@ def markdown(res: dict, machine: dict, args) -> str:
                   f"DEM vmapped {e['dem_vmapped_extrapolated']['wall_s']:.1f} (extrapolated "
                   f"from the batch-{e['dem_vmapped_extrapolated']['from_batch']} row); "
                   + "; ".join(f"`{m}` vmapped {e[m]['wall_s']:.2f} "
-                              f"({e[m]['ratio_vs_fastest_dem']:.1f}x the fastest DEM)"
+                              f"({e[m]['ratio_vs_fastest_dem']:.1f}x the fastest DEM), sharded "
+                              f"over 2 host devices {e[m + ' (2 devices)']['wall_s']:.2f} "
+                              f"({e[m + ' (2 devices)']['ratio_vs_fastest_dem']:.1f}x; energies "
+                              "within "
+                              f"{e[m + ' (2 devices)']['max_rel_energy_diff_vs_unsharded']:.1e}"
+                              " of the unsharded run)"
                               for m in args.models) + "."]
     comp = "; ".join(f"`{m}` {s[m]['compile_s']:.1f} s" for m in args.models)
     lines += ["", f"Compile time (single rollout): DEM {s['dem']['compile_s']:.1f} s; {comp}.",
