@@ -269,7 +269,7 @@ def bench(args) -> dict:
         fastest = min([ens["dem_processes"]["wall_s"]]
                       + [ens["dem_vmapped_extrapolated"]["wall_s"]] * bool(rows))
         ens["fastest_dem_s"] = fastest
-        for model in args.models:
+        for model in args.ensemble_models or args.models:
             sgn = run("0,1", "sgn", model=model, batch=n, seconds=secs, tiers=False)
             sgn["ratio_vs_fastest_dem"] = fastest / sgn["wall_s"]
             ens[model] = sgn
@@ -320,7 +320,7 @@ def markdown(res: dict, machine: dict, args) -> str:
                               "within "
                               f"{e[m + ' (2 devices)']['max_rel_energy_diff_vs_unsharded']:.1e}"
                               " of the unsharded run)"
-                              for m in args.models) + "."]
+                              for m in (args.ensemble_models or args.models)) + "."]
     comp = "; ".join(f"`{m}` {s[m]['compile_s']:.1f} s" for m in args.models)
     lines += ["", f"Compile time (single rollout): DEM {s['dem']['compile_s']:.1f} s; {comp}.",
               "Models: " + "; ".join(f"`{m}` hidden {s[m]['hidden']}, {s[m]['mlp_layers']}-layer "
@@ -338,6 +338,8 @@ def main(argv=None) -> int:
     p.add_argument("--batch-seconds", type=float, default=0.02, help="simulated s per batch")
     p.add_argument("--ensemble", type=int, default=32, help="packings (0: skip)")
     p.add_argument("--ensemble-seconds", type=float, default=2.0)
+    p.add_argument("--ensemble-models", nargs="*", default=None,
+                   help="models of the ensemble row (default: --models)")
     p.add_argument("--dem-ensemble-packings", type=int, default=None,
                    help="run this many of the ensemble's DEM packings and scale (default: all)")
     p.add_argument("--out", default="benchmarks/results/bench_ratio.json")

@@ -21,6 +21,7 @@ rollouts are skipped.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -79,7 +80,10 @@ def main(argv=None) -> int:
     for case in cases:
         seeds = case.eval_seeds
         override_path = case_config(case, settings, out)
-        override = load_config(override_path)
+        # The case config describes the DEM run (its [dem] dt is the records' sampling); the
+        # rollout takes only [jar], [motion], [sdf] and [rollout] from it, and keeps the
+        # model's own step (a fast tier may step 2e-4 s on 1e-4 s records).
+        override = dataclasses.replace(load_config(override_path), dem=cfg.dem)
         preds, refs, ok_seeds = [], [], []
         for seed in seeds:
             ref = data / f"{case.name}_seed{seed}.npz"
