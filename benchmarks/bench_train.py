@@ -53,9 +53,36 @@ def synthetic_dataset(n_samples: int, n_particles: int, window: int, mean_edges:
         source=np.zeros(n_samples, np.int32), window_end=np.arange(n_samples))
 
 
+def time_train_steps(step, state, packer, plan, seconds: float, count=len
+                     ) -> tuple[float, int, int, float]:
+    """Run ``step`` over ``plan``'s packed batches for ``seconds`` after one compiling call.
+
+    ``count(group)`` is the samples of one planned step (``len`` for a ``BatchPacker`` plan; a
+    sum over sub-batches for a ``ShardedPacker``). Returns ``(compile_s, samples, steps,
+    elapsed_s)``.
+    """
+    import jax
+
+    key = jax.random.PRNGKey(0)
+    t0 = time.perf_counter()
+    state, sums = step(state, packer.make(plan[0]), np.float32(1e-4), key)
+    jax.block_until_ready(sums)
+    compile_s = time.perf_counter() - t0
+
+    samples, steps, i = 0, 0, 1
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        group = plan[i % len(plan)]
+        state, sums = step(state, packer.make(group), np.float32(1e-4), key)
+        samples += count(group)
+        steps += 1
+        i += 1
+    jax.block_until_ready(state.params)
+    return compile_s, samples, steps, time.perf_counter() - t0
+
+
 def bench(hidden: int, batch: int, mean_edges: float, seconds: float, n_particles: int = 24,
           window: int = 7) -> dict:
-    import jax
     import jax.numpy as jnp
 
     ds = synthetic_dataset(4096, n_particles, window, mean_edges)
@@ -68,24 +95,8 @@ def bench(hidden: int, batch: int, mean_edges: float, seconds: float, n_particle
     params = init_params(model, example.graph, 0)
     state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0, jnp.int64))
     step = make_train_step(make_apply(model), tx, tcfg, window)
-    key = jax.random.PRNGKey(0)
     plan = packer.plan(np.random.default_rng(1).permutation(len(ds)))
-
-    t0 = time.perf_counter()
-    state, sums = step(state, packer.make(plan[0]), np.float32(1e-4), key)
-    jax.block_until_ready(sums)
-    compile_s = time.perf_counter() - t0
-
-    samples, steps, i = 0, 0, 1
-    t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
-        idx = plan[i % len(plan)]
-        state, sums = step(state, packer.make(idx), np.float32(1e-4), key)
-        samples += len(idx)
-        steps += 1
-        i += 1
-    jax.block_until_ready(state.params)
-    elapsed = time.perf_counter() - t0
+    compile_s, samples, steps, elapsed = time_train_steps(step, state, packer, plan, seconds)
     rate = samples / elapsed
     return {"hidden": hidden, "batch_graphs": batch, "mean_edges_per_graph": mean_edges,
             "batch_edge_capacity": cap, "n_params": count_params(params),

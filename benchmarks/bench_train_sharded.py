@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 
@@ -31,7 +30,7 @@ def bench(n_devices: int, hidden: int, batch: int, mean_edges: float, seconds: f
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from bench_train import synthetic_dataset
+    from bench_train import synthetic_dataset, time_train_steps
 
     from sgn_jax.config import ModelConfig, TrainConfig
     from sgn_jax.model import init_params, make_apply, make_model
@@ -60,25 +59,10 @@ def bench(n_devices: int, hidden: int, batch: int, mean_edges: float, seconds: f
         packer = ShardedPacker(packer, n_devices)
         state = strategy.replicate(jax.tree_util.tree_map(np.asarray, state))
     step = make_train_step(make_apply(model), tx, tcfg, window, sharding=strategy)
-    key = jax.random.PRNGKey(0)
     plan = packer.plan(np.random.default_rng(1).permutation(len(ds)))
     count = (lambda g: len(g)) if strategy is None else (lambda g: sum(len(i) for i in g))
-
-    t0 = time.perf_counter()
-    state, sums = step(state, packer.make(plan[0]), np.float32(1e-4), key)
-    jax.block_until_ready(sums)
-    compile_s = time.perf_counter() - t0
-
-    samples, steps, i = 0, 0, 1
-    t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
-        group = plan[i % len(plan)]
-        state, sums = step(state, packer.make(group), np.float32(1e-4), key)
-        samples += count(group)
-        steps += 1
-        i += 1
-    jax.block_until_ready(state.params)
-    elapsed = time.perf_counter() - t0
+    compile_s, samples, steps, elapsed = time_train_steps(step, state, packer, plan, seconds,
+                                                          count)
     return {"devices": n_devices, "platform": jax.devices()[0].platform, "hidden": hidden,
             "graphs_per_step": batch, "graphs_per_device": per_device,
             "edge_capacity_per_device": cap, "mean_edges_per_graph": mean_edges,

@@ -184,7 +184,7 @@ def new_figure(width: float, height: float, **kwargs: Any) -> Any:
 
 def save_figure(fig: Any, path: str | Path) -> Path:
     """:func:`sgn_jax.plots.save_figure`: write ``fig`` to a ``.png`` atomically."""
-    from sgn_jax import plots
+    from sgn_jax import plots  # deferred: matplotlib loads on the first figure only
 
     return plots.save_figure(fig, path)
 
@@ -193,7 +193,7 @@ def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str
                      labels: Sequence[str], path: str | Path) -> Path:
     """:func:`sgn_jax.plots.plot_case_curves`: every run of an ensemble case in one figure
     (cumulative dissipated energy, SGN solid and DEM dashed; MSE_t)."""
-    from sgn_jax import plots
+    from sgn_jax import plots  # deferred: matplotlib loads on the first figure only
 
     return plots.plot_case_curves(title, preds, refs, labels, path)
 

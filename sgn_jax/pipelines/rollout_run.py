@@ -110,7 +110,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     if not math.isclose(traj_dt, dt, rel_tol=1e-9):
         # A record sampled finer than the model's step by an integer factor gives its window
         # coarsened (start_index counts the record's own samples).
-        if not hasattr(init_traj, "at_step") or int(start_index) % max(1, round(dt / traj_dt)):
+        factor = max(1, round(dt / traj_dt))
+        if not hasattr(init_traj, "at_step") or record_index % factor:
             raise RolloutError(f"the initial dataset has dt = {traj_dt:g} s but the model uses "
                                f"dt = {dt:g} s, and its window at sample {start_index} cannot "
                                "be coarsened to it (dt must be an integer multiple of the "
@@ -119,7 +120,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
             coarse = init_traj.at_step(dt)
         except DatasetError as exc:
             raise RolloutError(str(exc)) from exc
-        start_index = int(start_index) // round(dt / traj_dt)
+        start_index = record_index // factor
         init_traj = coarse
     radius = init_traj.meta.get("ball_radius", cfg.balls.radius)
     if not math.isclose(float(radius), cfg.balls.radius, rel_tol=1e-9):
