@@ -80,6 +80,7 @@ from sgn_jax.io_utils import (
     write_json,
 )
 from sgn_jax.metrics import (
+    contact_census,
     align,
     compare,
     ensemble_summary,
@@ -92,6 +93,8 @@ from sgn_jax.metrics import (
 )
 from sgn_jax.motion import Motion, frequency_hz, motion_kind, offset
 from sgn_jax.pairs import pairs_within
+from sgn_jax.contact_train import UnrollSpec
+from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
@@ -793,6 +796,10 @@ __all__ = [
     "SGNJaxWarning",
     "EnvelopeWarning",
 ] + [
+    # training the contact-impulse surrogate (issue 19)
+    "train_contact",
+    "UnrollSpec",
+    "contact_census",
     # configs, checkpoints and the shipped models
     "ConfigError",
     "config_from_dict",

@@ -36,6 +36,7 @@ import numpy as np
 
 from sgn_jax.config import ConfigError, config_from_dict
 from sgn_jax.errors import SGNJaxError, SGNJaxWarning
+import sgn_jax.contact  # noqa: F401  (registers the built-in model kind "contact")
 from sgn_jax.model import ModelKindError, make_predict, model_factory, model_kind
 from sgn_jax.normalization import NormStats, stats_from_arrays, stats_to_arrays
 
@@ -372,5 +373,5 @@ def load_trained_model(path: str | Path, which: str = "best") -> TrainedModel:
         raise CheckpointError(
             f"checkpoint {ckpt_dir} holds a model of kind {model_kind(cfg.model)!r}: {exc}; "
             "import the module that registers it before loading") from exc
-    return TrainedModel(model=factory.build(cfg.model), params=restored.params,
+    return TrainedModel(model=factory.build_model(cfg), params=restored.params,
                         norm_stats=restored.norm_stats, config=cfg, meta=restored.meta)

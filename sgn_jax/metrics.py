@@ -206,6 +206,52 @@ def jar_frame_speed(t: np.ndarray, pos: np.ndarray, offset: np.ndarray) -> np.nd
     return np.linalg.norm(velocity, axis=-1).mean(axis=1)
 
 
+def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float,
+                   chunk: int = 2000) -> dict[str, float]:
+    """How the balls touch, counted the same way for a DEM record and a surrogate rollout.
+
+    Args:
+        pos: (P, N, 3) ball centres (m, lab frame), one frame per step for contact lifetimes;
+        offset: (P, 3) jar offsets (m); jar: the ``JarParams`` (exact SDF of the cavity);
+        radius: ball radius R (m).
+    Returns:
+        ``pp_touching_mean`` (ball-ball pairs with |x_i - x_j| < 2 R per frame),
+        ``pw_touching_mean`` (balls with phi > -R, i.e. touching the nearest wall, per frame),
+        ``deepest_pp_overlap_m`` and ``deepest_pw_overlap_m`` (max over frames, m; <= 0 when
+        nothing touches), ``pp_contact_frames_mean`` (mean run length, in frames, of a
+        touching pair: how long a ball-ball contact lasts).
+    """
+    import jax.numpy as jnp
+
+    from sgn_jax.geometry import jar_sdf
+
+    pos = np.asarray(pos, np.float64)
+    rel = pos - np.asarray(offset, np.float64)[:, None, :]
+    n = pos.shape[1]
+    i, j = np.triu_indices(n, k=1)
+    pp_count, pw_count, pp_deep, pw_deep = [], [], -np.inf, -np.inf
+    touching_runs = []
+    for start in range(0, len(pos), chunk):
+        x = pos[start:start + chunk]
+        d = np.linalg.norm(x[:, i] - x[:, j], axis=-1)
+        touch = d < 2.0 * radius
+        pp_count.append(touch.sum(axis=1))
+        pp_deep = max(pp_deep, float((2.0 * radius - d).max()))
+        phi = np.asarray(jar_sdf(jar, jnp.asarray(rel[start:start + chunk])))
+        pw_count.append((phi > -radius).sum(axis=1))
+        pw_deep = max(pw_deep, float((phi + radius).max()))
+        touching_runs.append(touch)
+    touch_all = np.concatenate(touching_runs, axis=0).astype(np.int8)
+    # run lengths of 1s per pair column
+    edges = np.diff(np.pad(touch_all, ((1, 1), (0, 0))), axis=0)
+    starts, ends = np.nonzero(edges.T == 1), np.nonzero(edges.T == -1)
+    lengths = ends[1] - starts[1]
+    return {"pp_touching_mean": float(np.concatenate(pp_count).mean()),
+            "pw_touching_mean": float(np.concatenate(pw_count).mean()),
+            "deepest_pp_overlap_m": pp_deep, "deepest_pw_overlap_m": pw_deep,
+            "pp_contact_frames_mean": float(lengths.mean()) if lengths.size else 0.0}
+
+
 def _state_value(regime: Mapping[str, Any], which: str, classify_by: str,
                  n_balls: int) -> float:
     """The number a state rule thresholds, for ``which`` in ("pred", "ref")."""

@@ -287,6 +287,15 @@ def make_predict(model: nn.Module) -> Callable[[Any, NormStats, jraph.GraphsTupl
     differentiable in the parameters and the raw features.
     """
 
+    if getattr(model, "takes_raw_graph", False):
+        # A physics-scaled kind (e.g. the contact model) reads the raw graph and returns
+        # physical units itself; the statistics are not used.
+        def predict_raw(params: Any, stats: NormStats, graph: jraph.GraphsTuple):
+            del stats
+            return model.apply({"params": params}, graph)
+
+        return predict_raw
+
     def predict(params: Any, stats: NormStats, graph: jraph.GraphsTuple):
         accel_n, de_n = model.apply({"params": params}, normalize_graph(graph, stats, DTYPE))
         accel = jnp.where(graph.nodes["particle"][:, None], denormalize_accel(accel_n, stats), 0.0)
@@ -334,6 +343,13 @@ class ModelFactory:
     build: Callable[[Any], nn.Module]
     init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] = init_params
     description: str = ""
+    builds_from: str = "model"
+
+    def build_model(self, cfg: Any) -> nn.Module:
+        """The module of a whole experiment config: ``build(cfg.model)``, or ``build(cfg)``
+        for a kind registered with ``builds_from="config"`` (one that needs the balls, the
+        step or gravity, e.g. the contact-impulse model)."""
+        return self.build(cfg if self.builds_from == "config" else cfg.model)
 
     def init_params(self, model: nn.Module, example_graph: jraph.GraphsTuple,
                     seed: int | jax.Array = 0) -> Any:
@@ -353,11 +369,13 @@ _REGISTRY: dict[str, ModelFactory] = {}
 
 def register_model(kind: str, build: Callable[[Any], nn.Module], *,
                    init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] | None = None,
-                   description: str = "", replace: bool = False) -> ModelFactory:
+                   description: str = "", replace: bool = False,
+                   builds_from: str = "model") -> ModelFactory:
     """Register a surrogate kind: ``[model] kind = "<kind>"`` then builds it with ``build``.
 
     ``build(model_cfg)`` returns a flax module honouring the contract of :class:`ModelFactory`.
-    Registering a kind that exists is an error unless ``replace=True``. Registration is per
+    ``builds_from="config"``: ``build`` takes the whole experiment config instead of its
+    ``[model]`` section. Registering a kind that exists is an error unless ``replace=True``. Registration is per
     process: a checkpoint of a kind defined outside sgn-jax loads only after the module that
     registers it has been imported. Returns the factory.
     """
@@ -366,8 +384,10 @@ def register_model(kind: str, build: Callable[[Any], nn.Module], *,
     if kind in _REGISTRY and not replace:
         raise ModelKindError(f"model kind {kind!r} is already registered "
                              "(pass replace=True to override it)")
+    if builds_from not in ("model", "config"):
+        raise ModelKindError(f"builds_from must be 'model' or 'config', got {builds_from!r}")
     factory = ModelFactory(kind=kind, build=build, init=init or init_params,
-                           description=description)
+                           description=description, builds_from=builds_from)
     _REGISTRY[kind] = factory
     return factory
 

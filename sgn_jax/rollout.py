@@ -108,6 +108,11 @@ class StepRecord:
     ``n_pp_edges``, ``n_pw_edges`` and ``overflow`` describe the graph the step's prediction was
     made from (directed edges; overflow = ball-ball edges dropped by the capacity);
     ``n_outside`` (phi > 0) and ``n_snapped`` the balls after the step.
+
+    The model's own energy ledger (J per step; NaN for a kind that does not report it, such as
+    the SGN, whose dE is learned apart from its motion): ``diss_pp`` and ``diss_pw``, what its
+    ball-ball and ball-wall impulses take out of the balls, and ``work_wall``, the work of its
+    ball-wall impulses at the jar's velocity (:mod:`sgn_jax.contact`).
     """
 
     dE: jax.Array
@@ -117,6 +122,9 @@ class StepRecord:
     overflow: jax.Array
     n_outside: jax.Array
     n_snapped: jax.Array
+    diss_pp: jax.Array
+    diss_pw: jax.Array
+    work_wall: jax.Array
 
 
 @flax.struct.dataclass
@@ -159,7 +167,19 @@ class RolloutResult:
             "t_pos": np.asarray(self.t_pos, np.float64),
             "pos": np.asarray(self.positions, np.float64),
             "offset": np.asarray(self.offsets, np.float64),
+            **self.ledger_arrays(),
         }
+
+    def ledger_arrays(self) -> dict[str, np.ndarray]:
+        """The model's own energy ledger per step (J), for a kind that reports one (extra
+        arrays of the prediction file: ``diss_pp_model``, ``diss_pw_model``, ``work_wall_model``);
+        empty otherwise."""
+        s = self.steps
+        if np.all(np.isnan(np.asarray(s.diss_pp))):
+            return {}
+        return {"diss_pp_model": np.asarray(s.diss_pp, np.float64),
+                "diss_pw_model": np.asarray(s.diss_pw, np.float64),
+                "work_wall_model": np.asarray(s.work_wall, np.float64)}
 
 
 @flax.struct.dataclass
@@ -185,12 +205,33 @@ def model_predictor(model_or_predict: Any) -> Predictor:
         raise TypeError(f"model_predictor needs an SGN module or a predict function, got "
                         f"{type(model_or_predict).__name__}")
 
+    terms = getattr(model_or_predict, "rollout_terms", None)
+    if isinstance(model_or_predict, nn.Module) and terms is not None:
+        # A kind that reports its own energy ledger (the contact model): (accel, dE, ledger).
+        def ledger_predictor(params: Any, stats: Any, graph: jraph.GraphsTuple, step: jax.Array):
+            del stats, step
+            accel, de, ledger = model_or_predict.apply({"params": params}, graph,
+                                                       method=terms)
+            return accel, de[0], ledger[0]
+
+        return ledger_predictor
+
     def predictor(params: Any, stats: Any, graph: jraph.GraphsTuple, step: jax.Array):
         del step
         accel, de = predict(params, stats, graph)
         return accel, de[0]
 
     return predictor
+
+
+NO_LEDGER = (float("nan"),) * 3
+
+
+def _with_ledger(out: tuple) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """A predictor's ``(accel, dE)`` or ``(accel, dE, ledger (3,))`` as the latter (ledger =
+    ``(diss_pp, diss_pw, work_wall)`` J, NaN when the predictor does not report one)."""
+    ledger = out[2] if len(out) == 3 else jnp.asarray(NO_LEDGER, F64)
+    return out[0], out[1], jnp.asarray(ledger).astype(F64).reshape(3)
 
 
 def replay_predictor() -> Predictor:
@@ -298,15 +339,16 @@ def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predicto
     dropped = 2 * jnp.maximum(n_pairs - spec.pp_pair_capacity, 0)
     counts = counts0._replace(pp_dropped=dropped.astype(counts0.pp_dropped.dtype))
     if not tiers:
-        return predictor(params, stats, graph0, step), counts
+        return _with_ledger(predictor(params, stats, graph0, step)), counts
     index = jnp.sum(n_pairs > jnp.asarray(tiers), dtype=I32)
 
     def branch(k: int):
         def run(_: Any):
             graph = graph0 if k == 0 else build_graph(window, sdf, specs[k], query)[0]
-            accel, de = predictor(params, stats, graph, step)
+            accel, de, ledger = _with_ledger(predictor(params, stats, graph, step))
             n = spec.n_particles
-            return jnp.asarray(accel)[:n].astype(F64), jnp.asarray(de).astype(F64).reshape(())
+            return (jnp.asarray(accel)[:n].astype(F64), jnp.asarray(de).astype(F64).reshape(()),
+                    ledger)
         return run
 
     return jax.lax.switch(index, [branch(k) for k in range(len(specs))], None), counts
@@ -319,7 +361,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
 
     def step_fn(state: RolloutState, _: Any) -> tuple[RolloutState, StepRecord]:
         window = state.window
-        (accel, de), counts = _predict_tiered(spec, tiers, predictor, query, params, stats, sdf,
+        (accel, de, ledger), counts = _predict_tiered(spec, tiers, predictor, query, params, stats, sdf,
                                               window, state.step)
         accel = jnp.asarray(accel)[:n].astype(F64)
         de = jnp.asarray(de).astype(F64).reshape(())
@@ -361,7 +403,8 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         record = StepRecord(dE=de, energy_cum=energy, n_pp_edges=counts.n_pp.astype(I32),
                             n_pw_edges=counts.n_pw.astype(I32),
                             overflow=counts.pp_dropped.astype(I32),
-                            n_outside=jnp.sum(phi_after > 0, dtype=I32), n_snapped=n_snapped)
+                            n_outside=jnp.sum(phi_after > 0, dtype=I32), n_snapped=n_snapped,
+                            diss_pp=ledger[0], diss_pw=ledger[1], work_wall=ledger[2])
         return RolloutState(window=window, step=state.step + 1, energy=energy), record
 
     return step_fn

@@ -235,7 +235,7 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
         factory = model_factory(model_kind(cfg.model))
     except ModelKindError as exc:
         raise TrainingError(f"[model] {exc}") from exc
-    model = factory.build(cfg.model)
+    model = factory.build_model(cfg)
     apply = factory.make_apply(model)
     tx = make_optimizer(tcfg.lr_init)
     strategy = None

@@ -1,0 +1,214 @@
+#!/usr/bin/env python
+"""Free rollouts of a surrogate against DEM ensembles: power, motion and contact checks.
+
+    python experiments/contact/evaluate_contact.py --model runs/contact_a --name contact_a \\
+        --ensembles experiments/envelope/heldout_first4.toml --data data/envelope \\
+        [--cases heldout_c00,...] [--duration 1.0] [--rollout snap_back=true]
+
+Every held-out packing of every case is rolled out from the DEM record's first window for
+``--duration`` s (default: the whole record), with the ball-ball separation OFF, and compared
+with the DEM over the same interval. Per case (means over the packings, SE ddof 1):
+
+- power (W): the DEM's target (normal + tangential damping) and its total (all losses), the
+  model's reported target (dE) and, for a kind that reports its own ledger, its total;
+  signed error of the means and the bar max(10 %, 2 SE) with SE the combined standard error;
+- motion: mean jar-frame ball speed, ball-ball and ball-wall contacts touching per step, mean
+  ball-ball contact lifetime (steps), deepest ball-ball overlap, snapped ball-steps (%), balls
+  outside, non-finite rollouts;
+- the model's own energy ledger: jar work + gravity's work - change of kinetic energy against
+  the dissipation it reports (relative residual over the rollout).
+
+Writes ``OUT/NAME.json`` (every run and the case summaries) and ``OUT/NAME.md`` (the table).
+Resumable: runs already in the JSON are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+import sgn_jax.api as sj
+
+DAMPING = ("diss_pp_normal", "diss_pp_tangential", "diss_pw_normal", "diss_pw_tangential")
+ALL_LOSSES = DAMPING + ("diss_pp_slip", "diss_pp_rolling", "diss_pw_slip", "diss_pw_rolling")
+
+
+def parse_settings(items):
+    out = {}
+    for item in items or []:
+        key, _, value = item.partition("=")
+        value = value.strip()
+        out[key.strip()] = (value.lower() == "true" if value.lower() in ("true", "false")
+                            else float(value) if value.replace(".", "", 1).replace("e-", "").isdigit()
+                            else value)
+    return out
+
+
+def one_run(model, cfg, traj, duration, window):
+    dt = float(cfg.dem.dt)
+    start = window
+    n_steps = int(round(duration / dt))
+    t0 = time.perf_counter()
+    res = sj.run_rollout(model, traj, start, n_steps * dt, None, cfg, save_every=1,
+                         progress=False)
+    wall = time.perf_counter() - t0
+    a = res["arrays"]
+    pos, off = np.asarray(a["pos"]), np.asarray(a["offset"])
+    t_pos = np.asarray(a["t_pos"])
+    finite = bool(np.isfinite(pos).all())
+    jar = sj.jar_params_from_config(cfg.jar)
+    radius, mass = float(cfg.balls.radius), float(cfg.balls.density) * 4 / 3 * math.pi * float(cfg.balls.radius) ** 3
+    # The DEM over the same interval (samples start .. start + n_steps).
+    sl = slice(start, start + n_steps + 1)
+    dem_pos, dem_off = np.asarray(traj.pos[sl]), np.asarray(traj.offset[sl])
+    span = n_steps * dt
+    dem_target = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in DAMPING)
+    dem_total = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in ALL_LOSSES)
+    row = {"seed": int(traj.meta.get("seed", -1)), "steps": n_steps, "wall_s": wall,
+           "finite": finite,
+           "dem_power_W": dem_target / span, "dem_total_power_W": dem_total / span,
+           "model_power_W": float(np.sum(a["dE"])) / span,
+           "outside_ball_steps": int(np.sum(a["n_outside"])),
+           "snapped_fraction": float(np.sum(a["n_snapped"])) / (n_steps * pos.shape[1]),
+           "dem_speed_m_s": float(np.mean(sj.jar_frame_speed(np.asarray(traj.t[sl]), dem_pos, dem_off))),
+           }
+    if "diss_pp_model" in a:
+        d_pp, d_pw, w_wall = (np.asarray(a[k]) for k in ("diss_pp_model", "diss_pw_model",
+                                                         "work_wall_model"))
+        row["model_total_power_W"] = float(np.sum(d_pp + d_pw)) / span
+        row["model_pp_share_of_total"] = float(np.sum(d_pp) / max(np.sum(d_pp + d_pw), 1e-30))
+        if finite:
+            v = np.diff(pos, axis=0) / dt                      # v_{k+1}, k = 0 .. S-1
+            ke = 0.5 * mass * np.sum(v ** 2, axis=(1, 2))
+            g = np.asarray(cfg.dem.gravity, np.float64)
+            pe = -mass * np.sum(pos @ g, axis=1)
+            # jar work + gravity's work (from the positions) - d(KE) over steps 2 .. S
+            lhs = float(np.sum(w_wall[1:]) - (ke[-1] - ke[0]) - (pe[-1] - pe[1]))
+            rhs = float(np.sum(d_pp[1:] + d_pw[1:]))
+            row["ledger_residual"] = (lhs - rhs) / max(abs(rhs), 1e-30)
+    if finite:
+        row["model_speed_m_s"] = float(np.mean(sj.jar_frame_speed(t_pos, pos, off)))
+        census_m = sj.contact_census(pos, off, jar, radius)
+        census_d = sj.contact_census(dem_pos, dem_off, jar, radius)
+        row.update({f"model_{k}": v for k, v in census_m.items()})
+        row.update({f"dem_{k}": v for k, v in census_d.items()})
+    return row
+
+
+def mean_se(values):
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], np.float64)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    return float(v.mean()), float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
+
+
+def summarize(name, runs):
+    out = {"case": name, "runs": len(runs)}
+    for key in ("dem_power_W", "dem_total_power_W", "model_power_W", "model_total_power_W",
+                "dem_speed_m_s", "model_speed_m_s", "dem_pp_touching_mean", "model_pp_touching_mean",
+                "dem_pw_touching_mean", "model_pw_touching_mean", "dem_pp_contact_frames_mean",
+                "model_pp_contact_frames_mean", "snapped_fraction", "ledger_residual"):
+        m, se = mean_se([r.get(key) for r in runs])
+        out[key], out[key + "_se"] = m, se
+    out["deepest_pp_overlap_m"] = max((r.get("model_deepest_pp_overlap_m", float("nan")) for r in runs), default=float("nan"))
+    out["dem_deepest_pp_overlap_m"] = max((r.get("dem_deepest_pp_overlap_m", float("nan")) for r in runs), default=float("nan"))
+    out["outside_ball_steps"] = sum(r["outside_ball_steps"] for r in runs)
+    out["non_finite_runs"] = sum(not r["finite"] for r in runs)
+    dem, model = out["dem_power_W"], out["model_power_W"]
+    se = math.sqrt(np.nan_to_num(out["dem_power_W_se"]) ** 2 + np.nan_to_num(out["model_power_W_se"]) ** 2)
+    out["power_error"] = (model - dem) / dem
+    out["power_bar"] = max(0.10, 2 * se / dem)
+    if not math.isnan(out.get("model_total_power_W", float("nan"))):
+        out["total_power_error"] = (out["model_total_power_W"] - out["dem_total_power_W"]) / out["dem_total_power_W"]
+    out["speed_error"] = (out["model_speed_m_s"] - out["dem_speed_m_s"]) / out["dem_speed_m_s"]
+    out["pp_touching_error"] = (out["model_pp_touching_mean"] - out["dem_pp_touching_mean"]) / out["dem_pp_touching_mean"]
+    out["pw_touching_error"] = (out["model_pw_touching_mean"] - out["dem_pw_touching_mean"]) / out["dem_pw_touching_mean"]
+    return out
+
+
+def table(summaries):
+    lines = ["| case | DEM W (SE) | model W (SE) | error | bar | total err | speed err | pp touch DEM/model | pw touch DEM/model | pp life steps DEM/model | deepest pp um | snapped % | outside | non-finite | ledger |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for s in summaries:
+        lines.append(
+            f"| {s['case']} | {s['dem_power_W']:.3f} ({s['dem_power_W_se']:.3f}) | "
+            f"{s['model_power_W']:.3f} ({s['model_power_W_se']:.3f}) | {100 * s['power_error']:+.0f} % | "
+            f"{100 * s['power_bar']:.0f} % | {100 * s.get('total_power_error', float('nan')):+.0f} % | "
+            f"{100 * s['speed_error']:+.0f} % | {s['dem_pp_touching_mean']:.1f} / {s['model_pp_touching_mean']:.1f} | "
+            f"{s['dem_pw_touching_mean']:.1f} / {s['model_pw_touching_mean']:.1f} | "
+            f"{s['dem_pp_contact_frames_mean']:.0f} / {s['model_pp_contact_frames_mean']:.0f} | "
+            f"{1e6 * s['deepest_pp_overlap_m']:.0f} | {100 * s['snapped_fraction']:.2f} | "
+            f"{s['outside_ball_steps']} | {s['non_finite_runs']} | {s['ledger_residual']:.1e} |")
+    powers = [(s["dem_power_W"], s["model_power_W"]) for s in summaries]
+    if len(powers) >= 3:
+        from scipy.stats import spearmanr
+        rho = spearmanr([p[0] for p in powers], [p[1] for p in powers]).statistic
+        lines.append(f"\nSpearman rho over the cases: {rho:.2f}")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--name", required=True)
+    ap.add_argument("--ensembles", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--cases", default=None)
+    ap.add_argument("--seeds", default=None, help="comma-separated subset of the eval seeds")
+    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--rollout", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--out", default="runs/contact_eval")
+    args = ap.parse_args()
+
+    sj.enable_compilation_cache()
+    model = sj.load_trained_model(sj.resolve_checkpoint(args.model))
+    settings = {"pp_separation": False, **parse_settings(args.rollout)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = out / f"{args.name}.json"
+    done = json.loads(json_path.read_text()) if json_path.exists() else {"runs": {}}
+    cases = sj.select_cases(sj.load_ensembles(args.ensembles), args.cases)
+    summaries = []
+    for case in cases:
+        cfg = sj.replace_section(sj.load_config(case.config_path), "rollout", **settings)
+        seeds = [s for s in case.seeds if s not in case.train_seeds]
+        if args.seeds:
+            seeds = [s for s in seeds if str(s) in args.seeds.split(",")]
+        runs = []
+        for seed in seeds:
+            key = f"{case.name}_seed{seed}"
+            path = Path(args.data) / f"{key}.npz"
+            if key in done["runs"]:
+                runs.append(done["runs"][key])
+                continue
+            if not path.exists():
+                print(f"missing {path}; skipped")
+                continue
+            traj = sj.load_trajectory(path)
+            window = int(model.config.graph.window)
+            duration = args.duration or (len(traj.t) - 2 - window) * float(cfg.dem.dt)
+            duration = round(duration / float(cfg.dem.dt)) * float(cfg.dem.dt)
+            row = one_run(model, cfg, traj, duration, window)
+            done["runs"][key] = row
+            runs.append(row)
+            json_path.write_text(json.dumps(done, indent=1))
+            print(json.dumps({"run": key, **{k: row.get(k) for k in (
+                "dem_power_W", "model_power_W", "model_total_power_W", "dem_speed_m_s",
+                "model_speed_m_s", "snapped_fraction", "outside_ball_steps", "wall_s")}}), flush=True)
+        if runs:
+            summaries.append(summarize(case.name, runs))
+    done["summaries"] = summaries
+    done["model"] = str(args.model)
+    done["settings"] = settings
+    json_path.write_text(json.dumps(done, indent=1))
+    (out / f"{args.name}.md").write_text(table(summaries))
+    print(table(summaries))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""Train the contact-impulse surrogate (issue 19) on DEM trajectories of the motion envelope.
+
+    python experiments/contact/train_contact.py --data data/envelope --out runs/contact_a \
+        --steps 6000 --minutes 55
+
+Training files: every ``train_*.npz`` of ``--data`` (the envelope's training motions; the
+held-out motions and packings are never read). ``--val`` names files for the validation loss
+(default: none). A killed run continues with ``--resume``. The options are recorded in the
+run's run_info.json; docs/contact.md has the runs and their numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+
+import sgn_jax.api as sj
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=os.path.join(HERE, "contact.toml"))
+    ap.add_argument("--data", default="data/envelope")
+    ap.add_argument("--pattern", default="train_*.npz")
+    ap.add_argument("--val", default="", help="comma-separated validation files")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--steps", type=int, default=6000)
+    ap.add_argument("--minutes", type=float, default=None)
+    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--unroll", type=int, default=4)
+    ap.add_argument("--pushforward", action="store_true")
+    ap.add_argument("--noise", type=float, default=0.0, help="position random-walk std (m)")
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--lr-final", type=float, default=3e-5)
+    ap.add_argument("--hidden", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args()
+
+    cfg = sj.load_config(args.config)
+    if args.hidden is not None:
+        cfg = sj.replace_section(cfg, "model", hidden=args.hidden)
+    files = sorted(glob.glob(os.path.join(args.data, args.pattern)))
+    if not files:
+        raise SystemExit(f"no {args.pattern} files in {args.data}")
+    print(f"{len(files)} training files")
+    trajs = [sj.load_trajectory(f) for f in files]
+    val = [sj.load_trajectory(f) for f in args.val.split(",") if f]
+    summary = sj.train_contact(
+        cfg, trajs, args.out, val_trajectories=val, steps=args.steps, batch_size=args.batch,
+        unroll=sj.UnrollSpec(unroll=args.unroll, pushforward=args.pushforward,
+                             position_noise=args.noise),
+        lr_init=args.lr, lr_final=args.lr_final, seed=args.seed, minutes=args.minutes,
+        resume=args.resume, progress=not args.no_progress)
+    print({k: summary[k] for k in ("steps_done", "best_loss", "seconds")})
+
+
+if __name__ == "__main__":
+    main()

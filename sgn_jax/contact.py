@@ -1,0 +1,305 @@
+"""The contact-impulse surrogate (model kind "contact", issue 19): contact physics built in.
+
+The SGN (:mod:`sgn_jax.model`) maps raw displacement vectors, velocity histories and the jar's
+global state through MLPs and must learn from data rotation invariance, Newton's third law,
+that contacts repel, that the motion acts on the balls only through the walls they touch and
+that dissipation adds up over contacts. This kind builds all of that in and learns only the
+unknown part: the net contact impulse of one surrogate step as a function of a few invariant
+scalars of each contact candidate (an edge of the same graph, :mod:`sgn_jax.graph`).
+
+One step (window ending at sample n, step ``dt``; N balls of mass m and radius R)::
+
+    for each edge candidate c (ball-ball pair, or ball and its nearest wall):
+        frame      unit normal n_c (ball-ball: along the centre line, from the receiver r to the
+                   sender s; ball-wall: the SDF normal, from the ball towards the wall)
+        inputs     invariant scalars (see ``edge_inputs``): surface gap at the last slots
+                   (bounded transforms), the rate of change of the gap u = v_rel . n at the
+                   last slots, the tangential relative speed |v_t|, for a wall the relative
+                   acceleration along n; v_rel is the partner's velocity minus the ball's (for
+                   a wall: the jar's velocity, which the motion gives exactly)
+        outputs    du_n >= 0 (softplus, m/s: repulsive only), du_t = mu du_n tanh(.) (Coulomb
+                   cone: |J_t| <= mu J_n), both zero unless contact is possible in this step
+        impulse    J_r = m* (-du_n n + du_t t),  t = v_t / |v_t|  (m* = m/2 for a pair, m for a
+                   wall); the sender ball gets -J_r (equal and opposite, exactly)
+    v_{n+1} = v_n + sum_c J / m + g dt          (gravity exact, not learned)
+    accel   = (v_{n+1} - v_n) / dt              (what the rollout integrates)
+
+Dissipation is what the model's own impulses take out of the balls, with the midpoint
+velocities ``vbar = (v_n + v_{n+1}) / 2`` of the integrator::
+
+    D_pp = - sum over directed ball-ball edges of J_r . vbar_r
+    D_pw =   sum over ball-wall edges of J_b . (u_wall - vbar_b)
+    D_pp + D_pw = W_wall + W_grav - dKE       (exact identity; W_wall = sum J_b . u_wall,
+                                               W_grav = sum m g . vbar dt)
+
+so the surrogate's energy ledger closes by construction (tests/test_contact.py). The paper's
+target (normal + tangential damping, SPEC 3) is reported as ``share_pp D_pp + share_pw D_pw``;
+the two shares (the part of all losses that is damping, not slip or rolling) are the only
+energy quantities fitted from data (``fit_dissipation_shares``), never a second energy.
+
+Properties by construction (and tested): total ball-ball momentum conserved to rounding;
+rotating the scene (positions, velocities, the jar and gravity) rotates the accelerations;
+permuting the balls permutes them; normal impulses never attract; a ball resting on the floor
+of a still jar or on another ball stays at rest once trained to (trained, not built in).
+
+All computation in float32 on the raw graph (no normalisation statistics: the inputs are
+scaled by fixed physical scales, so a deep overlap is a bounded input, not an out-of-range one).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import jraph
+
+from sgn_jax.graph import SLOT_DIM
+from sgn_jax.model import register_model
+
+DTYPE = jnp.float32
+
+# Fixed input scales (SI). A contact moves by at most a few m/s * dt = 0.1 mm per step.
+GAP_SCALE_COARSE_M = 1.0e-4   # gap / 0.1 mm, clipped to [-1, 3]
+GAP_SCALE_FINE_M = 5.0e-6     # tanh(gap / 5 um): resolves resting overlaps (0.5-5 um)
+SPEED_SCALE_FINE = 1.0e-2     # tanh(u / 1 cm/s): resolves resting contacts (g dt = 1 mm/s)
+IMPULSE_SCALE = 0.3           # du_n = IMPULSE_SCALE * softplus(out) (m/s)
+TANGENT_EPS = 1.0e-4          # m/s: t = v_t / sqrt(|v_t|^2 + eps^2), smooth at |v_t| = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactPhysics:
+    """The known physics of the contact model (static, hashable).
+
+    Attributes:
+        ball_radius: R (m). ball_mass: m (kg). dt: the surrogate step (s).
+        gravity: (gx, gy, gz) m/s^2. friction: Coulomb coefficient mu of the impulse cone.
+        window: W, slots of the graph's windows. history: slots used as inputs (<= W).
+        gate_margin: m; an edge acts only if its gap now or at the end of a ballistic step is
+            below this (contact possible within the step); elsewhere its impulse is exactly 0.
+    """
+
+    ball_radius: float = 0.005
+    ball_mass: float = 4.0317e-3
+    dt: float = 1.0e-4
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    friction: float = 0.3
+    window: int = 7
+    history: int = 3
+    gate_margin: float = 5.0e-5
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.history <= self.window:
+            raise ValueError(f"history must be in 1..window={self.window}, got {self.history}")
+
+
+N_EDGE_INPUTS_PER_SLOT = 4
+
+
+def n_edge_inputs(history: int) -> int:
+    """Inputs per edge: 4 per slot (coarse gap, fine gap, u, fine u) + |v_t|, fine |v_t|, the
+    relative normal acceleration term and a constant (the bias of a ball-ball edge is its own
+    MLP)."""
+    return N_EDGE_INPUTS_PER_SLOT * history + 3
+
+
+def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
+    return features[:, SLOT_DIM * k + cols.start: SLOT_DIM * k + cols.stop]
+
+
+def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
+    """Per directed edge (E rows): frame, inputs and which edges act.
+
+    Returns a dict of float32 arrays:
+        normal (E, 3): unit normal of the contact, from the receiver ball to its partner;
+        tangent (E, 3): unit-ish tangential direction of the partner's relative velocity
+            (``v_t / sqrt(|v_t|^2 + eps^2)``, 0 when there is no slip);
+        inputs (E, n_edge_inputs): the invariant scalars;
+        gate (E,): 1 where the edge acts (a real edge into a ball, contact possible in the step);
+        is_pp (E,), is_pw (E,): edge kinds (only edges whose receiver is a ball);
+        u_wall (E, 3): the jar's velocity (m/s) for ball-wall edges, 0 otherwise;
+        v_ball (E, 3): the receiver ball's current velocity v_n (m/s).
+    """
+    feats = jnp.asarray(graph.nodes["features"], DTYPE)
+    n_node = feats.shape[0]
+    w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
+    senders, receivers = graph.senders, graph.receivers
+    is_particle = graph.nodes["particle"]
+    recv_ball = is_particle[receivers]
+    is_pp = graph.edges["pp"] & recv_ball
+    is_pw = graph.edges["pw"] & recv_ball  # wall -> ball direction only
+    slots = range(w - h, w)  # the newest h slots, oldest first
+
+    vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
+    phi = jnp.stack([_slot(feats, k, slice(3, 4))[:, 0] for k in range(w)])  # (W, n_node)
+    nrm = jnp.stack([_slot(feats, k, slice(4, 7)) for k in range(w)])      # (W, n_node, 3)
+    # The wall node's rows hold [offset, offset velocity, frequency] per slot: its "velocity"
+    # columns 0..2 are the offset, 3..5 the jar velocity.
+    jar_vel = jnp.stack([_slot(feats, k, slice(3, 6)) for k in range(w)])  # (W, n_node, 3)
+
+    v_r = vel[:, receivers]                                                # (W, E, 3)
+    # Partner velocity: the sender ball, or the jar (wall edges; the sender is the wall node).
+    v_partner = jnp.where(is_pw[None, :, None], jar_vel[:, senders], vel[:, senders])
+    v_rel = v_partner - v_r                                                # (W, E, 3)
+
+    # Ball-ball frame: r = x_s - x_r at the newest slot (edge feature); older slots by
+    # subtracting the relative displacements (x_j = x_{j-1} + v_j dt exactly).
+    r_new = jnp.asarray(graph.edges["features"][:, :3], DTYPE)
+    disp_after = jnp.cumsum((v_rel * dt)[::-1], axis=0)[::-1]  # sum_{j >= k} v_rel_j dt
+    # r at slot k = r_new - sum_{j > k} v_rel_j dt
+    r_slots = r_new[None] - jnp.concatenate([disp_after[1:], jnp.zeros_like(disp_after[:1])])
+    dist_slots = jnp.sqrt(jnp.sum(r_slots * r_slots, axis=-1) + 1e-20)    # (W, E)
+    n_pp = r_new / dist_slots[-1][:, None]
+    gap_pp = dist_slots - 2.0 * radius                                     # (W, E)
+
+    # Ball-wall frame: the SDF normal at the newest slot; gap = -phi - R at each slot.
+    n_pw = nrm[-1, receivers]
+    gap_pw = -phi[:, receivers] - radius                                   # (W, E)
+
+    normal = jnp.where(is_pw[:, None], n_pw, n_pp)
+    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
+    u = jnp.einsum("wec,ec->we", v_rel, normal)                            # (W, E) gap rate
+    v_t = v_rel[-1] - u[-1][:, None] * normal
+    speed_t = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1))
+    tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]
+
+    g = jnp.asarray(phys.gravity, DTYPE)
+    # Relative acceleration of the partner along n over one step (m/s): for a wall the jar's
+    # acceleration minus gravity (the ball falls, the jar is held); zero for a pair.
+    jar_dv = jar_vel[-1, senders] - jar_vel[-2, senders]
+    acc_term = jnp.where(is_pw, jnp.einsum("ec,ec->e", jar_dv - g * dt, normal), 0.0)
+
+    cols = []
+    for k in slots:
+        cols += [jnp.clip(gap[k] / GAP_SCALE_COARSE_M, -1.0, 3.0),
+                 jnp.tanh(gap[k] / GAP_SCALE_FINE_M),
+                 jnp.clip(u[k], -10.0, 10.0),
+                 jnp.tanh(u[k] / SPEED_SCALE_FINE)]
+    cols += [jnp.clip(speed_t, 0.0, 10.0), jnp.tanh(speed_t / SPEED_SCALE_FINE),
+             jnp.tanh(acc_term / SPEED_SCALE_FINE)]
+    inputs = jnp.stack(cols, axis=-1)
+
+    gap_end = gap[-1] + u[-1] * dt
+    reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin
+    gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
+    del n_node
+    return {
+        "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
+        "is_pp": is_pp, "is_pw": is_pw,
+        "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
+        "v_ball": vel[-1, receivers],
+    }
+
+
+class ImpulseMLP(nn.Module):
+    """``layers`` dense layers (tanh-free: softplus hidden units are smooth), 2 outputs."""
+
+    hidden: int
+    layers: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for i in range(self.layers - 1):
+            x = nn.silu(nn.Dense(self.hidden, dtype=DTYPE, param_dtype=DTYPE, name=f"dense_{i}")(x))
+        return nn.Dense(2, dtype=DTYPE, param_dtype=DTYPE, kernel_init=nn.initializers.zeros,
+                        name=f"dense_{self.layers - 1}")(x)
+
+
+class ContactNet(nn.Module):
+    """The contact-impulse surrogate. ``__call__(raw_graph) -> (accel (n_node, 3) m/s^2,
+    dE_target (n_graph,) J)``; :meth:`step_terms` gives the impulses and the energy split.
+
+    Takes the RAW graph of :func:`sgn_jax.graph.build_graph` (``takes_raw_graph``): its inputs
+    are scaled by fixed physical scales, not by normalisation statistics.
+    """
+
+    physics: ContactPhysics = ContactPhysics()
+    hidden: int = 64
+    mlp_layers: int = 3
+    takes_raw_graph = True
+
+    def setup(self):
+        self.pp_net = ImpulseMLP(self.hidden, self.mlp_layers)
+        self.pw_net = ImpulseMLP(self.hidden, self.mlp_layers)
+        # Damping share of all losses per contact kind, as logits (fitted after training).
+        self.share_logit = self.param("share_logit", nn.initializers.constant(2.0), (2,),
+                                      DTYPE)
+
+    def step_terms(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
+        """Everything of one step: per-node velocity change and per-graph energies (J)."""
+        phys = self.physics
+        geo = edge_geometry(graph, phys)
+        out = jnp.where(geo["is_pw"][:, None], self.pw_net(geo["inputs"]),
+                        self.pp_net(geo["inputs"]))
+        du_n = IMPULSE_SCALE * nn.softplus(out[:, 0]) * geo["gate"]
+        du_t = phys.friction * du_n * jnp.tanh(out[:, 1])
+        m = phys.ball_mass
+        m_star = jnp.where(geo["is_pw"], m, 0.5 * m)
+        impulse = (m_star * (-du_n))[:, None] * geo["normal"] + (m_star * du_t)[:, None] * geo["tangent"]
+        n_node = graph.nodes["features"].shape[0]
+        is_particle = graph.nodes["particle"]
+        # Impulse on the receiver; for a ball-ball edge its reverse edge gives the sender the
+        # opposite impulse (same invariant inputs, opposite frame): equal and opposite.
+        total = jax.ops.segment_sum(impulse, graph.receivers, num_segments=n_node)
+        g = jnp.asarray(phys.gravity, DTYPE)
+        dv = jnp.where(is_particle[:, None], total / m + g * phys.dt, 0.0)
+
+        feats = jnp.asarray(graph.nodes["features"], DTYPE)
+        v_node = feats[:, SLOT_DIM * (phys.window - 1): SLOT_DIM * (phys.window - 1) + 3]
+        vbar_node = v_node + 0.5 * dv
+        vbar = vbar_node[graph.receivers]
+        per_edge_pp = -jnp.sum(impulse * vbar, axis=-1) * geo["is_pp"]
+        per_edge_pw = jnp.sum(impulse * (geo["u_wall"] - vbar), axis=-1) * geo["is_pw"]
+        work_wall_e = jnp.sum(impulse * geo["u_wall"], axis=-1) * geo["is_pw"]
+        n_graph = graph.n_node.shape[0]
+        edge_graph = _edge_graph_index(graph)
+        seg = lambda x: jax.ops.segment_sum(x, edge_graph, num_segments=n_graph)  # noqa: E731
+        share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
+        d_pp, d_pw = seg(per_edge_pp), seg(per_edge_pw)
+        return {"dv": dv, "diss_pp": d_pp, "diss_pw": d_pw, "work_wall": seg(work_wall_e),
+                "dE_target": share[0] * d_pp + share[1] * d_pw, "du_n": du_n, "du_t": du_t,
+                "gate": geo["gate"]}
+
+    def rollout_terms(self, graph: jraph.GraphsTuple):
+        """``(accel (n_node, 3), dE_target (n_graph,), ledger (n_graph, 3))`` with ledger
+        ``(diss_pp, diss_pw, work_wall)`` J (what :func:`sgn_jax.rollout.model_predictor`
+        uses, so a rollout records the model's own energy ledger)."""
+        terms = self.step_terms(graph)
+        ledger = jnp.stack([terms["diss_pp"], terms["diss_pw"], terms["work_wall"]], axis=-1)
+        return terms["dv"] / self.physics.dt, terms["dE_target"], ledger
+
+    def __call__(self, graph: jraph.GraphsTuple, stats: Any = None):
+        del stats
+        terms = self.step_terms(graph)
+        return terms["dv"] / self.physics.dt, terms["dE_target"]
+
+
+def _edge_graph_index(graph: jraph.GraphsTuple) -> jax.Array:
+    n_edge_total = graph.senders.shape[0]
+    n_graph = graph.n_edge.shape[0]
+    return jnp.repeat(jnp.arange(n_graph), graph.n_edge, total_repeat_length=n_edge_total)
+
+
+def physics_from_config(cfg: Any) -> ContactPhysics:
+    """The :class:`ContactPhysics` of an experiment config (read by attribute: ``balls``,
+    ``material.friction``, ``dem.dt`` and ``gravity``, ``graph.window``; no config import)."""
+    radius = float(cfg.balls.radius)
+    mass = float(cfg.balls.density) * 4.0 / 3.0 * math.pi * radius ** 3
+    return ContactPhysics(ball_radius=radius, ball_mass=mass, dt=float(cfg.dem.dt),
+                          gravity=tuple(float(g) for g in cfg.dem.gravity),
+                          friction=float(cfg.material.friction), window=int(cfg.graph.window))
+
+
+def make_contact_net(cfg: Any) -> ContactNet:
+    """The factory of kind "contact": a :class:`ContactNet` of a whole experiment config
+    (``[model] hidden`` and ``mlp_layers`` size its two impulse MLPs)."""
+    return ContactNet(physics=physics_from_config(cfg), hidden=int(cfg.model.hidden),
+                      mlp_layers=int(cfg.model.mlp_layers))
+
+
+register_model("contact", make_contact_net, builds_from="config",
+               description="contact-impulse model: invariant edge inputs, equal and opposite "
+                           "impulses, dissipation from its own impulses (issue 19)")

@@ -1,0 +1,200 @@
+"""Training of the contact-impulse surrogate (:mod:`sgn_jax.contact`): short unrolled rollouts.
+
+The featurizer runs inside the jitted step: a training sample is a stretch of a DEM trajectory
+(``W + 1 + K`` positions and the jar state at the ``W + K`` slot times), and the loss unrolls
+the model ``K`` steps from the first window, each step on the graph of the model's OWN state
+(the rollout's featurizer, the same integrator), so the states a rollout reaches and its drift
+are what the model is trained on::
+
+    loss = mean_k mean_balls |v_{n+k+1}^model - v_{n+k+1}^DEM|^2 / scale_traj^2
+
+``scale_traj`` is the RMS velocity change per step of the sample's own trajectory, so that a
+quiet, low-power motion weighs as much as a violent one (the targets span 570x in power).
+Velocities are the integrator's (``v_j = (x_j - x_{j-1}) / dt``), so one velocity error is
+one step's integrated acceleration error. Gradients flow through the whole unroll
+(backpropagation through the K steps), optionally cut between steps (``pushforward=True``:
+each step is trained on the state the previous one reached, without differentiating through
+how it got there, as in GNS pushforward training).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from sgn_jax.contact import ContactNet
+from sgn_jax.graph import GraphSpec, Window, build_graph
+from sgn_jax.scene import SDFQuery
+
+F64 = jnp.float64
+
+
+@flax.struct.dataclass
+class UnrollBatch:
+    """B training stretches (float64 positions; float32 elsewhere is fine).
+
+    Attributes:
+        positions: (B, W + 1 + K, N, 3) m, ``x_{n-W} .. x_{n+K}``.
+        offsets: (B, W + K, 3) m, jar offset at ``t_{n-W+1} .. t_{n+K}``.
+        offset_velocities: (B, W + K, 3) m/s.
+        scale: (B,) m/s, the loss scale of each sample's trajectory.
+    """
+
+    positions: jax.Array
+    offsets: jax.Array
+    offset_velocities: jax.Array
+    scale: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class UnrollSpec:
+    """Static settings of the unrolled loss: ``unroll`` K steps; ``pushforward`` cuts the
+    gradient between steps; ``position_noise`` (m) perturbs the first window's positions by a
+    random walk (std per slot) so the model sees states slightly off the DEM's."""
+
+    unroll: int = 4
+    pushforward: bool = False
+    position_noise: float = 0.0
+
+
+def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery | None,
+                     unroll: UnrollSpec) -> Callable[[Any, UnrollBatch, jax.Array], jax.Array]:
+    """``loss(params, batch, key) -> (loss, per_step (K,))`` (jittable)."""
+    w, n, dt, k_steps = spec.window, spec.n_particles, spec.dt, unroll.unroll
+
+    def one(params, positions, offsets, offset_velocities, scale, key):
+        pos0 = positions[: w + 1]
+        if unroll.position_noise > 0:
+            steps = unroll.position_noise * jax.random.normal(key, pos0.shape, F64)
+            # random walk ending at zero at the newest slot: the velocities are perturbed, the
+            # newest position (where the targets start) is not
+            walk = jnp.cumsum(steps[::-1], axis=0)[::-1] - steps[-1:]
+            pos0 = pos0 + walk
+        freq = jnp.zeros((), F64)
+
+        def step(win_pos, k):
+            window = Window(positions=win_pos,
+                            offsets=jax.lax.dynamic_slice_in_dim(offsets, k, w),
+                            offset_velocities=jax.lax.dynamic_slice_in_dim(offset_velocities, k, w),
+                            frequency_hz=freq)
+            graph, _ = build_graph(window, sdf, spec, query)
+            terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+            dv = terms["dv"][:n].astype(F64)
+            v_now = (win_pos[-1] - win_pos[-2]) / dt
+            v_next = v_now + dv
+            x_next = win_pos[-1] + v_next * dt
+            x_true_next = jax.lax.dynamic_index_in_dim(positions, w + 1 + k, keepdims=False)
+            x_true_now = jax.lax.dynamic_index_in_dim(positions, w + k, keepdims=False)
+            v_true = (x_true_next - x_true_now) / dt
+            err = jnp.mean(jnp.sum((v_next - v_true) ** 2, axis=-1)) / scale ** 2
+            new_pos = jnp.concatenate([win_pos[1:], x_next[None]])
+            if unroll.pushforward:
+                new_pos = jax.lax.stop_gradient(new_pos)
+            return new_pos, err
+
+        _, errs = jax.lax.scan(step, pos0, jnp.arange(k_steps))
+        return errs
+
+    def loss(params, batch: UnrollBatch, key):
+        keys = jax.random.split(key, batch.scale.shape[0])
+        errs = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0))(
+            params, batch.positions, batch.offsets, batch.offset_velocities, batch.scale, keys)
+        per_step = jnp.mean(errs, axis=0)
+        return jnp.mean(per_step).astype(jnp.float32), per_step
+
+    return loss
+
+
+@flax.struct.dataclass
+class ContactTrainState:
+    params: Any
+    opt_state: Any
+    step: jax.Array
+
+
+def make_optimizer(lr: Callable[[int], float] | float, clip: float = 1.0
+                   ) -> optax.GradientTransformation:
+    """Adam with global-norm clipping (a rare violent collision must not wreck the step)."""
+    return optax.chain(optax.clip_by_global_norm(clip), optax.adam(lr))
+
+
+def make_train_step(loss: Callable, tx: optax.GradientTransformation) -> Callable:
+    """Jitted ``step(state, batch, key) -> (state, loss, per_step)``."""
+
+    @jax.jit
+    def step(state: ContactTrainState, batch: UnrollBatch, key: jax.Array):
+        (value, per_step), grads = jax.value_and_grad(loss, has_aux=True)(state.params, batch, key)
+        # The dissipation shares are fitted from data, not by this loss.
+        grads = {**grads, "share_logit": jnp.zeros_like(grads["share_logit"])}
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        return ContactTrainState(params, opt_state, state.step + 1), value, per_step
+
+    return step
+
+
+# --------------------------------------------------------------------------------------------
+# Host-side sampling of stretches (numpy; no file I/O: the driver passes arrays)
+
+
+@dataclasses.dataclass
+class StretchSource:
+    """The arrays of the training trajectories and how to draw stretches from them.
+
+    ``positions[i]`` (T_i, N, 3), ``offsets[i]`` and ``offset_velocities[i]`` (T_i, 3) per
+    trajectory; ``scales[i]`` its loss scale (m/s).
+    """
+
+    positions: list[np.ndarray]
+    offsets: list[np.ndarray]
+    offset_velocities: list[np.ndarray]
+    scales: np.ndarray
+    window: int
+    unroll: int
+
+    def draw(self, rng: np.random.Generator, batch_size: int) -> UnrollBatch:
+        """B stretches: trajectories uniformly (every motion weighs alike), ends uniformly."""
+        w, k = self.window, self.unroll
+        traj = rng.integers(0, len(self.positions), batch_size)
+        pos, off, offv = [], [], []
+        for i in traj:
+            t = len(self.positions[i])
+            n = int(rng.integers(w, t - 1 - k))  # the first window ends at sample n
+            pos.append(self.positions[i][n - w: n + k + 1])
+            off.append(self.offsets[i][n - w + 1: n + k + 1])
+            offv.append(self.offset_velocities[i][n - w + 1: n + k + 1])
+        return UnrollBatch(positions=np.stack(pos), offsets=np.stack(off),
+                           offset_velocities=np.stack(offv),
+                           scale=np.asarray(self.scales[traj], np.float64))
+
+
+def velocity_change_scale(positions: np.ndarray, dt: float, floor: float = 1e-3) -> float:
+    """RMS per-step velocity change (m/s) of one trajectory's balls, at least ``floor``."""
+    v = np.diff(positions, axis=0) / dt
+    dv = np.diff(v, axis=0)
+    return float(max(np.sqrt(np.mean(np.sum(dv * dv, axis=-1))), floor))
+
+
+def dissipation_shares(trajectories: list[Any]) -> tuple[float, float]:
+    """The DEM's damping share of all contact losses, ball-ball and ball-wall, over the
+    trajectories: (normal + tangential damping) / (damping + slip + rolling), per kind."""
+    out = []
+    for kind in ("pp", "pw"):
+        damping = sum(float(np.sum(t[f"diss_{kind}_normal"]) + np.sum(t[f"diss_{kind}_tangential"]))
+                      for t in trajectories)
+        total = damping + sum(float(np.sum(t[f"diss_{kind}_slip"]) + np.sum(t[f"diss_{kind}_rolling"]))
+                              for t in trajectories)
+        out.append(damping / total if total > 0 else 1.0)
+    return out[0], out[1]
+
+
+def share_logits(shares: tuple[float, float]) -> jax.Array:
+    s = np.clip(np.asarray(shares, np.float64), 1e-4, 1 - 1e-4)
+    return jnp.asarray(np.log(s / (1 - s)), jnp.float32)

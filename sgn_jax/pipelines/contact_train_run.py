@@ -1,0 +1,210 @@
+"""Host driver of the contact-impulse surrogate's training (``[model] kind = "contact"``).
+
+``train_contact(cfg, trajectories, out_dir)`` draws stretches of the DEM trajectories, runs the
+jitted unrolled-loss step of :mod:`sgn_jax.contact_train` for a budget of steps (or minutes),
+shows progress (rate, ETA), and writes the run like :func:`sgn_jax.pipelines.train_run.train`:
+``config.toml``, ``metrics.csv``, ``run_info.json``, ``checkpoints/latest`` (with the
+optimiser state, every ``checkpoint_every`` steps and at the end) and ``checkpoints/best``
+(lowest validation loss). A killed run resumes from ``checkpoints/latest`` with ``resume=True``
+(the batches are drawn from ``(seed, step)``, so a resumed run draws what an unbroken one would).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import sgn_jax
+from sgn_jax.checkpoint import latest_step, restore_checkpoint, save_checkpoint
+from sgn_jax.config import config_to_dict, save_config
+from sgn_jax.contact import ContactNet, physics_from_config
+from sgn_jax.contact_train import (
+    ContactTrainState,
+    StretchSource,
+    UnrollSpec,
+    dissipation_shares,
+    make_train_step,
+    make_unroll_loss,
+    share_logits,
+    velocity_change_scale,
+)
+from sgn_jax.graph import Window, build_graph
+from sgn_jax.io_utils import atomic_write, git_commit, write_json
+from sgn_jax.normalization import Moments, NormStats
+from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+from sgn_jax.pipelines.train_run import at_model_step, check_trajectory_matches
+from sgn_jax.train import TrainingError
+
+
+def identity_stats(window: int) -> NormStats:
+    """Normalisation statistics that change nothing: the contact model reads the raw graph
+    (fixed physical scales), but checkpoints and the rollout API carry a ``NormStats``."""
+    def ident(d: int) -> Moments:
+        return Moments(mean=np.zeros(d), std=np.ones(d))
+    return NormStats(particle=ident(7 * window), wall=ident(7 * window), pp_edge=ident(3),
+                     pw_edge=ident(3), accel=ident(3), dissipation=ident(1))
+
+
+def _write_metrics(out_dir: Path, rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        return
+    keys = list(rows[0])
+    lines = [",".join(keys)] + [",".join(str(r[k]) for k in keys) for r in rows]
+    with atomic_write(out_dir / "metrics.csv", "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+
+
+def _read_metrics(out_dir: Path) -> list[dict[str, Any]]:
+    path = out_dir / "metrics.csv"
+    if not path.exists():
+        return []
+    with open(path) as fh:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+
+
+def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
+                  val_trajectories: Sequence[Any] = (), steps: int = 4000,
+                  batch_size: int = 32, unroll: UnrollSpec | None = None,
+                  lr_init: float = 1e-3, lr_final: float = 3e-5, seed: int = 0,
+                  minutes: float | None = None, checkpoint_every: int = 250,
+                  resume: bool = False, progress: bool = True,
+                  log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train a contact-impulse surrogate; see the module docstring.
+
+    ``steps`` is the run's total number of optimiser steps (also when resuming); ``minutes``
+    stops earlier (after a checkpoint) when the wall-clock budget is spent. Returns a summary.
+    """
+    from tqdm.auto import tqdm
+
+    unroll = UnrollSpec() if unroll is None else unroll
+    out_dir = Path(out_dir)
+    ckpt_latest, ckpt_best = out_dir / "checkpoints" / "latest", out_dir / "checkpoints" / "best"
+    existing = latest_step(ckpt_latest)
+    if existing is not None and not resume:
+        raise TrainingError(f"{out_dir} already holds a training run (step {existing}); pass "
+                            "resume=True (--resume) to continue it or choose another --out")
+    if cfg.model.kind != "contact":
+        raise TrainingError(f"train_contact trains [model] kind = 'contact', got {cfg.model.kind!r}")
+    if not trajectories:
+        raise TrainingError("no training trajectories")
+    spec = graph_spec_from_config(cfg)
+    trajectories = [at_model_step(t, spec.dt) for t in trajectories]
+    val_trajectories = [at_model_step(t, spec.dt) for t in val_trajectories]
+    for i, t in enumerate([*trajectories, *val_trajectories]):
+        check_trajectory_matches(t, cfg, f"trajectory {i}")
+    sdf = sdf_grid_from_config(cfg, per_patch=False)
+    phys = physics_from_config(cfg)
+    net = ContactNet(physics=phys, hidden=cfg.model.hidden, mlp_layers=cfg.model.mlp_layers)
+
+    def source(trajs: Sequence[Any]) -> StretchSource:
+        return StretchSource(
+            positions=[np.asarray(t.pos, np.float64) for t in trajs],
+            offsets=[np.asarray(t.offset, np.float64) for t in trajs],
+            offset_velocities=[np.asarray(t.offset_vel, np.float64) for t in trajs],
+            scales=np.array([velocity_change_scale(np.asarray(t.pos), spec.dt) for t in trajs]),
+            window=spec.window, unroll=unroll.unroll)
+
+    train_src = source(trajectories)
+    val_src = source(val_trajectories) if val_trajectories else None
+    shares = dissipation_shares(trajectories)
+
+    example = train_src.draw(np.random.default_rng(0), 1)
+    window = Window(positions=example.positions[0, : spec.window + 1],
+                    offsets=example.offsets[0, : spec.window],
+                    offset_velocities=example.offset_velocities[0, : spec.window],
+                    frequency_hz=jnp.zeros(()))
+    graph, _ = build_graph(window, sdf, spec)
+    params = net.init(jax.random.PRNGKey(seed), graph)["params"]
+    params = {**params, "share_logit": share_logits(shares)}
+
+    schedule = optax.cosine_decay_schedule(lr_init, steps, alpha=lr_final / lr_init)
+    tx = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
+    opt_state = tx.init(params)
+    history: list[dict[str, Any]] = []
+    start = 0
+    if existing is not None:
+        full = restore_checkpoint(ckpt_latest, opt_state_like=opt_state)
+        params, opt_state = full.params, full.opt_state
+        start = int(full.meta["global_step"])
+        history = [r for r in _read_metrics(out_dir) if r["step"] <= start]
+        log(f"resuming {out_dir} after step {start}")
+    state = ContactTrainState(jax.tree_util.tree_map(jnp.asarray, params),
+                              jax.tree_util.tree_map(jnp.asarray, opt_state),
+                              jnp.asarray(start, jnp.int32))
+
+    loss = make_unroll_loss(net, spec, sdf, None, unroll)
+    train_step = make_train_step(loss, tx)
+    eval_loss = jax.jit(loss)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out_dir / "config.toml")
+    info = {"n_train_trajectories": len(trajectories),
+            "n_val_trajectories": len(val_trajectories),
+            "n_params": int(sum(p.size for p in jax.tree_util.tree_leaves(params))),
+            "model_kind": "contact", "steps": steps, "batch_size": batch_size,
+            "unroll": unroll.unroll, "pushforward": unroll.pushforward,
+            "position_noise": unroll.position_noise, "lr_init": lr_init, "lr_final": lr_final,
+            "dissipation_shares": {"pp": shares[0], "pw": shares[1]},
+            "loss_scales": train_src.scales.tolist(), "git_commit": git_commit(),
+            "sgn_jax_version": sgn_jax.__version__}
+    write_json(out_dir / "run_info.json", info)
+    stats = identity_stats(spec.window)
+    meta_base = {"config": config_to_dict(cfg), "info": info}
+    val_batches = ([val_src.draw(np.random.default_rng([seed, 7, i]), batch_size)
+                    for i in range(8)] if val_src is not None else [])
+    best = min((r["val_loss"] if r.get("val_loss", -1) >= 0 else r["train_loss"]
+                for r in history), default=math.inf)
+
+    def save(step_no: int, train_value: float) -> None:
+        nonlocal best
+        val_value = (float(np.mean([float(eval_loss(state.params, b, jax.random.PRNGKey(0))[0])
+                                    for b in val_batches])) if val_batches else -1.0)
+        score = val_value if val_batches else train_value
+        improved = score < best
+        best = min(best, score)
+        history.append({"step": step_no, "train_loss": train_value, "val_loss": val_value,
+                        "lr": float(schedule(step_no)), "seconds": time.perf_counter() - t0})
+        meta = {**meta_base, "global_step": step_no, "epoch": step_no,
+                "train_loss": train_value, "val_loss": val_value}
+        save_checkpoint(ckpt_latest, step_no, params=state.params, norm_stats=stats,
+                        opt_state=state.opt_state, meta=meta, keep=2)
+        if improved:
+            save_checkpoint(ckpt_best, step_no, params=state.params, norm_stats=stats,
+                            meta=meta, keep=1)
+        _write_metrics(out_dir, history)
+        log(json.dumps({"step": step_no, "train_loss": round(train_value, 5),
+                        "val_loss": round(val_value, 5), "best": improved}))
+
+    t0 = time.perf_counter()
+    bar = tqdm(range(start, steps), desc="steps", unit="step", initial=start, total=steps,
+               disable=not progress)
+    running: list[float] = []
+    step_no = start
+    for step_no in bar:
+        batch = train_src.draw(np.random.default_rng([seed, step_no]), batch_size)
+        state, value, _ = train_step(state, batch, jax.random.PRNGKey(step_no))
+        running.append(float(value))
+        if not math.isfinite(running[-1]):
+            raise TrainingError(f"non-finite training loss at step {step_no}")
+        done = step_no + 1
+        if done % checkpoint_every == 0 or done == steps:
+            save(done, float(np.mean(running)))
+            running = []
+            bar.set_postfix(loss=f"{history[-1]['train_loss']:.4g}")
+            if minutes is not None and time.perf_counter() - t0 > 60 * minutes:
+                log(f"time budget of {minutes} min spent after step {done}; resume to go on")
+                break
+    summary = {"steps_done": int(state.step), "best_loss": best,
+               "seconds": time.perf_counter() - t0, **info}
+    write_json(out_dir / "summary.json", summary)
+    return summary

@@ -1,0 +1,198 @@
+"""The contact-impulse surrogate (model kind "contact"): the physics built into it.
+
+Checked on an untrained network with random output layers (so that every impulse is nonzero
+and arbitrary): these properties hold by construction, whatever the parameters.
+- total ball-ball momentum is conserved to rounding (equal and opposite impulses);
+- a rotated scene (positions, velocities, the wall and gravity) gives rotated accelerations;
+- permuting the balls permutes the accelerations;
+- normal impulses are repulsive only, tangential ones inside the Coulomb cone;
+- the model's own energy ledger closes over a rollout: jar work + gravity's work - change of
+  kinetic energy = the dissipation it reports, per step and summed (and with the potential
+  energy from the positions, up to the integrator's telescoping term).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sgn_jax.contact import ContactNet, ContactPhysics, edge_geometry
+from sgn_jax.graph import GraphSpec, Window, build_graph
+from sgn_jax.model import model_factory
+
+R, DT, W = 0.005, 1e-4, 3
+PHYS = ContactPhysics(ball_radius=R, dt=DT, window=W, history=3, gate_margin=2e-4)
+SPEC = GraphSpec(n_particles=5, window=W, ball_radius=R, dt=DT, pp_skin=1.5e-3,
+                 phi_pw=-0.0052, pp_pair_capacity=10)
+
+
+def floor_query(up):
+    """A flat floor through the jar offset with unit normal ``up`` (into the cavity)."""
+    up = jnp.asarray(up, jnp.float64)
+
+    def query(sdf, points, offset):
+        del sdf
+        height = jnp.sum((points - offset) * up, axis=-1)
+        return -height, jnp.broadcast_to(-up, points.shape)
+
+    return query
+
+
+def scene(rng, rotation=None):
+    """5 balls: a touching cluster above the floor, one ball touching the floor, moving."""
+    centres = np.array([[0.0, 0.0102, 0.0], [0.0099, 0.0102, 0.0], [0.0, 0.0102, 0.0099],
+                        [0.005, 0.0190, 0.005], [0.03, 0.00499, 0.0]])
+    vel = rng.normal(0.0, 0.3, (W + 1, 5, 3)) * 0.0 + rng.normal(0.0, 0.3, (1, 5, 3))
+    vel = vel + rng.normal(0.0, 0.02, vel.shape)
+    pos = centres[None] + np.cumsum(vel * DT, axis=0) - (vel * DT).sum(0)[None]
+    offsets = np.cumsum(rng.normal(0.0, 0.1, (W, 3)) * DT, axis=0) * np.array([1, 0, 1])
+    offset_vel = rng.normal(0.0, 0.2, (W, 3)) * np.array([1, 0, 1])
+    rot = np.eye(3) if rotation is None else np.asarray(rotation)
+    return Window(positions=jnp.asarray(pos @ rot.T), offsets=jnp.asarray(offsets @ rot.T),
+                  offset_velocities=jnp.asarray(offset_vel @ rot.T),
+                  frequency_hz=jnp.asarray(5.0)), rot
+
+
+def random_params(net, graph, seed=0):
+    params = net.init(jax.random.PRNGKey(seed), graph)["params"]
+    key = jax.random.PRNGKey(seed + 1)
+
+    def perturb(path, leaf):
+        nonlocal key
+        key, sub = jax.random.split(key)
+        if len(path) == 3 and path[-1].key == "kernel" and leaf.shape[-1] == 2:
+            return 0.5 * jax.random.normal(sub, leaf.shape, leaf.dtype)
+        return leaf
+
+    return jax.tree_util.tree_map_with_path(perturb, params)
+
+
+def net_with(gravity):
+    phys = ContactPhysics(**{**PHYS.__dict__, "gravity": tuple(float(g) for g in gravity)})
+    return ContactNet(physics=phys, hidden=32, mlp_layers=3)
+
+
+def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None):
+    graph, _ = build_graph(window, None, SPEC, floor_query(up))
+    net = net_with(gravity)
+    params = random_params(net, graph) if params is None else params
+    return net.apply({"params": params}, graph, method=ContactNet.step_terms), params, graph
+
+
+def test_contact_kind_is_registered_and_builds_from_the_whole_config():
+    from sgn_jax.api import load_config, replace_section
+
+    cfg = replace_section(load_config("emax_300rpm"), "model", kind="contact", hidden=16,
+                          mlp_layers=3)
+    model = model_factory("contact").build_model(cfg)
+    assert isinstance(model, ContactNet)
+    assert model.physics.ball_radius == cfg.balls.radius and model.physics.dt == cfg.dem.dt
+    assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
+
+
+def test_ball_ball_momentum_is_conserved_to_rounding():
+    window, _ = scene(np.random.default_rng(0))
+    terms, _, graph = terms_of(window)
+    geo = edge_geometry(graph, PHYS)
+    assert float(jnp.sum(geo["gate"] * geo["is_pp"])) >= 4  # two touching pairs act
+    # The floor ball (index 4) alone touches a wall: the other balls' momentum change is
+    # gravity's only, and the ball-ball impulses sum to zero.
+    dv = np.asarray(terms["dv"][:4], np.float64) - np.array([0, -9.81 * DT, 0])
+    impulses = dv * PHYS.ball_mass
+    scale = np.abs(impulses).max()
+    assert scale > 1e-6
+    np.testing.assert_allclose(impulses.sum(axis=0), 0.0, atol=1e-6 * scale)
+
+
+def rotation_matrix(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def test_rotated_scene_gives_rotated_accelerations():
+    rng = np.random.default_rng(1)
+    window, _ = scene(np.random.default_rng(2))
+    terms, params, _ = terms_of(window)
+    rot = rotation_matrix(rng)
+    window_r, _ = scene(np.random.default_rng(2), rot)
+    up_r = rot @ np.array([0.0, 1.0, 0.0])
+    g_r = rot @ np.array([0.0, -9.81, 0.0])
+    terms_r, _, _ = terms_of(window_r, up=up_r, gravity=g_r, params=params)
+    dv, dv_r = np.asarray(terms["dv"][:5]), np.asarray(terms_r["dv"][:5])
+    np.testing.assert_allclose(dv_r, dv @ rot.T, atol=1e-5 * np.abs(dv).max())
+    for name in ("diss_pp", "diss_pw", "work_wall"):
+        np.testing.assert_allclose(terms_r[name][0], terms[name][0], rtol=1e-4, atol=1e-12)
+
+
+def test_permuted_balls_give_permuted_accelerations():
+    window, _ = scene(np.random.default_rng(3))
+    terms, params, _ = terms_of(window)
+    perm = np.array([3, 0, 4, 1, 2])
+    window_p = window.replace(positions=window.positions[:, perm])
+    terms_p, _, _ = terms_of(window_p, params=params)
+    np.testing.assert_allclose(np.asarray(terms_p["dv"][:5]), np.asarray(terms["dv"][:5])[perm],
+                               rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(terms_p["diss_pp"][0], terms["diss_pp"][0], rtol=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(seed):
+    window, _ = scene(np.random.default_rng(10 + seed))
+    terms, _, _ = terms_of(window)
+    du_n, du_t = np.asarray(terms["du_n"]), np.asarray(terms["du_t"])
+    assert (du_n >= 0).all() and du_n.max() > 0
+    assert (np.abs(du_t) <= PHYS.friction * du_n + 1e-12).all()
+    # Out of reach (gated off): no impulse at all.
+    gate = np.asarray(terms["gate"])
+    assert (du_n[gate == 0] == 0).all()
+
+
+def test_energy_ledger_closes_over_a_rollout():
+    """Jar work + gravity's work - change of kinetic energy = the model's dissipation, every
+    step (to float32 rounding) and over 200 steps of a moving jar."""
+    from sgn_jax.graph import slide_window
+
+    rng = np.random.default_rng(5)
+    window, _ = scene(rng)
+    query = floor_query((0.0, 1.0, 0.0))
+    graph, _ = build_graph(window, None, SPEC, query)
+    net = net_with((0.0, -9.81, 0.0))
+    params = random_params(net, graph, seed=4)
+    g = np.array([0.0, -9.81, 0.0])
+    m = PHYS.ball_mass
+
+    @jax.jit
+    def step(window):
+        graph, _ = build_graph(window, None, SPEC, query)
+        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+        return terms
+
+    ledger_rows, t = [], 0.0
+    for _s in range(200):
+        terms = step(window)
+        pos = np.asarray(window.positions, np.float64)
+        v_now = (pos[-1] - pos[-2]) / DT
+        dv = np.asarray(terms["dv"][:5], np.float64)
+        v_next = v_now + dv
+        x_next = pos[-1] + v_next * DT
+        d_ke = 0.5 * m * np.sum(v_next ** 2 - v_now ** 2)
+        w_grav = m * np.sum((0.5 * (v_now + v_next)) @ g) * DT
+        d_pe = -m * np.sum((x_next - pos[-1]) @ g)
+        ledger_rows.append((float(terms["work_wall"][0]), w_grav, d_ke, d_pe,
+                            float(terms["diss_pp"][0]) + float(terms["diss_pw"][0])))
+        t += DT
+        jar_v = np.array([0.3 * np.cos(40 * t), 0.0, 0.3 * np.sin(40 * t)])
+        jar_x = np.asarray(window.offsets[-1]) + jar_v * DT
+        window = slide_window(window, jnp.asarray(x_next), jnp.asarray(jar_x), jnp.asarray(jar_v))
+    w_wall, w_grav, d_ke, d_pe, diss = (np.array(c) for c in zip(*ledger_rows, strict=False))
+    assert np.isfinite(diss).all() and np.abs(diss).sum() > 0 and np.abs(w_wall).sum() > 0
+    # Per step: float32 impulses and midpoint velocities; relative to the step's energy flow.
+    flow = np.abs(w_wall) + np.abs(d_ke) + np.abs(w_grav)
+    np.testing.assert_array_less(np.abs(w_wall + w_grav - d_ke - diss), 1e-4 * flow + 1e-12)
+    total = w_wall.sum() + w_grav.sum() - d_ke.sum()
+    assert diss.sum() == pytest.approx(total, rel=1e-4)
+    # With the potential energy of the positions: the difference telescopes to
+    # m g . (v_end - v_start) dt / 2 per ball, tiny against the dissipation here.
+    total_pe = w_wall.sum() - d_ke.sum() - d_pe.sum()
+    assert abs(total_pe - total) <= 5.0 * m * 9.81 * DT * 5 + 1e-3 * abs(total)
