@@ -50,6 +50,7 @@ from sgn_jax.config import (
     resolve_config,
     save_config,
 )
+from sgn_jax.contact_train import UnrollSpec
 from sgn_jax.dataset import DatasetError, Trajectory, load_trajectory, save_trajectory
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.design import (
@@ -80,9 +81,9 @@ from sgn_jax.io_utils import (
     write_json,
 )
 from sgn_jax.metrics import (
-    contact_census,
     align,
     compare,
+    contact_census,
     ensemble_summary,
     evaluate,
     headline,
@@ -93,14 +94,13 @@ from sgn_jax.metrics import (
 )
 from sgn_jax.motion import Motion, frequency_hz, motion_kind, offset
 from sgn_jax.pairs import pairs_within
-from sgn_jax.contact_train import UnrollSpec
-from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
     motion_from_config,
     sdf_grid_from_config,
 )
+from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.dem_run import (
     DEMRun,
     initial_state,

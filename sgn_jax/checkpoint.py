@@ -34,9 +34,9 @@ from typing import Any
 import jax
 import numpy as np
 
+import sgn_jax.contact  # noqa: F401  (registers the built-in model kind "contact")
 from sgn_jax.config import ConfigError, config_from_dict
 from sgn_jax.errors import SGNJaxError, SGNJaxWarning
-import sgn_jax.contact  # noqa: F401  (registers the built-in model kind "contact")
 from sgn_jax.model import ModelKindError, make_predict, model_factory, model_kind
 from sgn_jax.normalization import NormStats, stats_from_arrays, stats_to_arrays
 
