@@ -57,11 +57,15 @@ class UnrollBatch:
 class UnrollSpec:
     """Static settings of the unrolled loss: ``unroll`` K steps; ``pushforward`` cuts the
     gradient between steps; ``position_noise`` (m) perturbs the first window's positions by a
-    random walk (std per slot) so the model sees states slightly off the DEM's."""
+    random walk (std per slot) so the model sees states slightly off the DEM's;
+    ``relative_floor`` > 0 (m/s) switches to the per-ball relative loss
+    ``huber(|v - v_DEM| / sqrt(|dv_DEM|^2 + floor^2))``, in which a resting ball weighs as
+    much as a hard impact (else the squared error over the trajectory's scale)."""
 
     unroll: int = 4
     pushforward: bool = False
     position_noise: float = 0.0
+    relative_floor: float = 0.0
 
 
 def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery | None,
@@ -93,7 +97,16 @@ def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery
             x_true_next = jax.lax.dynamic_index_in_dim(positions, w + 1 + k, keepdims=False)
             x_true_now = jax.lax.dynamic_index_in_dim(positions, w + k, keepdims=False)
             v_true = (x_true_next - x_true_now) / dt
-            err = jnp.mean(jnp.sum((v_next - v_true) ** 2, axis=-1)) / scale ** 2
+            if unroll.relative_floor > 0:
+                # per ball, relative to its own velocity change (with a floor): a resting ball
+                # (|dv| ~ g dt) weighs as much as a ball in a hard impact (|dv| ~ 1 m/s)
+                x_true_prev = jax.lax.dynamic_index_in_dim(positions, w + k - 1, keepdims=False)
+                dv_true = v_true - (x_true_now - x_true_prev) / dt
+                ref = jnp.sqrt(jnp.sum(dv_true ** 2, axis=-1) + unroll.relative_floor ** 2)
+                ratio = jnp.sqrt(jnp.sum((v_next - v_true) ** 2, axis=-1) + 1e-30) / ref
+                err = jnp.mean(optax.huber_loss(ratio, delta=1.0))
+            else:
+                err = jnp.mean(jnp.sum((v_next - v_true) ** 2, axis=-1)) / scale ** 2
             new_pos = jnp.concatenate([win_pos[1:], x_next[None]])
             if unroll.pushforward:
                 new_pos = jax.lax.stop_gradient(new_pos)

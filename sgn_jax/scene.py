@@ -49,6 +49,7 @@ from sgn_jax.geometry import (
     jar_sdf,
     patch_names,
     query_sdf_grid,
+    query_sdf_grid_patches,
     safe_normalize,
 )
 from sgn_jax.motion import Motion, frequency_hz, offset, velocity
@@ -89,6 +90,26 @@ def grid_walls(grid: SDFGrid, x_jar: jax.Array) -> tuple[jax.Array, jax.Array]:
     return phi[..., None].astype(x_jar.dtype), normal[..., None, :].astype(x_jar.dtype)
 
 
+def grid_patch_walls(grid: SDFGrid, x_jar: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A patch-stacked SDF grid as its P patches (each patch's trilinear interpolant; P = 1
+    for a single grid); its max over the patches is :func:`grid_walls`."""
+    x_jar = jnp.asarray(x_jar)
+    phi, normal = query_sdf_grid_patches(grid, x_jar, jnp.zeros(3, dtype=x_jar.dtype))
+    return phi.astype(x_jar.dtype), normal.astype(x_jar.dtype)
+
+
+# A wall query that merges patches (one column) -> the same walls patch by patch: a surrogate
+# with one ball-wall edge per patch (GraphSpec.wall_patches) asks for this form.
+_PATCHES_OF: dict[Any, WallQuery] = {}
+
+
+def patches_of(walls: WallQuery) -> WallQuery:
+    """The per-patch form of a wall query: ``analytic_walls`` -> ``patch_walls`` (the jar's
+    exact patches), ``grid_walls`` -> ``grid_patch_walls``; a query that already has one
+    column per patch is its own per-patch form."""
+    return _PATCHES_OF.get(walls, walls)
+
+
 def nearest_wall(walls: WallQuery, geometry: Any, x_jar: jax.Array
                  ) -> tuple[jax.Array, jax.Array]:
     """``(phi (...), normal (..., 3))`` of the patch with the largest phi (the nearest wall, or
@@ -112,6 +133,19 @@ def lab_query(walls: WallQuery) -> SDFQuery:
     query.walls = walls  # type: ignore[attr-defined]
     return query
 
+
+def lab_patch_query(walls: WallQuery) -> SDFQuery:
+    """The lab-frame query of every patch of ``walls``: ``query(geometry, points (..., 3),
+    jar_offset) -> (phi (..., P), normal (..., P, 3))``."""
+    def query(geometry: Any, points: jax.Array, jar_offset: jax.Array
+              ) -> tuple[jax.Array, jax.Array]:
+        return walls(geometry, jnp.asarray(points) - jnp.asarray(jar_offset))
+
+    query.walls = walls  # type: ignore[attr-defined]
+    return query
+
+
+_PATCHES_OF.update({analytic_walls: patch_walls, grid_walls: grid_patch_walls})
 
 analytic_jar_query: SDFQuery = lab_query(analytic_walls)
 """The exact SDF of a ``JarParams`` jar in the surrogate's query form (design studies, tests)."""
@@ -213,9 +247,12 @@ __all__ = [
     "analytic_walls",
     "grid_jar",
     "grid_query",
+    "grid_patch_walls",
     "grid_walls",
+    "lab_patch_query",
     "lab_query",
     "nearest_wall",
     "parametric_jar",
     "patch_walls",
+    "patches_of",
 ]

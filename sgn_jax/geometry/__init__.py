@@ -21,6 +21,7 @@ from sgn_jax.geometry.sdf_grid import (
     grid_sdf,
     jar_bounds,
     query_sdf_grid,
+    query_sdf_grid_patches,
     sdf_grid_from_fn,
     sdf_grid_from_jar,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "signed_distance_grid",
     "patch_names",
     "query_sdf_grid",
+    "query_sdf_grid_patches",
     "safe_norm",
     "safe_normalize",
     "sdf_grid_from_fn",

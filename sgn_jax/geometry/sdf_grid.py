@@ -204,7 +204,8 @@ def sdf_grid_from_jar(
 # Interpolation
 
 
-def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _interpolate(grid: SDFGrid, x: jax.Array, keep_patches: bool = False
+                 ) -> tuple[jax.Array, jax.Array]:
     """phi (...,) and its gradient (..., 3) at jar-frame points x (..., 3).
 
     Trilinear inside the grid box. For a patch-stacked grid (values (P, nx, ny, nz)) every patch
@@ -213,6 +214,9 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     unique; ties are a measure-zero set where any choice is a valid subgradient). Outside the
     grid box, the point is clamped to the box and the distance to the box is added, so phi keeps
     growing (an escaped ball has phi > 0) and is never NaN.
+
+    ``keep_patches``: return every patch, phi (..., P) and gradients (..., P, 3) (P = 1 for a
+    single grid), instead of the max.
     """
     values = grid.values
     if values.ndim not in (3, 4):
@@ -264,6 +268,17 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     in_range = (u >= 0) & (u <= last)  # clamped axes do not vary with x
     grad_inside = jnp.stack([d_dtx, d_dty, d_dtz], axis=-1) / h * in_range
 
+    # to_box: the vector from the nearest point of the grid box, written as (u - clamp(u)) h
+    # so that it is exactly zero inside the box (x - (origin + u h) leaves rounding noise
+    # whose direction would pollute the gradient).
+    to_box = (u - u_clamped) * h
+    if keep_patches:
+        if values.ndim == 3:
+            phi_inside, grad_inside = phi_inside[None], grad_inside[None]
+        phi_p = jnp.moveaxis(phi_inside, 0, -1) + safe_norm(to_box)[..., None]
+        grad_p = jnp.moveaxis(grad_inside, 0, -2) + safe_normalize(to_box)[..., None, :]
+        return phi_p, grad_p
+
     if values.ndim == 4:
         # phi = max_p phi_p; its gradient is the maximising patch's (the first one on a tie).
         # Selecting phi and the gradient with the same mask keeps d phi / dx equal to the
@@ -276,13 +291,18 @@ def _interpolate(grid: SDFGrid, x: jax.Array) -> tuple[jax.Array, jax.Array]:
             phi_inside = jnp.where(higher, patch_phi[p], phi_inside)
             grad_inside = jnp.where(higher[..., None], patch_grad[p], grad_inside)
 
-    # Vector from the nearest point of the grid box; written as (u - clamp(u)) h so that it is
-    # exactly zero inside the box (x - (origin + u h) leaves rounding noise whose direction
-    # would pollute the gradient).
-    to_box = (u - u_clamped) * h
     phi = phi_inside + safe_norm(to_box)
     grad = grad_inside + safe_normalize(to_box)
     return phi, grad
+
+
+def query_sdf_grid_patches(grid: SDFGrid, points: jax.Array, offset: jax.Array
+                           ) -> tuple[jax.Array, jax.Array]:
+    """Every patch of a patch-stacked grid at lab-frame points: phi (..., P) and unit normals
+    (..., P, 3) of each patch's trilinear interpolant (P = 1 for a single grid); the max over
+    the patches is :func:`query_sdf_grid`."""
+    phi, grad = _interpolate(grid, jnp.asarray(points) - jnp.asarray(offset), keep_patches=True)
+    return phi, safe_normalize(grad)
 
 
 def grid_sdf(grid: SDFGrid, x_jar: jax.Array) -> jax.Array:
