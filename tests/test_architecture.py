@@ -457,3 +457,17 @@ def test_experiments_import_only_the_public_api():
     if problems:
         pytest.fail("experiments import only sgn_jax / sgn_jax.api (add what they need to "
                     "sgn_jax.api):\n" + "\n".join(problems), pytrace=False)
+
+
+def test_the_package_data_paths_resolve_from_the_modules_folders():
+    """Modules that find shipped files relative to their own file (``Path(__file__)``) still find
+    them after a move between folders (records/ is one level below the package root)."""
+    from sgn_jax.config import builtin_config_path
+    from sgn_jax.pipelines import demo
+    from sgn_jax.records import checkpoint, envelope
+
+    data = PACKAGE_DIR / "data"
+    assert envelope.ENVELOPE_PATH == data / "envelope.toml" and envelope.ENVELOPE_PATH.is_file()
+    assert checkpoint._SHIPPED_MODELS_DIR == data / "models"
+    assert demo.SHIPPED_MODELS_DIR == data / "models" and (data / "models").is_dir()
+    assert builtin_config_path("emax_300rpm").is_file()

@@ -44,7 +44,7 @@ FORMAT_VERSION = 1
 DIGEST_FILE = "sgn_digest.json"
 DIGEST_FORMAT = "sgn-jax checkpoint file digest"
 DIGEST_VERSION = 1
-_SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
+_SHIPPED_MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
 
 
 class CheckpointError(SGNJaxError, RuntimeError):
