@@ -73,7 +73,6 @@ def node_graph_index(graph: jraph.GraphsTuple) -> jax.Array:
     return jnp.repeat(jnp.arange(n_graph), graph.n_node, total_repeat_length=n_total)
 
 
-
 def make_model(model_cfg: Any) -> nn.Module:
     """The flax module of a ``[model]`` config section (:class:`sgn_jax.config.ModelConfig`),
     built by the factory registered for its ``kind`` (default "sgn": an

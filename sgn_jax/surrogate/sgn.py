@@ -153,7 +153,6 @@ class InteractionLayer(nn.Module):
             jnp.concatenate([h_node, aggregated], axis=-1))
 
 
-
 class SGN(nn.Module):
     """The SGN. ``__call__(graph) -> (accel_norm (n_node, 3), dE_norm (n_graph,))``.
 
@@ -214,12 +213,10 @@ class SGN(nn.Module):
         return accel, de
 
 
-
 def make_sgn(model_cfg: Any) -> SGN:
     """An :class:`SGN` from a ``[model]`` config section (the factory of kind "sgn")."""
     return SGN(hidden=model_cfg.hidden, mlp_layers=model_cfg.mlp_layers,
                interaction_layers=model_cfg.interaction_layers)
-
 
 
 register_model(DEFAULT_MODEL_KIND, make_sgn,
