@@ -29,8 +29,8 @@ import numpy as np
 import sgn_jax
 from sgn_jax.config import builtin_config_path, load_config
 from sgn_jax.dem.engine import init_state, make_advance
-from sgn_jax.io_utils import git_commit, write_json
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
+from sgn_jax.records.io_utils import git_commit, write_json
 
 
 def _cpu_model() -> str:

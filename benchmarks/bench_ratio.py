@@ -115,14 +115,14 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
     import jax.numpy as jnp
 
     from sgn_jax.api import make_rollout, model_predictor
-    from sgn_jax.graph import windows_from_arrays
-    from sgn_jax.model import count_params
     from sgn_jax.motion import offset, velocity
     from sgn_jax.pipelines.configure import (
         graph_spec_from_config,
         motion_from_config,
         sdf_grid_from_config,
     )
+    from sgn_jax.surrogate.graph import windows_from_arrays
+    from sgn_jax.surrogate.model import count_params
 
     cfg = _config()
     surrogate = _surrogate(model)

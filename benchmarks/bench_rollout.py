@@ -46,7 +46,7 @@ def _standard_config(settle_time: float = 0.05):
 
 def _hand_stats(window: int):
     """Normalisation scales of the standard case (m/s, m, Hz, m/s^2, J)."""
-    from sgn_jax.normalization import Moments, NormStats
+    from sgn_jax.surrogate.normalization import Moments, NormStats
 
     def m(mean, std):
         return Moments(mean=np.asarray(mean, np.float64), std=np.asarray(std, np.float64))
@@ -60,9 +60,9 @@ def _hand_stats(window: int):
 
 def lattice_window(cfg, spec):
     """24 balls on a lattice in the jar (at rest), as a Window ending at t = 0.1 s."""
-    from sgn_jax.graph import Window
     from sgn_jax.motion import offset
     from sgn_jax.pipelines.configure import motion_from_config
+    from sgn_jax.surrogate.graph import Window
 
     t0 = 0.1
     xs = np.linspace(-0.03, 0.03, 6)
@@ -79,15 +79,16 @@ def lattice_window(cfg, spec):
 def _setup(hidden: int, window0, t0: float, cfg):
     import jax
 
-    from sgn_jax.graph import build_graph
-    from sgn_jax.model import SGN, count_params, init_params
-    from sgn_jax.normalization import normalize_graph
     from sgn_jax.pipelines.configure import (
         graph_spec_from_config,
         motion_from_config,
         sdf_grid_from_config,
     )
-    from sgn_jax.rollout import jar_state_window
+    from sgn_jax.surrogate.graph import build_graph
+    from sgn_jax.surrogate.model import count_params, init_params
+    from sgn_jax.surrogate.normalization import normalize_graph
+    from sgn_jax.surrogate.rollout import jar_state_window
+    from sgn_jax.surrogate.sgn import SGN
 
     spec = graph_spec_from_config(cfg)
     sdf = sdf_grid_from_config(cfg)
@@ -117,7 +118,7 @@ def _time(fn, repeats: int) -> list[float]:
 
 
 def bench_single(hidden: int, steps: int, repeats: int, window0, t0: float, cfg) -> dict:
-    from sgn_jax.rollout import make_rollout
+    from sgn_jax.surrogate.rollout import make_rollout
 
     s = _setup(hidden, window0, t0, cfg)
     rollout = make_rollout(s["spec"], s["model"], steps, 10)
@@ -139,9 +140,9 @@ def model_gflop_per_step(s: dict, window0, t0: float) -> float:
     """XLA's flop count of one network evaluation (featurizer excluded) on the padded graph."""
     import jax
 
-    from sgn_jax.graph import build_graph
-    from sgn_jax.model import make_predict
-    from sgn_jax.rollout import jar_state_window
+    from sgn_jax.surrogate.graph import build_graph
+    from sgn_jax.surrogate.model import make_predict
+    from sgn_jax.surrogate.rollout import jar_state_window
 
     graph, _ = jax.jit(lambda w: build_graph(jar_state_window(w, s["motion"], t0, s["spec"].dt),
                                              s["sdf"], s["spec"]))(window0)
@@ -160,9 +161,9 @@ def bench_in_loop(hidden: int, steps: int, repeats: int, traj, start: int, cfg,
     import jax
     import jax.numpy as jnp
 
-    from sgn_jax.graph import dissipation_per_interval, targets_from_arrays
     from sgn_jax.pipelines.rollout_run import initial_window
-    from sgn_jax.rollout import ReplayTable, make_rollout, model_predictor
+    from sgn_jax.surrogate.graph import dissipation_per_interval, targets_from_arrays
+    from sgn_jax.surrogate.rollout import ReplayTable, make_rollout, model_predictor
 
     window0, t0 = initial_window(traj, start, cfg.graph.window), float(traj.t[start])
     s = _setup(hidden, window0, t0, cfg)
@@ -197,7 +198,7 @@ def bench_batch(hidden: int, batch: int, steps: int, repeats: int, window0, t0: 
     import jax.numpy as jnp
 
     from sgn_jax.motion import CircleMotion
-    from sgn_jax.rollout import make_rollout
+    from sgn_jax.surrogate.rollout import make_rollout
 
     s = _setup(hidden, window0, t0, cfg)
     rollout = make_rollout(s["spec"], s["model"], steps, 10, jit=False)
@@ -218,8 +219,8 @@ def bench_batch(hidden: int, batch: int, steps: int, repeats: int, window0, t0: 
 
 
 def bench_dem(cfg, seconds: float) -> tuple[dict, object]:
-    from sgn_jax.dataset import Trajectory
     from sgn_jax.pipelines.dem_run import run_dem
+    from sgn_jax.records.trajectory import Trajectory
 
     run = run_dem(cfg, duration=seconds, progress=False)
     s = run.summary
@@ -244,7 +245,7 @@ def differentiated_rollout_memory(n_steps: int, hidden: int = 16, checkpoint_ste
     import jax.numpy as jnp
 
     from sgn_jax.pipelines.configure import graph_spec_from_config
-    from sgn_jax.rollout import make_rollout
+    from sgn_jax.surrogate.rollout import make_rollout
 
     cfg = _standard_config()
     spec = graph_spec_from_config(cfg)
@@ -284,7 +285,7 @@ def memory_in_subprocess(n_steps: int, hidden: int) -> dict:
 
 
 def machine() -> dict:
-    from sgn_jax.io_utils import machine_info
+    from sgn_jax.records.io_utils import machine_info
 
     return machine_info()
 

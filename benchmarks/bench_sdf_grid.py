@@ -36,8 +36,8 @@ from sgn_jax.geometry import (
     sdf_grid_from_jar,
 )
 from sgn_jax.geometry.accuracy import grid_error_report
-from sgn_jax.io_utils import machine_info, write_json
 from sgn_jax.pipelines.configure import sdf_grid_from_mesh
+from sgn_jax.records.io_utils import machine_info, write_json
 
 DEFAULT = JarParams()
 POST = JarParams(post_radius=0.006, has_post=True)

@@ -25,7 +25,7 @@ import numpy as np
 import sgn_jax  # noqa: F401  (enables x64)
 from sgn_jax.geometry import JarParams, grid_sdf, jar_sdf, query_sdf_grid, sdf_grid_from_jar
 from sgn_jax.geometry.accuracy import cavity_points, grid_error_report
-from sgn_jax.io_utils import machine_info, write_json
+from sgn_jax.records.io_utils import machine_info, write_json
 
 DEFAULT = JarParams()
 POST = JarParams(post_radius=0.006, has_post=True)

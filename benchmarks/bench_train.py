@@ -2,7 +2,7 @@
 
 Uses synthetic normalised graphs of the standard case's shape (24 balls + wall, window 7) with a
 chosen mean number of directed edges per graph (ball-ball + ball-wall), packed exactly as in
-training (:class:`sgn_jax.train.BatchPacker`), and times the jitted training step.
+training (:class:`sgn_jax.surrogate.train.BatchPacker`), and times the jitted training step.
 
     python benchmarks/bench_train.py                      # hidden 256 and 128, batch 32
     python benchmarks/bench_train.py --hidden 256 --batch 16 32 64 --edges 60 100 --seconds 20
@@ -22,9 +22,9 @@ import numpy as np
 
 import sgn_jax  # noqa: F401  (enables x64 before any array is made)
 from sgn_jax.config import ModelConfig, TrainConfig
-from sgn_jax.io_utils import machine_info
-from sgn_jax.model import count_params, init_params, make_apply, make_model
-from sgn_jax.train import (
+from sgn_jax.records.io_utils import machine_info
+from sgn_jax.surrogate.model import count_params, init_params, make_apply, make_model
+from sgn_jax.surrogate.train import (
     BatchPacker,
     GraphDataset,
     TrainState,

@@ -2,8 +2,8 @@
 
 Synthetic normalised graphs of the standard case's shape (:func:`bench_train.synthetic_dataset`,
 24 balls + wall, window 7), the same samples per step either way: one device packs
-``batch`` graphs per step (:class:`sgn_jax.train.BatchPacker`), D devices pack D sub-batches
-of ``batch / D`` graphs (:class:`sgn_jax.train.ShardedPacker`) and run
+``batch`` graphs per step (:class:`sgn_jax.surrogate.train.BatchPacker`), D devices pack D
+sub-batches of ``batch / D`` graphs (:class:`sgn_jax.surrogate.train.ShardedPacker`) and run
 ``make_train_step(..., sharding=DataParallel.over(D))``. Compile time apart.
 
 On a CPU the devices are host devices (``XLA_FLAGS=--xla_force_host_platform_device_count=D``,
@@ -33,8 +33,8 @@ def bench(n_devices: int, hidden: int, batch: int, mean_edges: float, seconds: f
     from bench_train import synthetic_dataset, time_train_steps
 
     from sgn_jax.config import ModelConfig, TrainConfig
-    from sgn_jax.model import init_params, make_apply, make_model
-    from sgn_jax.train import (
+    from sgn_jax.surrogate.model import init_params, make_apply, make_model
+    from sgn_jax.surrogate.train import (
         BatchPacker,
         DataParallel,
         ShardedPacker,
@@ -91,7 +91,7 @@ def main() -> None:
     import jax
 
     import sgn_jax  # noqa: F401  (enables x64 before any array is made)
-    from sgn_jax.io_utils import machine_info
+    from sgn_jax.records.io_utils import machine_info
 
     if len(jax.devices()) < args.devices:
         p.error(f"{len(jax.devices())} devices, --devices {args.devices}")

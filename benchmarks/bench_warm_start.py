@@ -1,5 +1,5 @@
-"""Cold vs warm starts with the user cache (sgn_jax.cache): a short DEM run and a design-study
-session, each run twice in fresh processes sharing one new cache directory.
+"""Cold vs warm starts with the user cache (sgn_jax.records.cache): a short DEM run and a
+design-study session, each run twice in fresh processes sharing one new cache directory.
 
     python benchmarks/bench_warm_start.py            # writes benchmarks/results/warm_start.json
 
@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from sgn_jax.io_utils import atomic_write, git_commit, machine_info
+from sgn_jax.records.io_utils import atomic_write, git_commit, machine_info
 
 DESIGN_SESSION = r"""
 import json, time

@@ -24,8 +24,8 @@ from sgn_jax.dem import (
     plane_wall_fn,
     plane_walls,
 )
-from sgn_jax.io_utils import git_commit
 from sgn_jax.motion import CircleMotion
+from sgn_jax.records.io_utils import git_commit
 
 R = 0.005
 DT = 9.5e-7

@@ -8,7 +8,7 @@ motion, three regime indicators:
 
 - the DEM's mean ball-ball contact count (its contact list: the ground truth of the state);
 - the mean ball speed in the jar frame from 1-ms finite differences of ``pos - offset``
-  (``sgn_jax.metrics.jar_frame_speed``, the default rule of ``sgn-jax evaluate``: it reads
+  (``sgn_jax.analysis.metrics.jar_frame_speed``, the default rule of ``sgn-jax evaluate``: it reads
   positions only, so it applies to a surrogate's rollout the same way);
 - the mean dissipation power (normal + tangential damping, the surrogate's target).
 

@@ -11,8 +11,8 @@ motion, seeds and which of them are training packings) this runs
     taskset -c CORE sgn-jax dem --config CONFIG --duration D --seed S --out OUT/{case}_seed{S}.npz
 
 unless that file is already complete. A file counts as complete when
-``sgn_jax.dataset.load_trajectory`` accepts it *and* it is the run asked for: its seed, its
-number of samples (D / dt + 1) and the DEM-relevant part of its config ([jar], [motion],
+``sgn_jax.records.trajectory.load_trajectory`` accepts it *and* it is the run asked for: its seed,
+its number of samples (D / dt + 1) and the DEM-relevant part of its config ([jar], [motion],
 [balls], [material], [dem] except seed/duration/chunk_samples, [sdf] for mesh jars) match the
 case. A corrupt or stale file is deleted and redone. An interrupted run left ``OUT.partial/``
 behind; ``sgn-jax dem`` resumes from there, so rerunning this script continues where it stopped.

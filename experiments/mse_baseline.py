@@ -6,7 +6,7 @@ prediction, to read the surrogates' MSE_t plateaus against.
 
 Pairs consecutive held-out seeds of the case (4-5, 6-7, ...): MSE_t (paper Eq. 33, balls matched
 by index) between the two DEM trajectories at the same times from t = 0.7 ms on, every 1 ms, and
-its plateau (median over the second half, as ``sgn_jax.metrics.mse_plateau``).
+its plateau (median over the second half, as ``sgn_jax.analysis.metrics.mse_plateau``).
 
 ``--files A.npz B.npz`` compares two given runs instead, e.g. the same packing with the DEM at
 two time steps (the chaos floor of any surrogate):

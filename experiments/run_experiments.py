@@ -75,8 +75,9 @@ DEFAULT_ENSEMBLES = HERE / "ensembles.toml"
 POLL_S = 1.0
 
 # The planning (rollout_duration, parse_rollout_settings, case_config) and summary
-# (case_result, plot_case_curves) steps live in sgn_jax.pipelines.experiments and sgn_jax.plots,
-# shared with experiments/envelope/evaluate_model.py; they are imported above from sgn_jax.api.
+# (case_result, plot_case_curves) steps live in sgn_jax.pipelines.experiments and
+# sgn_jax.analysis.plots, shared with experiments/envelope/evaluate_model.py; they are imported
+# above from sgn_jax.api.
 
 
 # --------------------------------------------------------------------------------------------

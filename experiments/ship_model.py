@@ -15,7 +15,7 @@ Replaces the shipped model of CASE with the best checkpoint of the training run 
 - ``loss.png`` and ``metrics.csv`` of the run.
 
 The step's ``sgn_digest.json`` (sha256 of every file) is copied with it, or written if the run
-predates it. The new model is loaded back (``sgn_jax.checkpoint.load_trained_model``, which
+predates it. The new model is loaded back (``sgn_jax.records.checkpoint.load_trained_model``, which
 verifies every file) before the old one is removed, so a failed copy never leaves the package
 without a model.
 """

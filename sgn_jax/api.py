@@ -15,7 +15,7 @@ returns the same with standard errors; ``study.powers(theta)`` the per-packing p
 gradient work (for curves and finite differences).
 
 This module is the layer where configs and files meet the core (:mod:`sgn_jax.design`,
-:mod:`sgn_jax.rollout`, :mod:`sgn_jax.dem`); the CLI and the experiments call it.
+:mod:`sgn_jax.surrogate.rollout`, :mod:`sgn_jax.dem`); the CLI and the experiments call it.
 """
 
 from __future__ import annotations
@@ -32,13 +32,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.cache import enable_compilation_cache
-from sgn_jax.checkpoint import (
-    DIGEST_FILE,
-    CheckpointError,
-    TrainedModel,
-    load_trained_model,
-    write_checkpoint_digest,
+from sgn_jax.analysis.metrics import (
+    align,
+    compare,
+    contact_census,
+    ensemble_summary,
+    evaluate,
+    headline,
+    jar_frame_speed,
+    mse_plateau,
+    position_mse,
+    pp_contact_counts,
 )
 from sgn_jax.config import (
     Config,
@@ -50,8 +54,6 @@ from sgn_jax.config import (
     resolve_config,
     save_config,
 )
-from sgn_jax.contact_train import UnrollSpec
-from sgn_jax.dataset import DatasetError, Trajectory, load_trajectory, save_trajectory
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.design import (
     PARAMETER_UNITS,
@@ -66,32 +68,8 @@ from sgn_jax.design import (
     parameter_values,
     summarize_estimate,
 )
-from sgn_jax.ensembles import Case, EnsembleError, load_ensembles, select_cases
-from sgn_jax.envelope import latin_hypercube_motions, load_envelope, motion_label
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError, SGNJaxWarning
 from sgn_jax.geometry import JarParams
-from sgn_jax.graph import GraphSpec, Window, build_graph
-from sgn_jax.io_utils import (
-    append_jsonl,
-    atomic_write,
-    git_commit,
-    machine_info,
-    read_jsonl,
-    sha256_file,
-    write_json,
-)
-from sgn_jax.metrics import (
-    align,
-    compare,
-    contact_census,
-    ensemble_summary,
-    evaluate,
-    headline,
-    jar_frame_speed,
-    mse_plateau,
-    position_mse,
-    pp_contact_counts,
-)
 from sgn_jax.motion import Motion, frequency_hz, motion_kind, offset
 from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import (
@@ -125,7 +103,28 @@ from sgn_jax.pipelines.experiments import (
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
 from sgn_jax.pipelines.rollout_run import initial_window, run_rollout
-from sgn_jax.prediction import Prediction, PredictionError, load_prediction, save_prediction
+from sgn_jax.pipelines.validation import check_dem_config, check_duration, warn_outside_envelope
+from sgn_jax.records.cache import enable_compilation_cache
+from sgn_jax.records.checkpoint import (
+    DIGEST_FILE,
+    CheckpointError,
+    TrainedModel,
+    load_trained_model,
+    write_checkpoint_digest,
+)
+from sgn_jax.records.ensembles import Case, EnsembleError, load_ensembles, select_cases
+from sgn_jax.records.envelope import latin_hypercube_motions, load_envelope, motion_label
+from sgn_jax.records.io_utils import (
+    append_jsonl,
+    atomic_write,
+    git_commit,
+    machine_info,
+    read_jsonl,
+    sha256_file,
+    write_json,
+)
+from sgn_jax.records.prediction import Prediction, PredictionError, load_prediction, save_prediction
+from sgn_jax.records.trajectory import DatasetError, Trajectory, load_trajectory, save_trajectory
 from sgn_jax.regime import (
     AGITATED_SPEED_M_S,
     BED_PAIRS_PER_BALL,
@@ -137,7 +136,10 @@ from sgn_jax.regime import (
     regime_of,
     regime_windows,
 )
-from sgn_jax.rollout import (
+from sgn_jax.scene import Scene, WallQuery
+from sgn_jax.surrogate.contact_train import UnrollSpec
+from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
+from sgn_jax.surrogate.rollout import (
     RolloutError,
     RolloutOptions,
     RolloutResult,
@@ -149,10 +151,8 @@ from sgn_jax.rollout import (
     make_rollout_step,
     model_predictor,
 )
-from sgn_jax.scene import Scene, WallQuery
-from sgn_jax.validation import check_dem_config, check_duration, warn_outside_envelope
 
-# A second session of a design study reuses the compiled programs (sgn_jax.cache; off with
+# A second session of a design study reuses the compiled programs (sgn_jax.records.cache; off with
 # SGN_JAX_NO_CACHE=1).
 enable_compilation_cache()
 
@@ -177,26 +177,27 @@ def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool 
 
 
 def new_figure(width: float, height: float, **kwargs: Any) -> Any:
-    """:func:`sgn_jax.plots.new_figure`: a matplotlib ``Figure`` on the Agg canvas (no pyplot).
+    """:func:`sgn_jax.analysis.plots.new_figure`: a matplotlib ``Figure`` on the Agg canvas (no
+    pyplot).
 
     matplotlib is imported on the first call only (``sgn-jax --help`` does not load it)."""
-    from sgn_jax import plots
+    from sgn_jax.analysis import plots
 
     return plots.new_figure(width, height, **kwargs)
 
 
 def save_figure(fig: Any, path: str | Path) -> Path:
-    """:func:`sgn_jax.plots.save_figure`: write ``fig`` to a ``.png`` atomically."""
-    from sgn_jax import plots  # deferred: matplotlib loads on the first figure only
+    """:func:`sgn_jax.analysis.plots.save_figure`: write ``fig`` to a ``.png`` atomically."""
+    from sgn_jax.analysis import plots  # deferred: matplotlib loads on the first figure only
 
     return plots.save_figure(fig, path)
 
 
 def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str | Path],
                      labels: Sequence[str], path: str | Path) -> Path:
-    """:func:`sgn_jax.plots.plot_case_curves`: every run of an ensemble case in one figure
+    """:func:`sgn_jax.analysis.plots.plot_case_curves`: every run of an ensemble case in one figure
     (cumulative dissipated energy, SGN solid and DEM dashed; MSE_t)."""
-    from sgn_jax import plots  # deferred: matplotlib loads on the first figure only
+    from sgn_jax.analysis import plots  # deferred: matplotlib loads on the first figure only
 
     return plots.plot_case_curves(title, preds, refs, labels, path)
 
@@ -206,7 +207,8 @@ class Packings:
     """K initial states of the surrogate, one per DEM packing.
 
     Attributes:
-        windows: :class:`sgn_jax.graph.Window` with a leading axis K (positions (K, W+1, N, 3)).
+        windows: :class:`sgn_jax.surrogate.graph.Window` with a leading axis K (positions
+            (K, W+1, N, 3)).
         t0: time (s since the start of motion) of the windows' newest sample.
         seeds: the K DEM placement seeds.
         config: the config they were made with (jar, balls, motion at which they were sampled).
@@ -445,9 +447,10 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
     devices (:func:`shard_packings`).
 
     Returns:
-        a :class:`sgn_jax.rollout.RolloutResult` with a leading axis K (packings): ``positions``
-        (K, P, N, 3) m at the times ``t_pos`` (every ``save_every`` steps, default ``[rollout]
-        save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` / ``n_snapped`` (K, S).
+        a :class:`sgn_jax.surrogate.rollout.RolloutResult` with a leading axis K (packings):
+        ``positions`` (K, P, N, 3) m at the times ``t_pos`` (every ``save_every`` steps, default
+        ``[rollout] save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` /
+        ``n_snapped`` (K, S).
     """
     rollout = _ensemble_rollout(surrogate, cfg, duration, save_every)
     frame = _surrogate_frame(surrogate, cfg, packings)
@@ -472,7 +475,7 @@ def rollout_sweep(surrogate: TrainedModel, cfgs: Sequence[Config], packings: Pac
     a multiple of the device count). A new M x K compiles once; the same sizes reuse it.
 
     Returns:
-        a :class:`sgn_jax.rollout.RolloutResult` with leading axes (M, K): ``positions``
+        a :class:`sgn_jax.surrogate.rollout.RolloutResult` with leading axes (M, K): ``positions``
         (M, K, P, N, 3) m, ``steps.energy_cum`` (M, K, S) J, ...
     """
     cfgs = list(cfgs)
@@ -677,7 +680,8 @@ class DEMEnsemble:
 
     def settled(self, cfg: Config, seed: int) -> Any:
         """The settled DEM state of ``cfg``'s jar and balls for ``seed`` (cached in memory and
-        in the user cache, :mod:`sgn_jax.cache`), in the lab frame of ``cfg``'s motion at t = 0."""
+        in the user cache, :mod:`sgn_jax.records.cache`), in the lab frame of ``cfg``'s motion at
+        t = 0."""
         setup = setup_from_config(cfg)
         key = (_jar_key(cfg), cfg.balls, cfg.material, cfg.dem.settle_time, cfg.dem.dt,
                cfg.dem.dt_dem_max, int(seed))
@@ -796,7 +800,7 @@ __all__ = [
     "SGNJaxWarning",
     "EnvelopeWarning",
 ] + [
-    # training the contact-impulse surrogate (issue 19)
+    # training the contact-impulse surrogate (issue 19) and judging how balls touch
     "train_contact",
     "UnrollSpec",
     "contact_census",

@@ -1,7 +1,7 @@
 """The ``sgn-jax`` command line.
 
 Each subcommand is registered by a ``_add_<name>`` function below and dispatched to a
-``_cmd_<name>`` handler. The handlers that plot import :mod:`sgn_jax.plots` (matplotlib)
+``_cmd_<name>`` handler. The handlers that plot import :mod:`sgn_jax.analysis.plots` (matplotlib)
 inside the handler, so ``sgn-jax --help`` does not pay for it (orbax is imported where a
 checkpoint is read or written). Every error that derives from
 :class:`sgn_jax.errors.SGNJaxError` (bad config, bad file, a run that failed) is printed as one
@@ -17,27 +17,27 @@ import warnings
 from pathlib import Path
 
 from sgn_jax import __version__, api
-from sgn_jax.cache import enable_compilation_cache
-from sgn_jax.checkpoint import load_trained_model
-from sgn_jax.config import resolve_config
-from sgn_jax.dataset import load_trajectory
-from sgn_jax.errors import EnvelopeWarning, SGNJaxError
-from sgn_jax.io_utils import atomic_write, write_json
-from sgn_jax.metrics import (
+from sgn_jax.analysis.metrics import (
     MetricsWarning,
     compare,
     ensemble_summary,
     motion_warning_lines,
 )
-from sgn_jax.metrics import headline as run_headline
+from sgn_jax.analysis.metrics import headline as run_headline
+from sgn_jax.config import resolve_config
+from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.pipelines.configure import jar_mesh_from_config, mesh_report
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.demo import format_report, resolve_checkpoint, run_demo
 from sgn_jax.pipelines.rollout_run import run_rollout
 from sgn_jax.pipelines.train_run import train
-from sgn_jax.prediction import load_prediction
+from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
+from sgn_jax.records.cache import enable_compilation_cache
+from sgn_jax.records.checkpoint import load_trained_model
+from sgn_jax.records.io_utils import atomic_write, write_json
+from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.regime import CLASSIFIERS
-from sgn_jax.validation import check_duration, warn_outside_envelope
 
 
 class UserError(SGNJaxError):
@@ -274,8 +274,8 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    # deferred: sgn_jax.plots imports matplotlib, which the other commands do not need
-    from sgn_jax.plots import plot_ensemble, plot_run
+    # deferred: sgn_jax.analysis.plots imports matplotlib, which the other commands do not need
+    from sgn_jax.analysis.plots import plot_ensemble, plot_run
 
     if len(args.prediction) != len(args.reference):
         raise UserError(f"got {len(args.prediction)} --prediction file(s) but "
@@ -381,8 +381,8 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
 def _cmd_sensitivity(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    # deferred: sgn_jax.plots imports matplotlib, which the other commands do not need
-    from sgn_jax.plots import plot_sensitivity
+    # deferred: sgn_jax.analysis.plots imports matplotlib, which the other commands do not need
+    from sgn_jax.analysis.plots import plot_sensitivity
 
     api.check_study_sizes(args.duration, args.burn_in, args.packings)
     steps = {}
@@ -451,7 +451,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0
-    enable_compilation_cache()  # sgn_jax.cache: a second run reuses compiled programs
+    enable_compilation_cache()  # sgn_jax.records.cache: a second run reuses compiled programs
     _show_warnings_as_lines(args.command)
     user_errors = (SGNJaxError, FileNotFoundError)
     try:

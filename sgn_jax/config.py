@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.io_utils import atomic_write
+from sgn_jax.records.io_utils import atomic_write
 
 
 class ConfigError(SGNJaxError, ValueError):
@@ -371,13 +371,15 @@ class ModelConfig:
 
     ``velocity_encoding``: "absolute" (the paper: each slot's velocity, standardised per column)
     or "differences" (older slots enter as ``v_k - v_{k+1}``; same information, trains much
-    faster; see docs/sgn.md and ``sgn_jax.normalization.encode_velocities``).
+    faster; see docs/sgn.md and ``sgn_jax.surrogate.normalization.encode_velocities``).
 
-    ``kind`` names the surrogate in the model registry (:func:`sgn_jax.model.register_model`;
-    "sgn" is the paper's SGN, the only built-in kind); the other keys are its hyperparameters.
+    ``kind`` names the surrogate in the model registry
+    (:func:`sgn_jax.surrogate.model.register_model`; "sgn" is the paper's SGN, the only built-in
+    kind); the other keys are its hyperparameters.
 
     Attributes:
-        kind: registered surrogate kind ("sgn"; others after sgn_jax.model.register_model).
+        kind: registered surrogate kind ("sgn"; others after
+            sgn_jax.surrogate.model.register_model).
         hidden: width of the MLPs' hidden layers and of the node and edge embeddings.
         mlp_layers: linear layers per MLP (>= 2).
         interaction_layers: message-passing (interaction) layers (>= 1).
@@ -392,7 +394,8 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         # Whether the kind is registered is checked where the model is built (the registry
-        # lives in the core, sgn_jax.model): a config naming a kind registered later loads.
+        # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
+        # later loads.
         if not self.kind or not self.kind.strip():
             raise ConfigError("[model] kind must be a non-empty string (default 'sgn')")
         if self.velocity_encoding not in ("absolute", "differences"):

@@ -9,7 +9,7 @@ Pure JAX core: no config, no files (the host side is :mod:`sgn_jax.api`). Three 
    displacement: the circle's amplitude or every harmonic coefficient), ``jar.straight_length``,
    ``jar.radius``, ``jar.height``, ``jar.post_radius``; applied to a motion pytree and a
    :class:`sgn_jax.geometry.JarParams` pytree. The jar is queried through its exact analytic SDF
-   (:func:`sgn_jax.rollout.analytic_jar_query`), so jar-shape derivatives are exact
+   (:func:`sgn_jax.surrogate.rollout.analytic_jar_query`), so jar-shape derivatives are exact
    derivatives of the wall distances the network sees (the SDF grid the model was trained with
    agrees with it to 3.8 um, docs/geometry.md), with no grid to resample per evaluation.
 
@@ -47,7 +47,6 @@ import numpy as np
 
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.geometry import JarParams
-from sgn_jax.graph import GraphSpec, Window
 from sgn_jax.motion import (
     Motion,
     frequency_hz,
@@ -56,7 +55,8 @@ from sgn_jax.motion import (
     offset,
     velocity,
 )
-from sgn_jax.rollout import (
+from sgn_jax.surrogate.graph import GraphSpec, Window
+from sgn_jax.surrogate.rollout import (
     Predictor,
     RolloutState,
     analytic_jar_query,
@@ -314,7 +314,7 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         n_segments: gradient segments per packing, one at the start of each of the
             ``n_segments`` equal parts of the measurement interval.
         snap_back, phi_sb, snap_velocity, pp_max_overlap: the rollout's settings
-            (:func:`sgn_jax.rollout.make_rollout`).
+            (:func:`sgn_jax.surrogate.rollout.make_rollout`).
         checkpoint_steps: ``jax.checkpoint`` chunk of the differentiated horizons.
         estimator: ``"difference"`` (default): the gradient is the ensemble central difference
             of the power with common packings, ``(P(theta + h_i e_i) - P(theta - h_i e_i)) /

@@ -2,11 +2,11 @@
 
 :func:`pairs_within` is the graph builder's ball-ball edge rule (centre distance <= 2 R + skin)
 applied to positions; :func:`deepest_pair_overlap` is the deepest ball-ball overlap. Both are
-used by :mod:`sgn_jax.metrics` and :func:`pairs_within` also by the perfect surrogate
-(:func:`sgn_jax.prediction.prediction_from_trajectory`); they live here so that ``metrics``
+used by :mod:`sgn_jax.analysis.metrics` and :func:`pairs_within` also by the perfect surrogate
+(:func:`sgn_jax.records.prediction.prediction_from_trajectory`); they live here so that ``metrics``
 imports ``prediction`` (to load prediction files) and neither imports the other back.
 :class:`MetricsError`, which they raise, is defined here for the same reason; import it, and
-these functions, from :mod:`sgn_jax.metrics`.
+these functions, from :mod:`sgn_jax.analysis.metrics`.
 """
 
 from __future__ import annotations

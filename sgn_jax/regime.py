@@ -1,7 +1,7 @@
 """The regime of a ball-mill run (SPEC 7): "bed" or "agitated", with every rule and threshold.
 
 One place for the science of the two states: the thresholds (with units and where they come
-from) and the classifiers. :mod:`sgn_jax.metrics` applies them to a prediction and its DEM
+from) and the classifiers. :mod:`sgn_jax.analysis.metrics` applies them to a prediction and its DEM
 reference (``sgn-jax evaluate``); ``experiments/generate_data.py`` labels each DEM file of an
 ensemble with :func:`regime_of` and :func:`regime_windows`; ``experiments/calibrate_states.py``
 measures the indicators on a DEM ensemble and is where the speed threshold was chosen.
@@ -11,7 +11,7 @@ Two families of rules:
 - **The evaluation rule** (:func:`classify_state`, applied to predictions and references alike).
   By default (``classify_by="speed"``) a run is "agitated" when the mean ball speed in the jar
   frame, from finite differences of the saved frames (``pos - offset``, 1 ms apart at the
-  default ``save_every``; :func:`sgn_jax.metrics.jar_frame_speed`), is >=
+  default ``save_every``; :func:`sgn_jax.analysis.metrics.jar_frame_speed`), is >=
   :data:`AGITATED_SPEED_M_S`, else "bed". It reads positions only, so it does not depend on the
   surrogate's energy head (which the power comparison judges). The older rules remain:
   ``"contacts"`` (mean ball pairs within the edge skin per ball >= :data:`BED_PAIRS_PER_BALL`

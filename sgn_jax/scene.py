@@ -234,7 +234,8 @@ class Scene:
 
     @property
     def sdf_query(self) -> SDFQuery:
-        """The lab-frame query of :attr:`walls`, for :func:`sgn_jax.rollout.make_rollout`."""
+        """The lab-frame query of :attr:`walls`, for
+        :func:`sgn_jax.surrogate.rollout.make_rollout`."""
         return lab_query(self.walls)
 
 

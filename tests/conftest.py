@@ -1,6 +1,6 @@
 """Fixtures shared by the tests of the ``.npz`` record files (test_dataset.py, test_prediction.py).
 
-Both files are read by ``sgn_jax.records.read_npz_record``, so the files that fail before any
+Both files are read by ``sgn_jax.records.base.read_npz_record``, so the files that fail before any
 validation (missing, not a zip, corrupt, bad meta entry) and the messages they must give are
 described once here; each test module runs them against its own loader and error class.
 """
@@ -10,7 +10,7 @@ import os
 import re
 import zipfile
 
-# The suite never reads or writes the user cache (sgn_jax.cache): every test starts cold and
+# The suite never reads or writes the user cache (sgn_jax.records.cache): every test starts cold and
 # sees the same thing on any machine. Tests of the cache point SGN_JAX_CACHE_DIR at tmp_path.
 os.environ["SGN_JAX_NO_CACHE"] = "1"
 

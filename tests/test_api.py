@@ -57,7 +57,7 @@ def test_the_issue_s_entry_points_are_public():
     pair, whole scan, files), records, the design study, metrics and the regime classifier."""
     from sgn_jax.pipelines.dem_run import run_dem
     from sgn_jax.pipelines.rollout_run import run_rollout
-    from sgn_jax.rollout import init_state, make_rollout, make_rollout_step
+    from sgn_jax.surrogate.rollout import init_state, make_rollout, make_rollout_step
 
     sj = sgn_jax
     assert sj.run_dem is run_dem and sj.run_rollout is run_rollout

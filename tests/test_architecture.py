@@ -25,12 +25,12 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 
 # (importing module, imported module) -> why the import stays inside a function.
 DEFERRED_IMPORTS: dict[tuple[str, str], str] = {
-    ("sgn_jax.cli", "sgn_jax.plots"):
+    ("sgn_jax.cli", "sgn_jax.analysis.plots"):
         "plots imports matplotlib at module level; only the plotting commands need it, so "
         "`sgn-jax --help` and the other commands do not load it",
-    ("sgn_jax.pipelines.demo", "sgn_jax.plots"):
+    ("sgn_jax.pipelines.demo", "sgn_jax.analysis.plots"):
         "demo is imported by sgn_jax.api and sgn_jax.cli; only run_demo plots (matplotlib)",
-    ("sgn_jax.api", "sgn_jax.plots"):
+    ("sgn_jax.api", "sgn_jax.analysis.plots"):
         "sgn_jax.cli imports sgn_jax.api; only its figure helpers (new_figure, save_figure, "
         "plot_case_curves) need matplotlib",
 }
@@ -184,7 +184,7 @@ def test_the_checker_sees_cycles_and_deferred_imports():
     tree = ast.parse(
         "import sgn_jax.config\n"
         "from typing import TYPE_CHECKING\n"
-        "if TYPE_CHECKING:\n    from sgn_jax import train\n"
+        "if TYPE_CHECKING:\n    from sgn_jax.surrogate import train\n"
         "def f():\n    from sgn_jax.geometry import jar_sdf\n")
     modules = _module_files()
     found = [(_targets(node, "sgn_jax.api", modules), fn) for node, fn in _imports(tree)]
@@ -196,25 +196,123 @@ def test_the_checker_sees_cycles_and_deferred_imports():
 
 
 # ---------------------------------------------------------------------------------------------
-# Layers: the pure JAX core never reaches the config, file I/O or the pipelines.
+# Layers (docs/architecture.md, "Layers"): every module has one, and no import goes up.
 
-CORE_MODULES = (
-    "sgn_jax.errors", "sgn_jax.motion", "sgn_jax.scene", "sgn_jax.pairs",
-    "sgn_jax.geometry", "sgn_jax.geometry.common", "sgn_jax.geometry.jar",
-    "sgn_jax.geometry.sdf_grid", "sgn_jax.geometry.mesh_distance", "sgn_jax.geometry.stl",
-    "sgn_jax.dem", "sgn_jax.dem.contact", "sgn_jax.dem.engine", "sgn_jax.dem.walls",
-    "sgn_jax.dem.placement", "sgn_jax.graph", "sgn_jax.model", "sgn_jax.normalization",
-    "sgn_jax.rollout", "sgn_jax.train", "sgn_jax.design", "sgn_jax.regime",
-)
+LAYERS = ("core", "records", "analysis", "pipelines", "user")
+"""Lowest first. A module may import (at module level or inside a function) modules of its own
+layer and of the layers below it, never above:
+
+- core: pure JAX / numpy (scene, motion, geometry, DEM, surrogate, design, regime, pairs);
+- records: the configs and the files (config, trajectory, prediction, checkpoint, atomic I/O,
+  cache, ensembles, envelope): they build and check core objects (a checkpoint builds its model
+  kind from the surrogate's registry, a prediction counts pairs with ``sgn_jax.pairs``);
+- analysis: metrics, plots and the animation read records (trajectory and prediction files)
+  and apply the core's rules (regime, pairs);
+- pipelines: where a config meets the core on a host; the drivers produce records and call the
+  analysis (``demo`` writes the metrics, plots and GIF; ``experiments`` evaluates with the
+  metrics); the analysis never drives a run;
+- user: ``sgn_jax.api`` and the CLI, on top of everything.
+"""
+
+MODULE_LAYERS = {
+    # The root package runs only the x64 switch and defines __version__ (records and pipelines
+    # import it for that); its public names come from sgn_jax.api on first access (PEP 562),
+    # which the import graph does not see.
+    PACKAGE: "core",
+    "sgn_jax.errors": "core",
+    "sgn_jax.motion": "core",
+    "sgn_jax.scene": "core",
+    "sgn_jax.pairs": "core",
+    "sgn_jax.design": "core",
+    "sgn_jax.regime": "core",
+    "sgn_jax.testing": "core",
+    "sgn_jax.geometry": "core",
+    "sgn_jax.dem": "core",
+    "sgn_jax.surrogate": "core",
+    "sgn_jax.config": "records",
+    "sgn_jax.config_reference": "records",
+    "sgn_jax.records": "records",
+    "sgn_jax.analysis": "analysis",
+    "sgn_jax.pipelines": "pipelines",
+    "sgn_jax.api": "user",
+    "sgn_jax.cli": "user",
+}
+"""Module or package -> layer. A package's entry covers its modules (a new file in
+``sgn_jax/surrogate/`` is core); a new module directly under ``sgn_jax/`` needs its own entry
+(the root package's entry covers only ``sgn_jax/__init__.py``)."""
+
+
+def layer_of(module: str) -> str | None:
+    """The layer of a module: its own entry, else its nearest package's (not the root's)."""
+    if module in MODULE_LAYERS:
+        return MODULE_LAYERS[module]
+    parts = module.split(".")
+    for i in range(len(parts) - 1, 1, -1):
+        package = ".".join(parts[:i])
+        if package in MODULE_LAYERS:
+            return MODULE_LAYERS[package]
+    return None
+
+
+def upward_imports(edges, deferred) -> list[tuple[str, str, int, bool]]:
+    """(importer, imported, line, inside_function) for every import of a higher layer."""
+    rank = {layer: i for i, layer in enumerate(LAYERS)}
+    pairs = [(m, dep, line, False) for m, deps in edges.items() for dep, line in deps.items()]
+    pairs += [(m, dep, line, True) for m, dep, line in deferred]
+    found = []
+    for module, dep, line, in_function in sorted(pairs):
+        low, high = layer_of(module), layer_of(dep)
+        if low is not None and high is not None and rank[high] > rank[low]:
+            found.append((module, dep, line, in_function))
+    return found
+
+
+def test_every_module_has_a_layer():
+    modules = _module_files()
+    missing = sorted(m for m in modules if layer_of(m) is None)
+    assert not missing, (f"modules without a layer: {missing}; add them to MODULE_LAYERS "
+                         "(tests/test_architecture.py) and to docs/architecture.md, Layers")
+    stale = sorted(m for m in MODULE_LAYERS if m not in modules)
+    assert not stale, f"MODULE_LAYERS names modules that do not exist: {stale}"
+    assert set(MODULE_LAYERS.values()) <= set(LAYERS)
+
+
+def test_no_module_imports_a_layer_above_its_own():
+    edges, deferred = import_graph()
+    problems = [
+        f"  {_where(module, line)}: {module} ({layer_of(module)}) imports {dep} "
+        f"({layer_of(dep)}){' inside a function' if in_function else ''}"
+        for module, dep, line, in_function in upward_imports(edges, deferred)]
+    if problems:
+        pytest.fail("imports go down the layers only (" + " < ".join(LAYERS) + "): move the "
+                    "shared piece down, or the caller up (docs/architecture.md, Layers):\n"
+                    + "\n".join(problems), pytrace=False)
+
+
+def test_the_upward_import_checker_sees_a_violation():
+    # The upward import this check was written against: the animation (analysis) built the
+    # jar mesh with sgn_jax.pipelines.configure; now the demo pipeline passes the mesh in.
+    edges = {"sgn_jax.analysis.animation": {"sgn_jax.pipelines.configure": 36,
+                                            "sgn_jax.records.io_utils": 35},
+             "sgn_jax.pipelines.demo": {"sgn_jax.analysis.animation": 50}}
+    deferred = [("sgn_jax.surrogate.rollout", "sgn_jax.config", 7),
+                ("sgn_jax.api", "sgn_jax.analysis.plots", 180)]
+    assert upward_imports(edges, deferred) == [
+        ("sgn_jax.analysis.animation", "sgn_jax.pipelines.configure", 36, False),
+        ("sgn_jax.surrogate.rollout", "sgn_jax.config", 7, True)]
+    assert layer_of("sgn_jax.surrogate.contact") == "core"  # a new model kind: core
+    assert layer_of("sgn_jax.records.base") == "records"
+    assert layer_of("sgn_jax.newmodule") is None  # a new root module must be assigned
+
+
+# The pure JAX core never reaches the config, file I/O or the pipelines (transitively), and
+# imports no file-I/O module.
+
+CORE_MODULES = tuple(m for m in _module_files() if layer_of(m) == "core")
 """The pure JAX core (docs/architecture.md, "Layers")."""
 
-OUTSIDE_THE_CORE = (
-    "sgn_jax.config", "sgn_jax.config_reference", "sgn_jax.io_utils", "sgn_jax.records",
-    "sgn_jax.dataset", "sgn_jax.prediction", "sgn_jax.checkpoint", "sgn_jax.cache",
-    "sgn_jax.validation", "sgn_jax.envelope", "sgn_jax.pipelines", "sgn_jax.metrics",
-    "sgn_jax.plots", "sgn_jax.animation", "sgn_jax.api", "sgn_jax.cli",
-)
-"""Config, records and file I/O, pipelines, analysis and the user-facing layer."""
+OUTSIDE_THE_CORE = tuple(m for m, layer in MODULE_LAYERS.items() if layer != "core")
+"""Config, records and file I/O, analysis, pipelines and the user-facing layer."""
 
 FILE_IO_MODULES = ("pathlib", "os", "io", "json", "csv", "tomllib", "shutil", "tempfile",
                    "orbax", "orbax.checkpoint", "trimesh.exchange", "imageio", "matplotlib")
@@ -249,9 +347,11 @@ def _external_imports(path: Path) -> dict[str, int]:
 
 
 def test_the_core_modules_exist():
-    modules = _module_files()
-    missing = [m for m in CORE_MODULES if m not in modules]
-    assert not missing, f"CORE_MODULES names modules that do not exist: {missing}"
+    expected = {"sgn_jax.motion", "sgn_jax.scene", "sgn_jax.dem.engine", "sgn_jax.geometry.jar",
+                "sgn_jax.surrogate.graph", "sgn_jax.surrogate.model", "sgn_jax.surrogate.sgn",
+                "sgn_jax.surrogate.rollout", "sgn_jax.surrogate.train", "sgn_jax.design"}
+    missing = sorted(expected - set(CORE_MODULES))
+    assert not missing, f"expected core modules missing from the core layer: {missing}"
 
 
 def test_the_core_never_imports_the_config_io_or_pipelines():
@@ -285,10 +385,11 @@ def test_the_core_does_no_file_io():
 
 
 def test_the_layer_checker_sees_a_violation():
-    edges = {"sgn_jax.motion": {"sgn_jax.graph": 1}, "sgn_jax.graph": {"sgn_jax.config": 2},
-             "sgn_jax.config": {}}
+    edges = {"sgn_jax.motion": {"sgn_jax.surrogate.graph": 1},
+             "sgn_jax.surrogate.graph": {"sgn_jax.config": 2}, "sgn_jax.config": {}}
     chains = _closure(edges, "sgn_jax.motion")
-    assert chains["sgn_jax.config"] == ["sgn_jax.motion", "sgn_jax.graph", "sgn_jax.config"]
+    assert chains["sgn_jax.config"] == [
+        "sgn_jax.motion", "sgn_jax.surrogate.graph", "sgn_jax.config"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -356,3 +457,17 @@ def test_experiments_import_only_the_public_api():
     if problems:
         pytest.fail("experiments import only sgn_jax / sgn_jax.api (add what they need to "
                     "sgn_jax.api):\n" + "\n".join(problems), pytrace=False)
+
+
+def test_the_package_data_paths_resolve_from_the_modules_folders():
+    """Modules that find shipped files relative to their own file (``Path(__file__)``) still find
+    them after a move between folders (records/ is one level below the package root)."""
+    from sgn_jax.config import builtin_config_path
+    from sgn_jax.pipelines import demo
+    from sgn_jax.records import checkpoint, envelope
+
+    data = PACKAGE_DIR / "data"
+    assert envelope.ENVELOPE_PATH == data / "envelope.toml" and envelope.ENVELOPE_PATH.is_file()
+    assert checkpoint._SHIPPED_MODELS_DIR == data / "models"
+    assert demo.SHIPPED_MODELS_DIR == data / "models" and (data / "models").is_dir()
+    assert builtin_config_path("emax_300rpm").is_file()

@@ -1,13 +1,14 @@
-"""The user cache (sgn_jax.cache): settled packings reused across runs, switched off by env."""
+"""The user cache (sgn_jax.records.cache): settled packings reused across runs, switched off by
+env."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sgn_jax import cache
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.pipelines import dem_run as driver
+from sgn_jax.records import cache
 
 
 @pytest.fixture

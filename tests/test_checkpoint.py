@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 import sgn_jax  # noqa: F401
-from sgn_jax.checkpoint import (
+from sgn_jax.config import builtin_config_path, config_to_dict, load_config, replace_section
+from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.records.checkpoint import (
     DIGEST_FILE,
     CheckpointError,
     CheckpointIntegrityWarning,
@@ -22,13 +24,11 @@ from sgn_jax.checkpoint import (
     verify_checkpoint_digest,
     write_checkpoint_digest,
 )
-from sgn_jax.config import builtin_config_path, config_to_dict, load_config, replace_section
-from sgn_jax.graph import GraphSpec, build_graph
-from sgn_jax.model import init_params, make_model, make_predict
-from sgn_jax.normalization import compute_norm_stats
-from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.surrogate.graph import GraphSpec, build_graph
+from sgn_jax.surrogate.model import init_params, make_model, make_predict
+from sgn_jax.surrogate.normalization import compute_norm_stats
+from sgn_jax.surrogate.train import make_optimizer
 from sgn_jax.testing import synthetic_trajectory
-from sgn_jax.train import make_optimizer
 
 N = 6
 
@@ -282,7 +282,7 @@ def test_checkpoint_without_digest_loads_with_warning(saved, tmp_path):
 
 
 def test_damaged_shipped_model_says_reinstall(saved, tmp_path, monkeypatch):
-    import sgn_jax.checkpoint as checkpoint
+    import sgn_jax.records.checkpoint as checkpoint
 
     ck = _copy(saved, tmp_path)
     monkeypatch.setattr(checkpoint, "_SHIPPED_MODELS_DIR", tmp_path.resolve())

@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sgn_jax.contact import ContactNet, ContactPhysics, edge_geometry
-from sgn_jax.graph import GraphSpec, Window, build_graph
-from sgn_jax.model import model_factory
+from sgn_jax.surrogate.contact import ContactNet, ContactPhysics, edge_geometry
+from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
+from sgn_jax.surrogate.model import model_factory
 
 R, DT, W = 0.005, 1e-4, 3
 PHYS = ContactPhysics(ball_radius=R, dt=DT, window=W, history=3, gate_margin=2e-4)
@@ -151,7 +151,7 @@ def test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(seed):
 def test_energy_ledger_closes_over_a_rollout():
     """Jar work + gravity's work - change of kinetic energy = the model's dissipation, every
     step (to float32 rounding) and over 200 steps of a moving jar."""
-    from sgn_jax.graph import slide_window
+    from sgn_jax.surrogate.graph import slide_window
 
     rng = np.random.default_rng(5)
     window, _ = scene(rng)

@@ -1,11 +1,12 @@
-"""Tests of sgn_jax.dataset: the SPEC 4 trajectory file, its round trip and every refusal."""
+"""Tests of sgn_jax.records.trajectory: the SPEC 4 trajectory file, its round trip and every
+refusal."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sgn_jax.config import builtin_config_path, load_config, replace_section
-from sgn_jax.dataset import (
+from sgn_jax.records.trajectory import (
     REQUIRED_ARRAYS,
     REQUIRED_META,
     DatasetError,

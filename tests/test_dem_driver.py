@@ -10,9 +10,9 @@ import pytest
 import sgn_jax  # noqa: F401
 from sgn_jax.cli import main
 from sgn_jax.config import builtin_config_path, load_config, replace_section, save_config
-from sgn_jax.dataset import load_trajectory
 from sgn_jax.dem.engine import DEMError
 from sgn_jax.pipelines import dem_run as driver
+from sgn_jax.records.trajectory import load_trajectory
 
 DURATION = 0.003  # s of motion: 30 samples
 

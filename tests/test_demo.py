@@ -22,7 +22,7 @@ SEED = 3
 
 def _hand_stats(window):
     """Normalisation scales of the standard case (m/s, m, Hz, m/s^2, J)."""
-    from sgn_jax.normalization import Moments, NormStats
+    from sgn_jax.surrogate.normalization import Moments, NormStats
 
     def m(mean, std):
         return Moments(mean=np.asarray(mean, np.float64), std=np.asarray(std, np.float64))
@@ -38,13 +38,14 @@ def _hand_stats(window):
 def tiny(tmp_path_factory):
     """A tiny case (standard case, 0.02 s settling, DEM chunks of 100 samples), saved as TOML,
     and a hidden-16 SGN with random weights saved as a training run's checkpoints/best."""
-    from sgn_jax.checkpoint import save_checkpoint
     from sgn_jax.config import save_config
-    from sgn_jax.graph import build_graph
-    from sgn_jax.model import SGN, init_params
-    from sgn_jax.normalization import normalize_graph
     from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
     from sgn_jax.pipelines.rollout_run import initial_window
+    from sgn_jax.records.checkpoint import save_checkpoint
+    from sgn_jax.surrogate.graph import build_graph
+    from sgn_jax.surrogate.model import init_params
+    from sgn_jax.surrogate.normalization import normalize_graph
+    from sgn_jax.surrogate.sgn import SGN
     from sgn_jax.testing import synthetic_trajectory
 
     root = tmp_path_factory.mktemp("demo")
@@ -86,7 +87,7 @@ def demo(tiny):
 
 
 def test_demo_writes_every_output(demo):
-    from sgn_jax.animation import gif_frame_count
+    from sgn_jax.analysis.animation import gif_frame_count
 
     assert demo["code"] == 0
     out, summary = demo["out"], demo["summary"]
@@ -104,9 +105,9 @@ def test_demo_writes_every_output(demo):
 
 
 def test_demo_numbers_are_consistent_with_its_files(demo):
-    from sgn_jax.dataset import load_trajectory
-    from sgn_jax.metrics import position_mse
-    from sgn_jax.prediction import load_prediction
+    from sgn_jax.analysis.metrics import position_mse
+    from sgn_jax.records.prediction import load_prediction
+    from sgn_jax.records.trajectory import load_trajectory
 
     out, summary = demo["out"], demo["summary"]
     traj = load_trajectory(out / "dem.npz")
@@ -193,7 +194,7 @@ def test_demo_reports_motion_checks(demo):
 
 def test_report_warns_when_the_motion_is_off(demo):
     """The user's case: energy within 1 % while the motion is wrong: the report says so."""
-    from sgn_jax.metrics import ENERGY_TRUST_WARNING, motion_checks, motion_warnings
+    from sgn_jax.analysis.metrics import ENERGY_TRUST_WARNING, motion_checks, motion_warnings
     from sgn_jax.pipelines.demo import format_report
 
     checks = motion_checks(jar_speed_dem_m_s=0.27, jar_speed_sgn_m_s=0.50,
@@ -271,13 +272,13 @@ def test_bad_inputs_are_refused_before_the_dem(tiny, tmp_path):
 def test_jar_sections_lie_on_the_jar_walls():
     import jax.numpy as jnp
 
-    from sgn_jax.animation import jar_sections
+    from sgn_jax.analysis.animation import jar_sections
     from sgn_jax.geometry import jar_sdf
-    from sgn_jax.pipelines.configure import jar_params_from_config
+    from sgn_jax.pipelines.configure import jar_mesh_from_config, jar_params_from_config
 
     jar = replace_section(load_config(builtin_config_path("emax_300rpm")), "jar",
                           post_radius=0.006).jar
-    sections = jar_sections(jar)
+    sections = jar_sections(jar_mesh_from_config(jar))
     params = jar_params_from_config(jar)
     top = sections.top.reshape(-1, 2)
     points = np.stack([top[:, 0], np.full(len(top), 0.5 * jar.height), top[:, 1]], -1)
@@ -296,7 +297,7 @@ def test_jar_sections_lie_on_the_jar_walls():
 
 
 def test_select_frames():
-    from sgn_jax.animation import select_frames
+    from sgn_jax.analysis.animation import select_frames
 
     picked = select_frames(1001, 100)
     assert picked[0] == 0 and picked[-1] == 1000 and len(picked) == 100
@@ -307,9 +308,10 @@ def test_select_frames():
 
 
 def test_gif_input_shapes_are_checked(tmp_path):
-    from sgn_jax.animation import write_comparison_gif
+    from sgn_jax.analysis.animation import write_comparison_gif
+    from sgn_jax.pipelines.configure import jar_mesh_from_config
 
-    jar = load_config(builtin_config_path("emax_300rpm")).jar
+    jar = jar_mesh_from_config(load_config(builtin_config_path("emax_300rpm")).jar)
     pos = np.zeros((2, 3, 3))
     with pytest.raises(ValueError, match="pos_sgn"):
         write_comparison_gif(tmp_path / "a.gif", [0.0, 1.0], pos, pos[:, :2], np.zeros((2, 3)),

@@ -1,4 +1,4 @@
-"""The motion envelope (sgn_jax.envelope) and the GNS training noise (issue 10)."""
+"""The motion envelope (sgn_jax.records.envelope) and the GNS training noise (issue 10)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from sgn_jax.config import ConfigError, MotionConfig, resolve_config
-from sgn_jax.envelope import (
+from sgn_jax.records.envelope import (
     envelope_notes,
     harmonic_axis_amplitudes,
     latin_hypercube_motions,
     load_envelope,
 )
-from sgn_jax.train import random_walk_position_noise
+from sgn_jax.surrogate.train import random_walk_position_noise
 
 
 def test_shipped_envelope_holds_motion1_and_motion2_but_not_the_post_jar_motion_speed():
@@ -87,7 +87,7 @@ def test_train_config_rejects_bad_noise_and_stride():
 def test_contact_edge_features_give_gap_and_overlap():
     import jax.numpy as jnp
 
-    from sgn_jax.graph import GraphSpec, Window, build_graph
+    from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 
     r = 0.005
     spec = GraphSpec(n_particles=2, window=1, ball_radius=r, dt=1e-4, contact_features=True)

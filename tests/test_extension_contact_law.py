@@ -36,9 +36,9 @@ from sgn_jax.dem import (
     plane_wall_fn,
     plane_walls,
 )
-from sgn_jax.graph import dissipation_per_interval, targets_from_arrays
 from sgn_jax.motion import CircleMotion
-from sgn_jax.rollout import ReplayTable, make_rollout, replay_predictor
+from sgn_jax.surrogate.graph import dissipation_per_interval, targets_from_arrays
+from sgn_jax.surrogate.rollout import ReplayTable, make_rollout, replay_predictor
 
 RADIUS = 0.005
 DT_DEM = 2.5e-7  # 550-650 steps per contact
@@ -182,13 +182,13 @@ def linear_dem(tmp_path_factory):
     """The standard case with the linear law: 0.05 s settling, 0.004 s of motion (41 samples),
     through the DEM driver and the dataset file."""
     from sgn_jax.config import builtin_config_path, load_config
-    from sgn_jax.dataset import load_trajectory, save_trajectory
     from sgn_jax.pipelines.configure import (
         graph_spec_from_config,
         motion_from_config,
         sdf_grid_from_config,
     )
     from sgn_jax.pipelines.dem_run import run_dem
+    from sgn_jax.records.trajectory import load_trajectory, save_trajectory
 
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "dem", settle_time=0.05, contact_law="linear_spring_dashpot")

@@ -29,7 +29,6 @@ from sgn_jax.design import (
     parameter_values,
 )
 from sgn_jax.geometry import JarParams
-from sgn_jax.graph import GraphSpec, Window
 from sgn_jax.motion import (
     CircleMotion,
     MotionKind,
@@ -47,7 +46,8 @@ from sgn_jax.motion import (
 )
 from sgn_jax.pipelines.configure import jar_params_from_config, motion_from_config
 from sgn_jax.pipelines.dem_run import setup_from_config
-from sgn_jax.rollout import analytic_jar_query, make_rollout
+from sgn_jax.surrogate.graph import GraphSpec, Window
+from sgn_jax.surrogate.rollout import analytic_jar_query, make_rollout
 
 RPM, SEMI_X, SEMI_Z, PHASE = 300.0, 0.017, 0.010, 0.3
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import sgn_jax.regime
+from sgn_jax.analysis.metrics import BED_PAIRS_PER_BALL, pairs_within
 from sgn_jax.config import builtin_config_path, load_config, replace_section, save_config
-from sgn_jax.dataset import Trajectory, load_trajectory
-from sgn_jax.io_utils import sha256_file
-from sgn_jax.metrics import BED_PAIRS_PER_BALL, pairs_within
+from sgn_jax.records.io_utils import sha256_file
+from sgn_jax.records.trajectory import Trajectory, load_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 DURATION = 0.005  # s of motion: 51 samples

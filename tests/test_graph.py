@@ -8,11 +8,18 @@ import pytest
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config
 from sgn_jax.geometry import jar_sdf, query_sdf_grid
-from sgn_jax.graph import GraphError, GraphSpec, Window, build_graph, slide_window, velocity_columns
 from sgn_jax.pipelines.configure import jar_params_from_config, sdf_grid_from_config
 from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.surrogate.graph import (
+    GraphError,
+    GraphSpec,
+    Window,
+    build_graph,
+    slide_window,
+    velocity_columns,
+)
+from sgn_jax.surrogate.train import split_window_ends
 from sgn_jax.testing import synthetic_trajectory
-from sgn_jax.train import split_window_ends
 
 R = 0.005
 DT = 1e-4

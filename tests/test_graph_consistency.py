@@ -4,8 +4,9 @@ The rollout is run with the replay ("cheating") predictor on a short real DEM tr
 off: fed the DEM's finite-difference accelerations it reproduces the DEM positions to float64
 rounding, so the window it assembles at step j must be the dataset's window ending at sample
 START + j. The graphs the rollout builds are compared with the graphs the training code path
-builds for the same windows from the dataset file (:func:`sgn_jax.graph.windows_from_trajectory`
-+ :func:`sgn_jax.graph.make_graph_builder`, and the compact rows of
+builds for the same windows from the dataset file
+(:func:`sgn_jax.pipelines.features.windows_from_trajectory` +
+:func:`sgn_jax.surrogate.graph.make_graph_builder`, and the compact rows of
 :func:`sgn_jax.pipelines.features.featurize_trajectory`, what training actually stores).
 
 What the comparison covers on the rollout side: the slide order of the window, the integration
@@ -34,12 +35,6 @@ import pytest
 
 import sgn_jax  # noqa: F401  (x64)
 from sgn_jax.config import replace_section
-from sgn_jax.graph import (
-    build_graph,
-    dissipation_per_interval,
-    make_graph_builder,
-    targets_from_arrays,
-)
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     motion_from_config,
@@ -47,7 +42,13 @@ from sgn_jax.pipelines.configure import (
 )
 from sgn_jax.pipelines.features import featurize_trajectory, windows_from_trajectory
 from sgn_jax.pipelines.rollout_run import initial_window
-from sgn_jax.rollout import ReplayTable, make_rollout, replay_predictor
+from sgn_jax.surrogate.graph import (
+    build_graph,
+    dissipation_per_interval,
+    make_graph_builder,
+    targets_from_arrays,
+)
+from sgn_jax.surrogate.rollout import ReplayTable, make_rollout, replay_predictor
 
 START = 12  # window end of the rollout's first step (>= W = 7)
 STEPS = 20  # > W: the final window holds no slot of the initial (dataset) window
@@ -60,8 +61,8 @@ def dem(tmp_path_factory):
     """A short real DEM trajectory of the standard case: 0.05 s settling, 0.004 s of motion
     (41 samples), saved and loaded back as training reads it."""
     from sgn_jax.config import builtin_config_path, load_config
-    from sgn_jax.dataset import load_trajectory, save_trajectory
     from sgn_jax.pipelines.dem_run import run_dem
+    from sgn_jax.records.trajectory import load_trajectory, save_trajectory
 
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "dem", settle_time=0.05)

@@ -1,8 +1,8 @@
-"""The JSON-lines log that resumable experiment scripts append to (sgn_jax.io_utils)."""
+"""The JSON-lines log that resumable experiment scripts append to (sgn_jax.records.io_utils)."""
 
 from __future__ import annotations
 
-from sgn_jax.io_utils import append_jsonl, read_jsonl
+from sgn_jax.records.io_utils import append_jsonl, read_jsonl
 
 
 def test_jsonl_log_round_trips_and_skips_a_line_cut_by_a_kill(tmp_path):

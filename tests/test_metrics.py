@@ -1,5 +1,5 @@
-"""Tests of sgn_jax.metrics (SPEC 6/7) and the `sgn-jax evaluate` CLI, on synthetic data with
-known answers: a perfect prediction, a 1 mm shift, dissipation scaled by 1.1, offset starts,
+"""Tests of sgn_jax.analysis.metrics (SPEC 6/7) and the `sgn-jax evaluate` CLI, on synthetic data
+with known answers: a perfect prediction, a 1 mm shift, dissipation scaled by 1.1, offset starts,
 references that cover only part of the rollout, and small ensembles."""
 
 import json
@@ -9,10 +9,9 @@ import warnings
 import numpy as np
 import pytest
 
-from sgn_jax import cli, metrics, pairs
-from sgn_jax.config import builtin_config_path, load_config, replace_section
-from sgn_jax.dataset import build_meta, load_trajectory, save_trajectory
-from sgn_jax.metrics import (
+from sgn_jax import cli, pairs
+from sgn_jax.analysis import metrics
+from sgn_jax.analysis.metrics import (
     AGITATED_SPEED_M_S,
     CoverageWarning,
     MetricsError,
@@ -31,12 +30,14 @@ from sgn_jax.metrics import (
     pp_contact_counts,
     relative_error,
 )
-from sgn_jax.prediction import (
+from sgn_jax.config import builtin_config_path, load_config, replace_section
+from sgn_jax.records.prediction import (
     PredictionError,
     load_prediction,
     prediction_from_trajectory,
     save_prediction,
 )
+from sgn_jax.records.trajectory import build_meta, load_trajectory, save_trajectory
 
 N_BALLS, N_SAMPLES, DT = 4, 301, 1e-4
 RADIUS = 0.005
@@ -206,7 +207,7 @@ def test_jar_frame_speed_known_answer():
 
 
 def test_deepest_pair_overlap_known_answer():
-    from sgn_jax.metrics import deepest_pair_overlap
+    from sgn_jax.analysis.metrics import deepest_pair_overlap
 
     pos = np.zeros((3, 3, 3))
     pos[:, 2] = [0.1, 0.0, 0.0]  # a third ball far away
@@ -229,7 +230,7 @@ GOOD_MOTION = {"jar_speed_dem_m_s": 0.27, "jar_speed_sgn_m_s": 0.30, "snapped_ba
 
 
 def test_motion_checks_pass_within_the_dem_range():
-    from sgn_jax.metrics import motion_checks, motion_warning_lines, motion_warnings
+    from sgn_jax.analysis.metrics import motion_checks, motion_warning_lines, motion_warnings
 
     checks = motion_checks(**GOOD_MOTION)
     assert [c["name"] for c in checks] == ["jar_speed", "snapped", "overlap", "mse_plateau"]
@@ -255,7 +256,7 @@ def test_motion_checks_pass_within_the_dem_range():
 def test_motion_warnings_fire_one_per_problem():
     """The user's report: 0.50 vs 0.27 m/s, 118,702 of 240,000 ball-steps snapped, balls
     sinking into each other, MSE plateau 1.25e-3 m^2, with the energy within 1 %."""
-    from sgn_jax.metrics import (
+    from sgn_jax.analysis.metrics import (
         ENERGY_TRUST_WARNING,
         motion_checks,
         motion_warning_lines,

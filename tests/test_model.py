@@ -9,9 +9,11 @@ import pytest
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config
 from sgn_jax.geometry import jar_sdf
-from sgn_jax.graph import GraphSpec, Window, build_graph
-from sgn_jax.model import SGN, count_params, init_params, make_predict
-from sgn_jax.normalization import (
+from sgn_jax.pipelines.configure import jar_params_from_config
+from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
+from sgn_jax.surrogate.model import count_params, init_params, make_predict
+from sgn_jax.surrogate.normalization import (
     compute_norm_stats,
     denormalize_accel,
     denormalize_dissipation,
@@ -21,8 +23,7 @@ from sgn_jax.normalization import (
     stats_from_arrays,
     stats_to_arrays,
 )
-from sgn_jax.pipelines.configure import jar_params_from_config
-from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.surrogate.sgn import SGN
 from sgn_jax.testing import synthetic_trajectory
 
 N, W = 8, 3
@@ -192,7 +193,7 @@ def test_checkpoint_from_before_the_restructuring_predicts_the_same():
     import json
     from pathlib import Path
 
-    from sgn_jax.checkpoint import restore_checkpoint
+    from sgn_jax.records.checkpoint import restore_checkpoint
     from sgn_jax.testing import synthetic_trajectory as trajectory
 
     directory = Path(__file__).parent / "data" / "sgn_checkpoint_v1"
@@ -356,7 +357,7 @@ def test_normalisation_round_trip_and_constant_columns(setup):
 
 
 def test_velocity_difference_encoding():
-    from sgn_jax.normalization import encode_velocities
+    from sgn_jax.surrogate.normalization import encode_velocities
 
     rng = np.random.default_rng(2)
     x = rng.normal(size=(5, 7 * W))
@@ -377,7 +378,7 @@ def test_velocity_difference_encoding():
 
 
 def test_nearly_constant_column_is_not_amplified():
-    from sgn_jax.normalization import moments
+    from sgn_jax.surrogate.normalization import moments
 
     rows = np.stack([np.full(100, 5.0) + 1e-12 * np.arange(100), np.linspace(-1, 1, 100)], 1)
     m = moments(rows)

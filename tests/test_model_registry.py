@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 import sgn_jax  # noqa: F401
-from sgn_jax.checkpoint import CheckpointError, load_trained_model
 from sgn_jax.config import (
     ConfigError,
     ModelConfig,
@@ -23,10 +22,13 @@ from sgn_jax.config import (
     load_config,
     replace_section,
 )
-from sgn_jax.graph import build_graph
-from sgn_jax.model import (
+from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.pipelines.train_run import _with_defaults, read_metrics, train
+from sgn_jax.records.checkpoint import CheckpointError, load_trained_model
+from sgn_jax.surrogate.graph import build_graph
+from sgn_jax.surrogate.model import (
     MLP,
-    SGN,
     ModelKindError,
     make_model,
     model_factory,
@@ -34,12 +36,10 @@ from sgn_jax.model import (
     registered_models,
     unregister_model,
 )
-from sgn_jax.normalization import denormalize_accel, normalize_graph
-from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
-from sgn_jax.pipelines.features import windows_from_trajectory
-from sgn_jax.pipelines.train_run import _with_defaults, read_metrics, train
+from sgn_jax.surrogate.normalization import denormalize_accel, normalize_graph
+from sgn_jax.surrogate.sgn import SGN
+from sgn_jax.surrogate.train import TrainingError
 from sgn_jax.testing import synthetic_trajectory
-from sgn_jax.train import TrainingError
 
 N = 8
 KIND = "node_mlp_test"

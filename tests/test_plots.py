@@ -1,17 +1,17 @@
-"""Tests of sgn_jax.plots: every figure is written as a real, non-trivial PNG, atomically, and bad
-input is refused with a clear message."""
+"""Tests of sgn_jax.analysis.plots: every figure is written as a real, non-trivial PNG, atomically,
+and bad input is refused with a clear message."""
 
 import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from sgn_jax.config import builtin_config_path, load_config
-from sgn_jax.plots import (
+from sgn_jax.analysis.plots import (
     plot_cumulative_energy,
     plot_ensemble,
     plot_position_mse,
     plot_trajectory_xz,
 )
+from sgn_jax.config import builtin_config_path, load_config
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -1,10 +1,11 @@
-"""Tests of sgn_jax.prediction: the rollout prediction file, its round trip and every refusal."""
+"""Tests of sgn_jax.records.prediction: the rollout prediction file, its round trip and every
+refusal."""
 
 import numpy as np
 import pytest
 
 from sgn_jax.config import builtin_config_path, config_to_dict, load_config
-from sgn_jax.prediction import (
+from sgn_jax.records.prediction import (
     REQUIRED_ARRAYS,
     REQUIRED_META,
     Prediction,

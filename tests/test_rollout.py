@@ -11,26 +11,26 @@ import numpy as np
 import pytest
 
 import sgn_jax  # noqa: F401  (x64)
+from sgn_jax.analysis.metrics import pairs_within
 from sgn_jax.config import config_to_dict, replace_section
 from sgn_jax.geometry import JarParams, query_sdf_grid
-from sgn_jax.graph import (
-    GraphSpec,
-    Window,
-    build_graph,
-    dissipation_per_interval,
-    targets_from_arrays,
-)
-from sgn_jax.metrics import pairs_within
-from sgn_jax.model import SGN, init_params
 from sgn_jax.motion import CircleMotion, offset
-from sgn_jax.normalization import Moments, NormStats, normalize_graph
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     motion_from_config,
     sdf_grid_from_config,
 )
 from sgn_jax.pipelines.rollout_run import initial_window, run_rollout
-from sgn_jax.rollout import (
+from sgn_jax.surrogate.graph import (
+    GraphSpec,
+    Window,
+    build_graph,
+    dissipation_per_interval,
+    targets_from_arrays,
+)
+from sgn_jax.surrogate.model import init_params
+from sgn_jax.surrogate.normalization import Moments, NormStats, normalize_graph
+from sgn_jax.surrogate.rollout import (
     ReplayTable,
     RolloutError,
     analytic_jar_query,
@@ -41,6 +41,7 @@ from sgn_jax.rollout import (
     replay_predictor,
     separate_pairs,
 )
+from sgn_jax.surrogate.sgn import SGN
 
 REPLAY_STEPS = 1000
 START = 7  # the first sample with a full window (W = 7)
@@ -50,8 +51,8 @@ START = 7  # the first sample with a full window (W = 7)
 def dem(tmp_path_factory):
     """A short real DEM trajectory of the standard case (0.101 s of motion, 1011 samples)."""
     from sgn_jax.config import builtin_config_path, load_config
-    from sgn_jax.dataset import load_trajectory, save_trajectory
     from sgn_jax.pipelines.dem_run import run_dem
+    from sgn_jax.records.trajectory import load_trajectory, save_trajectory
 
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "dem", settle_time=0.05)
@@ -424,7 +425,7 @@ def test_overflow_is_counted_not_hidden(dem):
 
 @pytest.fixture(scope="module")
 def checkpoint(dem, tiny, tmp_path_factory):
-    from sgn_jax.checkpoint import save_checkpoint
+    from sgn_jax.records.checkpoint import save_checkpoint
 
     traj = dem[0]
     cfg = replace_section(traj.config, "model", hidden=16)
@@ -436,8 +437,8 @@ def checkpoint(dem, tiny, tmp_path_factory):
 
 
 def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
-    from sgn_jax.checkpoint import load_trained_model
-    from sgn_jax.prediction import load_prediction
+    from sgn_jax.records.checkpoint import load_trained_model
+    from sgn_jax.records.prediction import load_prediction
 
     traj, spec, grid, motion = dem
     run_dir, cfg = checkpoint
@@ -466,7 +467,7 @@ def test_run_rollout_with_a_coarser_step_starts_from_the_coarsened_record(dem, t
     from the record's window coarsened by 2: the same rollout as one from ``coarsen(2)``."""
     import dataclasses
 
-    from sgn_jax.checkpoint import load_trained_model
+    from sgn_jax.records.checkpoint import load_trained_model
 
     traj, spec, grid, motion = dem
     run_dir, _ = checkpoint
@@ -491,7 +492,7 @@ def test_cli_rollout(dem, checkpoint, tmp_path, capsys):
     from sgn_jax.cli import main
     from sgn_jax.config import save_config
     from sgn_jax.motion import motion2
-    from sgn_jax.prediction import load_prediction
+    from sgn_jax.records.prediction import load_prediction
 
     traj = dem[0]
     run_dir, cfg = checkpoint
@@ -566,7 +567,7 @@ def test_memory_of_differentiated_rollout_is_bounded():
 def test_the_init_step_pair_is_the_scan(tiny):
     """Stepping ``init_state`` with ``make_rollout_step`` by hand gives the jitted scan's
     states, energies and step records (the scan is this step)."""
-    from sgn_jax.rollout import init_state, make_rollout_step
+    from sgn_jax.surrogate.rollout import init_state, make_rollout_step
 
     t = tiny
     spec, t0 = t["spec"], float(t["traj"].t[100])

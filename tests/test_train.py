@@ -9,13 +9,13 @@ import pytest
 
 import sgn_jax  # noqa: F401
 from sgn_jax.config import builtin_config_path, load_config, replace_section
-from sgn_jax.graph import make_graph_builder
-from sgn_jax.model import SGN, init_params, make_apply, make_predict
 from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
 from sgn_jax.pipelines.features import featurize_trajectory, windows_from_trajectory
 from sgn_jax.pipelines.train_run import read_metrics, train
-from sgn_jax.testing import synthetic_trajectory
-from sgn_jax.train import (
+from sgn_jax.surrogate.graph import make_graph_builder
+from sgn_jax.surrogate.model import init_params, make_apply, make_predict
+from sgn_jax.surrogate.sgn import SGN
+from sgn_jax.surrogate.train import (
     BatchPacker,
     TrainingError,
     TrainState,
@@ -29,6 +29,7 @@ from sgn_jax.train import (
     norm_stats_from_dataset,
     normalize_dataset,
 )
+from sgn_jax.testing import synthetic_trajectory
 
 N = 8
 
@@ -211,7 +212,7 @@ def test_no_global_loss_leaves_the_global_readout_untrained(data):
 
 
 def test_train_writes_metrics_checkpoints_and_resumes_identically(cfg, grid, tmp_path):
-    from sgn_jax.checkpoint import load_trained_model
+    from sgn_jax.records.checkpoint import load_trained_model
 
     trajs = [synthetic_trajectory(120, N, seed=s) for s in (1, 2)]
     quiet = {"sdf": grid, "progress": False, "log": lambda m: None}
@@ -262,7 +263,7 @@ def test_train_refuses_data_that_do_not_match_the_config(cfg, grid, tmp_path):
 def test_cli_train_on_trajectory_files(cfg, tmp_path):
     from sgn_jax.cli import main
     from sgn_jax.config import save_config
-    from sgn_jax.dataset import build_meta, save_trajectory
+    from sgn_jax.records.trajectory import build_meta, save_trajectory
 
     paths = []
     for seed in (3, 4):

@@ -1,4 +1,4 @@
-"""Data-parallel training (sgn_jax.train.DataParallel) gives the one-device update.
+"""Data-parallel training (sgn_jax.surrogate.train.DataParallel) gives the one-device update.
 
 As in tests/test_sharding.py the check runs in a fresh process with two host CPU devices
 (``XLA_FLAGS=--xla_force_host_platform_device_count=2`` must be set before JAX starts), so the
@@ -29,10 +29,11 @@ SCRIPT = r"""
 import json
 import jax, jax.numpy as jnp, numpy as np, optax
 import sgn_jax
-from sgn_jax.model import SGN, init_params, make_apply
-from sgn_jax.train import (BatchPacker, DataParallel, GraphDataset, ShardedPacker, TrainState,
-                           batch_edge_capacity, evaluate, make_eval_step, make_optimizer,
-                           make_train_step)
+from sgn_jax.surrogate.model import init_params, make_apply
+from sgn_jax.surrogate.sgn import SGN
+from sgn_jax.surrogate.train import (BatchPacker, DataParallel, GraphDataset, ShardedPacker,
+                                    TrainState, batch_edge_capacity, evaluate, make_eval_step,
+                                    make_optimizer, make_train_step)
 
 assert len(jax.devices()) == 2, jax.devices()
 rng = np.random.default_rng(0)
@@ -96,7 +97,7 @@ for name, tx in (("sgd", optax.inject_hyperparams(optax.sgd)(learning_rate=1e-3)
 # The training loop with [train] devices = 2: runs, checkpoints, loads.
 import tempfile
 from pathlib import Path
-from sgn_jax.checkpoint import load_trained_model
+from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.pipelines.configure import sdf_grid_from_config
 from sgn_jax.pipelines.train_run import read_metrics, train
@@ -152,7 +153,7 @@ def test_the_training_loop_runs_data_parallel(result):
 def test_more_devices_than_there_are_is_a_clear_error(tmp_path):
     from sgn_jax.config import builtin_config_path, load_config, replace_section
     from sgn_jax.pipelines.train_run import train
-    from sgn_jax.train import TrainingError
+    from sgn_jax.surrogate.train import TrainingError
 
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "train", batch_size=4)

@@ -1,4 +1,5 @@
-"""Checks at the boundary (sgn_jax.validation) and a DEM run that refuses to lie (DEMRunError)."""
+"""Checks at the boundary (sgn_jax.pipelines.validation) and a DEM run that refuses to lie
+(DEMRunError)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from sgn_jax.cli import main
 from sgn_jax.config import ConfigError, builtin_config_path, load_config, replace_section
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.pipelines import dem_run as driver
-from sgn_jax.validation import (
+from sgn_jax.pipelines.validation import (
     check_dem_config,
     check_duration,
     envelope_notes,
@@ -29,11 +30,11 @@ def std():
 
 
 def test_every_package_error_has_one_base():
-    from sgn_jax.checkpoint import CheckpointError
-    from sgn_jax.dataset import DatasetError
     from sgn_jax.dem.engine import DEMError
     from sgn_jax.design import DesignError
-    from sgn_jax.rollout import RolloutError
+    from sgn_jax.records.checkpoint import CheckpointError
+    from sgn_jax.records.trajectory import DatasetError
+    from sgn_jax.surrogate.rollout import RolloutError
 
     for cls in (ConfigError, CheckpointError, DatasetError, DEMError, DesignError, RolloutError,
                 driver.DEMRunError):
@@ -187,7 +188,7 @@ def test_envelope_of_a_single_motion_model(std):
         assert envelope_notes(replace_section(std, "motion", rpm=600.0), stated)
     # A model trained over the shipped envelope states it whole: its per-harmonic limits hold
     # too (a 24 mm first harmonic is within the 26 mm sum but above the 20 mm limit).
-    from sgn_jax.envelope import load_envelope
+    from sgn_jax.records.envelope import load_envelope
 
     full = model_envelope(std, {"envelope": load_envelope().to_meta()})
     assert full.motion == load_envelope()

@@ -33,6 +33,8 @@ def main() -> None:
     ap.add_argument("--unroll", type=int, default=4)
     ap.add_argument("--pushforward", action="store_true")
     ap.add_argument("--noise", type=float, default=0.0, help="position random-walk std (m)")
+    ap.add_argument("--relative-floor", type=float, default=1e-3,
+                    help="m/s; per-ball relative loss with this floor (0: squared error)")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--lr-final", type=float, default=3e-5)
     ap.add_argument("--hidden", type=int, default=None)
@@ -53,7 +55,8 @@ def main() -> None:
     summary = sj.train_contact(
         cfg, trajs, args.out, val_trajectories=val, steps=args.steps, batch_size=args.batch,
         unroll=sj.UnrollSpec(unroll=args.unroll, pushforward=args.pushforward,
-                             position_noise=args.noise),
+                             position_noise=args.noise,
+                             relative_floor=args.relative_floor),
         lr_init=args.lr, lr_final=args.lr_final, seed=args.seed, minutes=args.minutes,
         resume=args.resume, progress=not args.no_progress)
     print({k: summary[k] for k in ("steps_done", "best_loss", "seconds")})

@@ -10,7 +10,7 @@ Does what ``experiments/run_experiments.py`` does (the same files under
 ``runs/experiments/NAME``: ``rollouts/{case}_seed{S}.npz/.json``, ``eval/{case}/run_XX/
 metrics.json``, ``eval/{case}/ensemble.json`` and ``curves.png``, ``results.json``), but loads
 the model once and runs every rollout in this process with ``sgn_jax.pipelines.rollout_run.run_rollout``
-and every comparison with ``sgn_jax.metrics.evaluate``. On this 2-core machine under load a
+and every comparison with ``sgn_jax.analysis.metrics.evaluate``. On this 2-core machine under load a
 ``sgn-jax rollout`` process spent up to 80 s starting and compiling for a 0.05-s rollout; here
 the compiled programs are reused (JAX's persistent cache) and only the first rollout of a shape
 compiles. A rollout that goes non-finite is recorded as failed (``failed`` in results.json; its

@@ -5,7 +5,7 @@
         [--heldout-circles 3] [--heldout-harmonics 3] [--train-packings 3] [--duration 1.5]
 
 Draws the training motions and, from another Latin hypercube seed, the held-out motions over
-``sgn_jax/data/envelope.toml`` (sgn_jax.envelope.latin_hypercube_motions), and writes
+``sgn_jax/data/envelope.toml`` (sgn_jax.records.envelope.latin_hypercube_motions), and writes
 
 - ``experiments/envelope/configs/{train,heldout}_{c,h}NN.toml``: the standard config
   (emax_300rpm) with that motion, and

@@ -99,7 +99,7 @@ def make_contact_law(
 
 MIN_CONTACT_STEPS = 20
 """A Hertz contact must last at least this many DEM steps to be resolved: the config check
-(sgn_jax.validation) applies it to the largest impact speed a motion drives, the run
+(sgn_jax.pipelines.validation) applies it to the largest impact speed a motion drives, the run
 (sgn_jax.pipelines.dem_run.check_samples) to the relative speeds it reaches."""
 
 

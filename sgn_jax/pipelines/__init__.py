@@ -1,9 +1,9 @@
 """The pipeline layer: where a config meets the pure JAX core, and where the host drivers live.
 
 The core (``sgn_jax.motion``, ``sgn_jax.geometry``, ``sgn_jax.dem`` engine and contact laws,
-``sgn_jax.graph``, ``sgn_jax.model``, ``sgn_jax.normalization``, ``sgn_jax.rollout``,
-``sgn_jax.train`` step and loss, ``sgn_jax.design``) never imports ``sgn_jax.config`` or file
-I/O (``tests/test_architecture.py`` checks the import graph). Everything that reads a config or
+the surrogate ``sgn_jax.surrogate``: featurizer, model kinds, normalisation, rollout, training
+step and loss; ``sgn_jax.design``) never imports ``sgn_jax.config`` or file I/O
+(``tests/test_architecture.py`` checks the import graph). Everything that reads a config or
 touches files is here:
 
 - :mod:`sgn_jax.pipelines.configure` - every ``*_from_config`` adapter (config -> core spec,
@@ -14,6 +14,9 @@ touches files is here:
 - :mod:`sgn_jax.pipelines.train_run` - the training loop (``sgn-jax train``);
 - :mod:`sgn_jax.pipelines.rollout_run` - checkpoint + dataset -> prediction file
   (``sgn-jax rollout``);
+- :mod:`sgn_jax.pipelines.validation` - the checks at the boundary before any work starts
+  (durations, fill, contact resolution of a motion, the DEM's validated range, a model's motion
+  envelope);
 - :mod:`sgn_jax.pipelines.demo` - ``sgn-jax demo`` and the shipped models;
 - :mod:`sgn_jax.pipelines.experiments` - what the experiment scripts share (starting the CLI on
   pinned cores, its JSON summary line, a model's evaluation on an ensemble).

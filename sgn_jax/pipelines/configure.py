@@ -24,10 +24,10 @@ from sgn_jax.geometry.jar import jar_mesh, jar_volume
 from sgn_jax.geometry.mesh_distance import signed_distance_grid
 from sgn_jax.geometry.sdf_grid import grid_layout, sdf_grid_from_jar
 from sgn_jax.geometry.stl import UNIT_SCALES
-from sgn_jax.graph import GraphSpec
-from sgn_jax.io_utils import atomic_write
 from sgn_jax.motion import Motion, motion_kind_named
+from sgn_jax.records.io_utils import atomic_write
 from sgn_jax.scene import JarGeometry, grid_jar, parametric_jar
+from sgn_jax.surrogate.graph import GraphSpec
 
 
 def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:

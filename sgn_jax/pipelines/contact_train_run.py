@@ -1,7 +1,7 @@
 """Host driver of the contact-impulse surrogate's training (``[model] kind = "contact"``).
 
 ``train_contact(cfg, trajectories, out_dir)`` draws stretches of the DEM trajectories, runs the
-jitted unrolled-loss step of :mod:`sgn_jax.contact_train` for a budget of steps (or minutes),
+jitted unrolled-loss step of :mod:`sgn_jax.surrogate.contact_train` for a budget of steps (or minutes),
 shows progress (rate, ETA), and writes the run like :func:`sgn_jax.pipelines.train_run.train`:
 ``config.toml``, ``metrics.csv``, ``run_info.json``, ``checkpoints/latest`` (with the
 optimiser state, every ``checkpoint_every`` steps and at the end) and ``checkpoints/best``
@@ -25,10 +25,13 @@ import numpy as np
 import optax
 
 import sgn_jax
-from sgn_jax.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.config import config_to_dict, save_config
-from sgn_jax.contact import ContactNet, physics_from_config
-from sgn_jax.contact_train import (
+from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+from sgn_jax.pipelines.train_run import at_model_step, check_trajectory_matches
+from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
+from sgn_jax.records.io_utils import atomic_write, git_commit, write_json
+from sgn_jax.surrogate.contact import ContactNet, physics_from_config
+from sgn_jax.surrogate.contact_train import (
     ContactTrainState,
     StretchSource,
     UnrollSpec,
@@ -38,12 +41,9 @@ from sgn_jax.contact_train import (
     share_logits,
     velocity_change_scale,
 )
-from sgn_jax.graph import Window, build_graph
-from sgn_jax.io_utils import atomic_write, git_commit, write_json
-from sgn_jax.normalization import Moments, NormStats
-from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
-from sgn_jax.pipelines.train_run import at_model_step, check_trajectory_matches
-from sgn_jax.train import TrainingError
+from sgn_jax.surrogate.graph import Window, build_graph
+from sgn_jax.surrogate.normalization import Moments, NormStats
+from sgn_jax.surrogate.train import TrainingError
 
 
 def identity_stats(window: int) -> NormStats:

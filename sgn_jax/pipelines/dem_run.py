@@ -9,7 +9,8 @@
    ``lax.scan`` per chunk, no host sync inside), a sample every ``dt = substeps * dt_dem``;
 4. after settling and after each chunk, write the chunk's samples and the state atomically into
    ``OUT.partial/`` next to the output, so an interrupted run resumes from its last chunk;
-5. write the dataset with :func:`sgn_jax.dataset.save_trajectory` and remove ``OUT.partial/``.
+5. write the dataset with :func:`sgn_jax.records.trajectory.save_trajectory` and remove
+   ``OUT.partial/``.
 
 Sample 0 is the settled state at t = 0. The per-interval dissipation arrays are differences of
 the engine's cumulative ledger (first sample 0). Besides the SPEC-4 arrays the file holds
@@ -31,9 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.cache import settled_dir
 from sgn_jax.config import config_to_dict, replace_section
-from sgn_jax.dataset import DatasetError, build_meta, save_trajectory
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import (
     DISSIPATION_KINDS,
@@ -47,15 +46,17 @@ from sgn_jax.dem.engine import (
     reset_ledger_totals,
 )
 from sgn_jax.dem.placement import place_balls
-from sgn_jax.io_utils import atomic_write
 from sgn_jax.motion import offset
 from sgn_jax.pipelines.configure import (
     contact_law_from_config,
     geometry_from_config,
     params_from_config,
 )
+from sgn_jax.pipelines.validation import check_dem_config, check_duration
+from sgn_jax.records.cache import settled_dir
+from sgn_jax.records.io_utils import atomic_write
+from sgn_jax.records.trajectory import DatasetError, build_meta, save_trajectory
 from sgn_jax.scene import JarGeometry
-from sgn_jax.validation import check_dem_config, check_duration
 
 PARTIAL_FORMAT = 1
 
@@ -298,10 +299,10 @@ def run_dem(
         chunk_samples: samples per jitted chunk (default ``cfg.dem.chunk_samples``).
         dtype: override ``[dem] dtype``.
         check: refuse a config the DEM cannot represent before any work
-            (:func:`sgn_jax.validation.check_dem_config`; an envelope warning otherwise).
+            (:func:`sgn_jax.pipelines.validation.check_dem_config`; an envelope warning otherwise).
         settle_cache: reuse (and store) the settled packing of this jar, balls, material, DEM
-            settings, seed and rest position in the user cache (:mod:`sgn_jax.cache`; off with
-            ``SGN_JAX_NO_CACHE=1``); a cached run is bit-identical to a fresh one.
+            settings, seed and rest position in the user cache (:mod:`sgn_jax.records.cache`;
+            off with ``SGN_JAX_NO_CACHE=1``); a cached run is bit-identical to a fresh one.
 
     Raises:
         DEMRunError: a ball left the jar, a value went non-finite, or a contact became too fast

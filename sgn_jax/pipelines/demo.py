@@ -9,12 +9,12 @@
 2. from the DEM's initial window (samples 0 .. W, the first full window of the model's
    ``[graph] window`` W) a rollout of ``duration`` seconds (S = duration / dt steps) with the
    trained SGN (the shipped model by default), written to ``OUT/prediction.npz``;
-3. the comparison of :func:`sgn_jax.metrics.compare` (cumulative dissipated energy, position
-   MSE_t, balls outside the jar, edge overflow, regime indicators, the motion checks), the
-   wall-time speed ratio
-   (DEM seconds per simulated second / surrogate seconds per simulated second, compile time
-   and settling apart), ``OUT/summary.json``, the plots of :func:`sgn_jax.plots.plot_run` and
-   ``OUT/animation.gif`` (:mod:`sgn_jax.animation`).
+3. the comparison of :func:`sgn_jax.analysis.metrics.compare` (cumulative dissipated energy,
+   position MSE_t, balls outside the jar, edge overflow, regime indicators, the motion checks),
+   the wall-time speed ratio (DEM seconds per simulated second / surrogate seconds per simulated
+   second, compile time and settling apart), ``OUT/summary.json``, the plots of
+   :func:`sgn_jax.analysis.plots.plot_run` and ``OUT/animation.gif``
+   (:mod:`sgn_jax.analysis.animation`).
 
 The energy compared is the surrogate's target, the DEM's normal + tangential damping (ball-ball
 and ball-wall) summed over the rollout's interval (t_W, t_W + duration]; the DEM's total
@@ -22,8 +22,8 @@ dissipation of all kinds (with Coulomb slip and rolling friction) is reported be
 
 The energy can agree by accident (a surrogate whose balls run too fast, pile against a wall and
 sink into each other dissipated within 1 % of the DEM), so beside it the report prints the
-motion checks of :func:`sgn_jax.metrics.motion_checks`, each with the DEM's value next to the
-surrogate's: mean ball speed in the jar frame, ball-steps snapped back to the wall, deepest
+motion checks of :func:`sgn_jax.analysis.metrics.motion_checks`, each with the DEM's value next to
+the surrogate's: mean ball speed in the jar frame, ball-steps snapped back to the wall, deepest
 ball-ball overlap and the MSE_t plateau against the DEM's chaos floor. Each check out of the
 DEM's range prints a ``WARNING:`` line, followed by one saying that the energy agreement alone
 should not be trusted (docs/rollout.md, "The demo's honesty lines").
@@ -47,13 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from sgn_jax.animation import select_frames, write_comparison_gif
-from sgn_jax.checkpoint import CheckpointError, latest_step, load_trained_model
-from sgn_jax.config import resolve_config
-from sgn_jax.dataset import load_trajectory
-from sgn_jax.errors import SGNJaxError
-from sgn_jax.io_utils import machine_info, write_json
-from sgn_jax.metrics import (
+from sgn_jax.analysis.animation import select_frames, write_comparison_gif
+from sgn_jax.analysis.metrics import (
     MOTION_MSE_FLOOR_MAX_RATIO,
     MOTION_OVERLAP_MAX_M,
     MOTION_SNAPPED_FRACTION_MAX,
@@ -63,10 +58,16 @@ from sgn_jax.metrics import (
     motion_warning_lines,
     position_mse,
 )
+from sgn_jax.config import resolve_config
+from sgn_jax.errors import SGNJaxError
+from sgn_jax.pipelines.configure import jar_mesh_from_config
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.rollout_run import run_rollout
-from sgn_jax.prediction import load_prediction
-from sgn_jax.validation import check_duration, warn_outside_envelope
+from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
+from sgn_jax.records.checkpoint import CheckpointError, latest_step, load_trained_model
+from sgn_jax.records.io_utils import machine_info, write_json
+from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.trajectory import load_trajectory
 
 DEFAULT_CASE = "emax_300rpm"
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "data" / "models"
@@ -189,11 +190,12 @@ def run_demo(
     Returns:
         the summary (also written to ``OUT/summary.json``): ``energy``, ``position``,
         ``speed``, ``dem``, ``surrogate``, ``checks``, ``regime``, ``motion_checks`` (list of
-        dicts, :func:`sgn_jax.metrics.motion_checks`), ``motion_warnings`` (messages of the
+        dicts, :func:`sgn_jax.analysis.metrics.motion_checks`), ``motion_warnings`` (messages of the
         failed checks), ``files``, ``wall_time_s``.
     """
-    # deferred: sgn_jax.plots imports matplotlib; api and cli import this module without plotting
-    from sgn_jax.plots import plot_run
+    # deferred: sgn_jax.analysis.plots imports matplotlib; api and cli import this module
+    # without plotting
+    from sgn_jax.analysis.plots import plot_run
 
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -380,7 +382,7 @@ def _write_animation(path: Path, prediction: Any, traj: Any, comparison: Any, ca
                 for s in step_of_frame]
     return write_comparison_gif(
         path, t_pos, np.asarray(traj.pos)[ref_frames], np.asarray(prediction.pos)[frames],
-        np.asarray(prediction.offset)[frames], case_cfg.jar,
+        np.asarray(prediction.offset)[frames], jar_mesh_from_config(case_cfg.jar),
         float(traj.meta["ball_radius"]), captions=captions, progress=progress)
 
 

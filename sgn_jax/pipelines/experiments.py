@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from sgn_jax.analysis.metrics import headline
 from sgn_jax.config import RolloutConfig, load_config, replace_section, save_config
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.metrics import headline
-from sgn_jax.prediction import PredictionError, load_prediction
+from sgn_jax.records.prediction import PredictionError, load_prediction
 
 
 class ExperimentError(SGNJaxError, ValueError):

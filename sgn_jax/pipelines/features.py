@@ -1,7 +1,7 @@
 """Dataset trajectory -> graph windows and training samples (the host side of the featurizer).
 
-The featurizer itself is :func:`sgn_jax.graph.build_graph` (pure, used by training and by the
-rollout). This module reads a trajectory record: its positions, jar offsets, dissipation and the
+The featurizer itself is :func:`sgn_jax.surrogate.graph.build_graph` (pure, used by training and by
+the rollout). This module reads a trajectory record: its positions, jar offsets, dissipation and the
 config stored in its metadata. The rotational-frequency feature comes from the motion object the
 config describes (:func:`sgn_jax.pipelines.configure.motion_from_config`, then
 :func:`sgn_jax.motion.frequency_hz`), the same function the rollout applies to its live motion.
@@ -18,7 +18,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from sgn_jax.config import MotionConfig, config_from_dict
-from sgn_jax.graph import (
+from sgn_jax.motion import Motion, frequency_hz
+from sgn_jax.pipelines.configure import motion_from_config
+from sgn_jax.surrogate.graph import (
     GraphError,
     GraphSpec,
     SDFQuery,
@@ -29,9 +31,7 @@ from sgn_jax.graph import (
     valid_window_ends,
     windows_from_arrays,
 )
-from sgn_jax.motion import Motion, frequency_hz
-from sgn_jax.pipelines.configure import motion_from_config
-from sgn_jax.train import GraphDataset, random_walk_position_noise
+from sgn_jax.surrogate.train import GraphDataset, random_walk_position_noise
 
 
 def trajectory_motion(traj: Any) -> Motion:
@@ -62,7 +62,8 @@ def trajectory_frequency_hz(traj: Any, default: float | None = None) -> float:
 def windows_from_trajectory(traj: Any, window: int, dt: float | None = None,
                             frequency_hz: float | None = None, ends: np.ndarray | None = None
                             ) -> tuple[Window, np.ndarray, np.ndarray]:
-    """Training windows and targets of a trajectory (``sgn_jax.dataset.Trajectory``-like).
+    """Training windows and targets of a trajectory
+    (``sgn_jax.records.trajectory.Trajectory``-like).
 
     ``traj`` needs ``pos`` (T, N, 3), ``offset`` and ``offset_vel`` (T, 3), the four
     ``diss_{pp,pw}_{normal,tangential}`` (T,) arrays and ``meta`` (with ``dt`` and ``config``
@@ -91,7 +92,7 @@ def featurize_trajectory(traj: Any, spec: GraphSpec, sdf: Any, ends: np.ndarray,
                          noise_seed: int = 0) -> GraphDataset:
     """Featurize the windows of ``traj`` ending at ``ends`` with :func:`build_graph`.
 
-    ``traj`` is a ``sgn_jax.dataset.Trajectory`` (or any object with ``pos``, ``offset``,
+    ``traj`` is a ``sgn_jax.records.trajectory.Trajectory`` (or any object with ``pos``, ``offset``,
     ``offset_vel``, the four dissipation arrays and ``meta``). Chunks of ``chunk`` windows are
     built at once (the last one padded, so one compilation serves all).
 

@@ -1,9 +1,9 @@
 """Host driver of the surrogate rollout: a trained model and a dataset window -> prediction file.
 
-The pure, jittable rollout is :mod:`sgn_jax.rollout` (``make_rollout`` / ``make_rollout_advance``);
-this module meets it with a config (the trained model's, optionally with another jar, motion, SDF
-and rollout section), a dataset trajectory for the initial window, timing and the prediction
-file (``sgn-jax rollout``).
+The pure, jittable rollout is :mod:`sgn_jax.surrogate.rollout` (``make_rollout`` /
+``make_rollout_advance``); this module meets it with a config (the trained model's, optionally with
+another jar, motion, SDF and rollout section), a dataset trajectory for the initial window, timing
+and the prediction file (``sgn-jax rollout``).
 """
 
 from __future__ import annotations
@@ -20,16 +20,16 @@ import numpy as np
 
 import sgn_jax
 from sgn_jax.config import config_to_dict
-from sgn_jax.dataset import DatasetError
-from sgn_jax.graph import Window, windows_from_arrays
-from sgn_jax.io_utils import git_commit
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     motion_from_config,
     sdf_grid_from_config,
 )
-from sgn_jax.prediction import save_prediction
-from sgn_jax.rollout import (
+from sgn_jax.records.io_utils import git_commit
+from sgn_jax.records.prediction import save_prediction
+from sgn_jax.records.trajectory import DatasetError
+from sgn_jax.surrogate.graph import Window, windows_from_arrays
+from sgn_jax.surrogate.rollout import (
     RolloutError,
     RolloutResult,
     init_state,
@@ -78,11 +78,12 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     capacity tiers of 1/4 and 1/2 of the graph's capacity (:func:`make_rollout`; speed only).
 
     Args:
-        trained_model: :class:`sgn_jax.checkpoint.TrainedModel` (model, params, stats, config).
-        init_traj: a :class:`sgn_jax.dataset.Trajectory`; the initial window ends at sample
-            ``start_index`` (W <= start_index < T), time ``t0 = traj.t[start_index]``.
+        trained_model: :class:`sgn_jax.records.checkpoint.TrainedModel` (model, params, stats,
+            config).
+        init_traj: a :class:`sgn_jax.records.trajectory.Trajectory`; the initial window ends at
+            sample ``start_index`` (W <= start_index < T), time ``t0 = traj.t[start_index]``.
         duration: seconds of rollout; S = round(duration / dt) steps, a multiple of save_every.
-        out_path: prediction ``.npz`` (:func:`sgn_jax.prediction.save_prediction`), or None.
+        out_path: prediction ``.npz`` (:func:`sgn_jax.records.prediction.save_prediction`), or None.
         cfg_override: a config whose [jar], [motion], [sdf] and [rollout] replace the trained
             model's (balls and dt must agree).
         save_every: steps between saved frames (default ``[rollout] save_every``).

@@ -1,7 +1,7 @@
 """The training loop (``sgn-jax train``): config + trajectories -> a run directory.
 
 The pure parts (dataset containers, static-shape batch packing, loss, optimiser, the jitted train
-and eval steps) are :mod:`sgn_jax.train`. This module featurizes the trajectories
+and eval steps) are :mod:`sgn_jax.surrogate.train`. This module featurizes the trajectories
 (:mod:`sgn_jax.pipelines.features`), runs the epochs, and writes the run: ``config.toml``,
 ``metrics.jsonl`` / ``metrics.csv``, ``loss.png``, orbax checkpoints, ``run_summary.json``.
 """
@@ -23,7 +23,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax
-from sgn_jax.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.config import (
     ConfigError,
     config_from_dict,
@@ -31,14 +30,15 @@ from sgn_jax.config import (
     replace_section,
     save_config,
 )
-from sgn_jax.envelope import ENVELOPE_PATH, load_envelope
-from sgn_jax.graph import GraphError, GraphSpec, SDFQuery, make_graph_builder
-from sgn_jax.io_utils import atomic_write, git_commit, write_json
-from sgn_jax.model import ModelKindError, count_params, model_factory, model_kind
-from sgn_jax.normalization import stats_to_arrays
 from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
 from sgn_jax.pipelines.features import featurize_trajectory
-from sgn_jax.train import (
+from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
+from sgn_jax.records.envelope import ENVELOPE_PATH, load_envelope
+from sgn_jax.records.io_utils import atomic_write, git_commit, write_json
+from sgn_jax.surrogate.graph import GraphError, GraphSpec, SDFQuery, make_graph_builder
+from sgn_jax.surrogate.model import ModelKindError, count_params, model_factory, model_kind
+from sgn_jax.surrogate.normalization import stats_to_arrays
+from sgn_jax.surrogate.train import (
     BatchPacker,
     DataParallel,
     GraphDataset,
@@ -199,10 +199,10 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
 
     Args:
         cfg: the experiment :class:`sgn_jax.config.Config` ([graph], [model], [train]).
-        trajectories: ``sgn_jax.dataset.Trajectory`` objects (or look-alikes).
+        trajectories: ``sgn_jax.records.trajectory.Trajectory`` objects (or look-alikes).
         out_dir: run directory (config.toml, metrics, loss.png, checkpoints/).
-        sdf, query: the jar SDF for :func:`sgn_jax.graph.build_graph` (default: the config's
-            SDF grid and ``query_sdf_grid``).
+        sdf, query: the jar SDF for :func:`sgn_jax.surrogate.graph.build_graph` (default: the
+            config's SDF grid and ``query_sdf_grid``).
         epochs: overrides ``cfg.train.epochs`` (total epochs of the run, also when resuming).
         resume: continue from ``out_dir/checkpoints/latest``; without it an existing run in
             ``out_dir`` is an error.

@@ -9,13 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax  # noqa
-from sgn_jax.checkpoint import save_checkpoint
 from sgn_jax.config import builtin_config_path, config_to_dict, load_config, replace_section
-from sgn_jax.graph import GraphSpec, build_graph
-from sgn_jax.io_utils import git_commit
-from sgn_jax.model import init_params, make_model, make_predict
-from sgn_jax.normalization import compute_norm_stats
 from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.records.checkpoint import save_checkpoint
+from sgn_jax.records.io_utils import git_commit
+from sgn_jax.surrogate.graph import GraphSpec, build_graph
+from sgn_jax.surrogate.model import init_params, make_model, make_predict
+from sgn_jax.surrogate.normalization import compute_norm_stats
 from sgn_jax.testing import synthetic_trajectory
 
 N = 6

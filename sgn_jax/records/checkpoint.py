@@ -34,18 +34,17 @@ from typing import Any
 import jax
 import numpy as np
 
-import sgn_jax.contact  # noqa: F401  (registers the built-in model kind "contact")
 from sgn_jax.config import ConfigError, config_from_dict
 from sgn_jax.errors import SGNJaxError, SGNJaxWarning
-from sgn_jax.model import ModelKindError, make_predict, model_factory, model_kind
-from sgn_jax.normalization import NormStats, stats_from_arrays, stats_to_arrays
+from sgn_jax.surrogate.model import ModelKindError, make_predict, model_factory, model_kind
+from sgn_jax.surrogate.normalization import NormStats, stats_from_arrays, stats_to_arrays
 
 ITEMS = ("params", "opt_state", "norm", "meta")
 FORMAT_VERSION = 1
 DIGEST_FILE = "sgn_digest.json"
 DIGEST_FORMAT = "sgn-jax checkpoint file digest"
 DIGEST_VERSION = 1
-_SHIPPED_MODELS_DIR = Path(__file__).resolve().parent / "data" / "models"
+_SHIPPED_MODELS_DIR = Path(__file__).resolve().parents[1] / "data" / "models"
 
 
 class CheckpointError(SGNJaxError, RuntimeError):
@@ -293,7 +292,7 @@ def restore_checkpoint(directory: str | Path, step: int | None = None, *,
                 warnings.warn(
                     f"checkpoint {directory} (step {step}) has no {DIGEST_FILE}: its files' "
                     "integrity cannot be verified (written by an older sgn-jax; re-save it, or "
-                    "call sgn_jax.checkpoint.write_checkpoint_digest on a copy you trust)",
+                    "call sgn_jax.records.checkpoint.write_checkpoint_digest on a copy you trust)",
                     CheckpointIntegrityWarning, stacklevel=2)
             _check_meta_json(step_dir, directory)
             meta = mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
@@ -342,7 +341,7 @@ class TrainedModel:
     """A trained surrogate ready for prediction (see :func:`load_trained_model`).
 
     ``model`` is the flax module of the config's ``[model] kind`` (an ``SGN`` by default),
-    built by :func:`sgn_jax.model.model_factory`."""
+    built by :func:`sgn_jax.surrogate.model.model_factory`."""
 
     model: Any
     params: Any

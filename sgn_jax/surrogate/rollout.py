@@ -1,6 +1,7 @@
 """The surrogate rollout: one jitted, differentiable ``lax.scan`` over SGN steps (paper 2.2.3).
 
-One step (time indexing as in :mod:`sgn_jax.graph`; the window ends at sample n, time t_n)::
+One step (time indexing as in :mod:`sgn_jax.surrogate.graph`; the window ends at sample n,
+time t_n)::
 
     graph      = build_graph(window_n)                  same featurizer as in training
     a_n, dE_n  = predictor(params, stats, graph, step)  de-normalised (m/s^2, J)
@@ -58,15 +59,15 @@ import jraph
 import numpy as np
 
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.graph import (
+from sgn_jax.motion import Motion, frequency_hz, offset, velocity
+from sgn_jax.scene import SDFQuery, analytic_jar_query, grid_query
+from sgn_jax.surrogate.graph import (
     GraphSpec,
     Window,
     build_graph,
     slide_window,
 )
-from sgn_jax.model import make_predict
-from sgn_jax.motion import Motion, frequency_hz, offset, velocity
-from sgn_jax.scene import SDFQuery, analytic_jar_query, grid_query
+from sgn_jax.surrogate.model import make_predict
 
 F64 = jnp.float64
 I32 = jnp.int32
@@ -91,7 +92,8 @@ class RolloutState:
     """The scan carry: the window, the step count and the dissipation sum.
 
     Attributes:
-        window: :class:`sgn_jax.graph.Window` ending at the current sample (positions f64).
+        window: :class:`sgn_jax.surrogate.graph.Window` ending at the current sample
+            (positions f64).
         step: () int32, steps taken since the rollout's start (time t0 + step * dt).
         energy: () float64 J, cumulative predicted dissipation since the start.
     """
@@ -112,7 +114,7 @@ class StepRecord:
     The model's own energy ledger (J per step; NaN for a kind that does not report it, such as
     the SGN, whose dE is learned apart from its motion): ``diss_pp`` and ``diss_pw``, what its
     ball-ball and ball-wall impulses take out of the balls, and ``work_wall``, the work of its
-    ball-wall impulses at the jar's velocity (:mod:`sgn_jax.contact`).
+    ball-wall impulses at the jar's velocity (:mod:`sgn_jax.surrogate.contact`).
     """
 
     dE: jax.Array
@@ -153,7 +155,7 @@ class RolloutResult:
         return self.steps.energy_cum[..., -1]
 
     def prediction_arrays(self) -> dict[str, np.ndarray]:
-        """The arrays of :func:`sgn_jax.prediction.save_prediction` (unbatched result)."""
+        """The arrays of :func:`sgn_jax.records.prediction.save_prediction` (unbatched result)."""
         s = self.steps
         return {
             "t_step": np.asarray(self.t_step, np.float64),
@@ -196,7 +198,7 @@ class ReplayTable:
 
 def model_predictor(model_or_predict: Any) -> Predictor:
     """Predictor of an SGN: a flax ``SGN`` module or a ``predict(params, stats, raw_graph)``
-    from :func:`sgn_jax.model.make_predict`. Returns the N ball rows and dE of graph 0."""
+    from :func:`sgn_jax.surrogate.model.make_predict`. Returns the N ball rows and dE of graph 0."""
     if isinstance(model_or_predict, nn.Module):
         predict = make_predict(model_or_predict)
     elif callable(model_or_predict):
@@ -238,7 +240,7 @@ def replay_predictor() -> Predictor:
     """The "cheating model": ``params`` is a :class:`ReplayTable`; step s returns its row s.
 
     Fed the finite-difference accelerations ``(x_{n+1} - 2 x_n + x_{n-1}) / dt^2`` and the DEM
-    dissipation of ``(t_n, t_{n+1}]`` (:func:`sgn_jax.graph.targets_from_arrays`) for
+    dissipation of ``(t_n, t_{n+1}]`` (:func:`sgn_jax.surrogate.graph.targets_from_arrays`) for
     n = start + s, the rollout reproduces the trajectory to rounding (snap-back off).
     """
 
@@ -588,7 +590,8 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
     """A rollout of ``n_steps`` surrogate steps as one pure (by default jitted) function.
 
     Args:
-        spec: the static :class:`sgn_jax.graph.GraphSpec` (N, W, R, dt, edge rules, capacity).
+        spec: the static :class:`sgn_jax.surrogate.graph.GraphSpec` (N, W, R, dt, edge rules,
+            capacity).
         predictor: a flax ``SGN`` module, or a :data:`Predictor`
             (:func:`model_predictor`, :func:`replay_predictor`, or your own).
         n_steps: S, steps per call (a multiple of ``save_every``).
@@ -598,9 +601,9 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
 
     Returns:
         ``rollout(params, stats, window0, motion, sdf, t0) -> RolloutResult`` where ``window0``
-        is a :class:`sgn_jax.graph.Window` ending at time ``t0`` (its jar state is recomputed
-        from ``motion``, so the result is a function of the motion parameters alone), ``sdf``
-        what ``query`` reads (an ``SDFGrid`` or ``JarParams``), ``t0`` (s since the start of
+        is a :class:`sgn_jax.surrogate.graph.Window` ending at time ``t0`` (its jar state is
+        recomputed from ``motion``, so the result is a function of the motion parameters alone),
+        ``sdf`` what ``query`` reads (an ``SDFGrid`` or ``JarParams``), ``t0`` (s since the start of
         motion) the time of the window's newest sample. P = S / save_every + 1 frames, the first
         at t0. Differentiable in ``params``, ``window0`` positions, the motion and the SDF.
     """

@@ -40,11 +40,11 @@ from typing import Any
 import numpy as np
 
 import sgn_jax
-from sgn_jax import records
 from sgn_jax.config import config_to_dict
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.io_utils import git_commit
-from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
+from sgn_jax.records import base as records
+from sgn_jax.records.base import ArrayRecord, ArraySpec, RecordFormat
+from sgn_jax.records.io_utils import git_commit
 
 
 class DatasetError(SGNJaxError, ValueError):
@@ -96,9 +96,9 @@ _FORMAT = RecordFormat(
     size_sources="T from 't', N from 'pos', K from 'pp_pairs'",
     float64_hint=("positions and velocities must be float64 (the surrogate's finite "
                   "differences need them); cast with .astype(np.float64) before saving"),
-    fix_hint="regenerate the file with `sgn-jax dem` (sgn_jax.dataset.save_trajectory)",
+    fix_hint="regenerate the file with `sgn-jax dem` (sgn_jax.records.trajectory.save_trajectory)",
     produce_hint="generate it with `sgn-jax dem --config CONFIG.toml`",
-    meta_hint="build it with sgn_jax.dataset.build_meta(config, ...)",
+    meta_hint="build it with sgn_jax.records.trajectory.build_meta(config, ...)",
 )
 
 

@@ -1,5 +1,6 @@
-"""What the project's ``.npz`` record files share: the DEM trajectory file (:mod:`sgn_jax.dataset`)
-and the rollout prediction file (:mod:`sgn_jax.prediction`).
+"""What the project's ``.npz`` record files share: the DEM trajectory file
+(:mod:`sgn_jax.records.trajectory`) and the rollout prediction file
+(:mod:`sgn_jax.records.prediction`).
 
 A record is a set of named numpy arrays plus ``meta``, a JSON object stored in the archive as a
 0-d unicode array under the reserved name ``"meta"``. Each file kind describes itself with a
@@ -11,7 +12,7 @@ depend on the kind:
   :func:`check_config_entry`, :func:`check_array_specs`, :func:`is_positive_number`,
   :func:`first_non_finite`);
 - :func:`write_npz_record`: validate, check the config can be read back, encode the meta as
-  JSON (``sgn_jax.io_utils.json_default``), write atomically;
+  JSON (``sgn_jax.records.io_utils.json_default``), write atomically;
 - :func:`read_npz_record`: read every member (a missing file, a non-zip, a corrupt member, a
   missing or non-JSON meta each get a clear error) and return read-only arrays and the meta;
 - :class:`ArrayRecord`: the read-only view (arrays by attribute or item, ``meta``, ``path``,
@@ -33,7 +34,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from sgn_jax.config import ConfigError, config_from_dict
-from sgn_jax.io_utils import atomic_write, json_default
+from sgn_jax.records.io_utils import atomic_write, json_default
 
 
 class ArraySpec(NamedTuple):

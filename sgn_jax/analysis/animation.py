@@ -9,10 +9,10 @@ Layout of each frame (lab frame; axes in mm)::
     | DEM (reference): side view    | SGN (surrogate): side view    |  x-y, section at z = 0
     +-------------------------------+-------------------------------+
 
-The jar outline comes from the jar's own geometry (a plane section of
-:func:`sgn_jax.geometry.jar_mesh_from_config`, so STL jars and the central post are drawn as
-they are) and moves with the jar offset. Each ball keeps its colour in all four panels, so a
-ball of the surrogate can be followed against the same ball of the DEM.
+The jar outline comes from the jar's own geometry (plane sections of its cavity mesh, which the
+caller builds with :func:`sgn_jax.pipelines.configure.jar_mesh_from_config`, so STL jars and the
+central post are drawn as they are) and moves with the jar offset. Each ball keeps its colour in all
+four panels, so a ball of the surrogate can be followed against the same ball of the DEM.
 
 Rendering uses matplotlib's object API with the Agg canvas (nothing global, no display): the
 figure and its artists are built once and only moved per frame, which keeps ~100 frames at a
@@ -32,8 +32,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sgn_jax.io_utils import atomic_write
-from sgn_jax.pipelines.configure import jar_mesh_from_config
+from sgn_jax.records.io_utils import atomic_write
 
 # Layout of the GIF's figure (inches): tick labels and axis titles around the four panels.
 _MARGIN_LEFT_IN, _MARGIN_RIGHT_IN, _GAP_X_IN = 0.5, 0.1, 0.5
@@ -59,15 +58,15 @@ class JarSections(NamedTuple):
     upper: np.ndarray
 
 
-def jar_sections(jar_cfg: Any) -> JarSections:
-    """Outline segments of the jar of a ``[jar]`` config section (emax or stl).
+def jar_sections(mesh: Any) -> JarSections:
+    """Outline segments of a jar's cavity mesh (a ``trimesh.Trimesh`` in the jar frame, m; for a
+    ``[jar]`` config section: :func:`sgn_jax.pipelines.configure.jar_mesh_from_config`).
 
     The top view cuts the cavity mesh at mid-height, the side view at z = 0 (the jar axis plane
     for the parametric jar); both come from ``trimesh.intersections.mesh_plane``.
     """
     from trimesh.intersections import mesh_plane
 
-    mesh = jar_mesh_from_config(jar_cfg)
     lower, upper = (np.asarray(b, dtype=np.float64) for b in mesh.bounds)
     mid_height = 0.5 * (lower[1] + upper[1])
     top = np.asarray(mesh_plane(mesh, [0.0, 1.0, 0.0], [0.0, mid_height, 0.0]), np.float64)
@@ -105,7 +104,7 @@ def write_comparison_gif(
     pos_dem: Any,
     pos_sgn: Any,
     offsets: Any,
-    jar_cfg: Any,
+    jar_mesh: Any,
     ball_radius: float,
     *,
     captions: Sequence[str] | None = None,
@@ -124,7 +123,8 @@ def write_comparison_gif(
         pos_dem, pos_sgn: (F, N, 3) m, lab-frame ball centres of the DEM and the surrogate at
             the frame times, balls matched by index.
         offsets: (F, 3) m, jar offset at the frame times (the outline moves with it).
-        jar_cfg: the ``[jar]`` config section (:class:`sgn_jax.config.JarConfig`).
+        jar_mesh: the jar's cavity mesh in the jar frame (``trimesh.Trimesh``, m;
+            :func:`sgn_jax.pipelines.configure.jar_mesh_from_config` of the ``[jar]`` section).
         ball_radius: m.
         captions: optional (F,) strings appended to each frame's title (e.g. the energies).
         fps: frames per second of the GIF.
@@ -164,7 +164,7 @@ def write_comparison_gif(
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
 
-    sections = jar_sections(jar_cfg)
+    sections = jar_sections(jar_mesh)
     n_balls = pos_dem.shape[1]
     colors = _ball_colors(n_balls)
 

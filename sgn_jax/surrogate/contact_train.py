@@ -1,4 +1,4 @@
-"""Training of the contact-impulse surrogate (:mod:`sgn_jax.contact`): short unrolled rollouts.
+"""Training of the contact-impulse surrogate (:mod:`sgn_jax.surrogate.contact`): short unrolled rollouts.
 
 The featurizer runs inside the jitted step: a training sample is a stretch of a DEM trajectory
 (``W + 1 + K`` positions and the jar state at the ``W + K`` slot times), and the loss unrolls
@@ -29,9 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from sgn_jax.contact import ContactNet
-from sgn_jax.graph import GraphSpec, Window, build_graph
 from sgn_jax.scene import SDFQuery
+from sgn_jax.surrogate.contact import ContactNet
+from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 
 F64 = jnp.float64
 

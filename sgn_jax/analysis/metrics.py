@@ -40,12 +40,14 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.dataset import load_trajectory
 from sgn_jax.errors import SGNJaxWarning
+from sgn_jax.geometry import jar_sdf
 from sgn_jax.pairs import MetricsError, deepest_pair_overlap, pairs_within
-from sgn_jax.prediction import load_prediction
+from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.regime import (
     AGITATED_SPEED_M_S,
     BED_PAIRS_PER_BALL,
@@ -221,10 +223,6 @@ def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float,
         nothing touches), ``pp_contact_frames_mean`` (mean run length, in frames, of a
         touching pair: how long a ball-ball contact lasts).
     """
-    import jax.numpy as jnp
-
-    from sgn_jax.geometry import jar_sdf
-
     pos = np.asarray(pos, np.float64)
     rel = pos - np.asarray(offset, np.float64)[:, None, :]
     n = pos.shape[1]
@@ -323,8 +321,8 @@ def align(prediction: Any, reference: Any) -> Alignment:
     """Match the prediction's steps and frames to reference samples by time.
 
     Args:
-        prediction: a ``sgn_jax.prediction.Prediction`` (or its path).
-        reference: a ``sgn_jax.dataset.Trajectory`` (or its path), the DEM ground truth.
+        prediction: a ``sgn_jax.records.prediction.Prediction`` (or its path).
+        reference: a ``sgn_jax.records.trajectory.Trajectory`` (or its path), the DEM ground truth.
     Returns:
         :class:`Alignment`. Times match within min(dt_pred, dt_ref) / 10. If some steps or
         frames have no reference sample, a :class:`CoverageWarning` says which time range is
@@ -785,8 +783,9 @@ def ensemble_summary(runs: Sequence[Any], references: Sequence[Any] | None = Non
         summaries = list(runs)
         for i, summary in enumerate(summaries):
             if not isinstance(summary, Mapping) or "regime" not in summary:
-                raise MetricsError(f"run {i} is not a summary from sgn_jax.metrics.evaluate; pass "
-                                   "summaries, or predictions together with references=")
+                raise MetricsError(f"run {i} is not a summary from "
+                                   "sgn_jax.analysis.metrics.evaluate; pass summaries, or "
+                                   "predictions together with references=")
     if labels is not None and len(labels) != len(summaries):
         raise MetricsError(f"got {len(labels)} labels for {len(summaries)} runs")
 

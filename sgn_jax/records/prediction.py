@@ -1,4 +1,5 @@
-"""The rollout prediction file: what ``sgn_jax.rollout`` writes and ``sgn-jax evaluate`` reads.
+"""The rollout prediction file: what ``sgn_jax.surrogate.rollout`` writes and ``sgn-jax evaluate``
+reads.
 
 One ``.npz`` per surrogate rollout. The rollout writes it with :func:`save_prediction`; metrics
 and plots read it with :func:`load_prediction`, which returns a read-only :class:`Prediction`.
@@ -28,7 +29,7 @@ name                               shape      dtype    meaning
 =================================  =========  =======  ==============================================
 
 Optional extra arrays, written for a model kind that reports its own energy ledger (the
-contact model, :mod:`sgn_jax.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
+contact model, :mod:`sgn_jax.surrogate.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
 ball-ball and ball-wall impulses took out of the balls in each step, and ``work_wall_model``
 (S,) J, the work of its ball-wall impulses at the jar's velocity.
 
@@ -55,10 +56,10 @@ from typing import Any
 
 import numpy as np
 
-from sgn_jax import records
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.pairs import pairs_within
-from sgn_jax.records import ArrayRecord, ArraySpec, RecordFormat
+from sgn_jax.records import base as records
+from sgn_jax.records.base import ArrayRecord, ArraySpec, RecordFormat
 
 
 class PredictionError(SGNJaxError, ValueError):
@@ -91,14 +92,14 @@ _GRID_TOL = 1e-3
 # energy_cum must be cumsum(dE) up to the accumulation's rounding: a float32 running sum over
 # 1e5 steps drifts ~sqrt(S) * 6e-8 ~ 2e-5 relative (worst case S * 6e-8 ~ 6e-3, never seen).
 _CUMSUM_RTOL = 1e-3
-_FIX_HINT = "regenerate it with `sgn-jax rollout` (sgn_jax.prediction.save_prediction)"
+_FIX_HINT = "regenerate it with `sgn-jax rollout` (sgn_jax.records.prediction.save_prediction)"
 
 _FORMAT = RecordFormat(
     kind="prediction",
     error=PredictionError,
     arrays=REQUIRED_ARRAYS,
     meta_keys=REQUIRED_META,
-    documented_in="see the sgn_jax.prediction module docstring",
+    documented_in="see the sgn_jax.records.prediction module docstring",
     size_sources="S from 't_step', P from 't_pos', N from 'pos'",
     float64_hint=("positions must be float64 (differences of nearby positions lose digits in "
                   "float32); cast with .astype(np.float64) before saving"),
@@ -273,7 +274,7 @@ def prediction_from_trajectory(traj: Any, start_index: int, n_steps: int, *,
     """Arrays and meta of a prediction that replays the DEM exactly ("perfect surrogate").
 
     Optional extra arrays, written for a model kind that reports its own energy ledger (the
-contact model, :mod:`sgn_jax.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
+contact model, :mod:`sgn_jax.surrogate.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
 ball-ball and ball-wall impulses took out of the balls in each step, and ``work_wall_model``
 (S,) J, the work of its ball-wall impulses at the jar's velocity.
 
@@ -285,7 +286,7 @@ The rollout starts at sample ``start_index`` (t_start = traj.t[start_index]); st
     counts are 0.
 
     Args:
-        traj: a ``sgn_jax.dataset.Trajectory``; start_index: sample index >= 0;
+        traj: a ``sgn_jax.records.trajectory.Trajectory``; start_index: sample index >= 0;
         n_steps: S >= 1 with start_index + S < T; save_every: >= 1;
         extra_meta: added to the meta (may override).
     Returns:

@@ -36,8 +36,6 @@ import numpy as np
 from sgn_jax.config import Config, ConfigError
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import make_params
-from sgn_jax.envelope import MotionEnvelope, harmonic_axis_amplitudes
-from sgn_jax.envelope import envelope_notes as motion_envelope_notes
 from sgn_jax.errors import EnvelopeWarning
 from sgn_jax.geometry import jar_volume
 from sgn_jax.motion import acceleration, frequency_hz, velocity
@@ -46,6 +44,8 @@ from sgn_jax.pipelines.configure import (
     jar_params_from_config,
     motion_from_config,
 )
+from sgn_jax.records.envelope import MotionEnvelope, harmonic_axis_amplitudes
+from sgn_jax.records.envelope import envelope_notes as motion_envelope_notes
 
 RSA_FILL_LIMIT = 0.38
 """Largest solid fraction of the cavity that random sequential insertion reaches (3-D jamming)."""
@@ -245,8 +245,8 @@ class ModelEnvelope:
     harmonic orbits
     (None: that kind is not covered); ``jar``: the (radius, straight_length, height,
     post_radius) of the trained jar, or None for any jar. ``motion``: the full
-    :class:`sgn_jax.envelope.MotionEnvelope` when the model states one (then its motion checks
-    are :func:`sgn_jax.envelope.envelope_notes`, per-harmonic limits included).
+    :class:`sgn_jax.records.envelope.MotionEnvelope` when the model states one (then its motion
+    checks are :func:`sgn_jax.records.envelope.envelope_notes`, per-harmonic limits included).
     """
 
     circle_rpm: tuple[float, float] | None = None

@@ -3,9 +3,9 @@
 Pipeline (:func:`train`):
 
 1. Every trajectory is split chronologically (:func:`split_window_ends`) and each window is
-   featurized once with :func:`sgn_jax.graph.build_graph` (vmapped, jitted) into a compact
+   featurized once with :func:`sgn_jax.surrogate.graph.build_graph` (vmapped, jitted) into a compact
    numpy :class:`GraphDataset` (real edges only). An edge-capacity overflow is an error.
-2. Normalisation statistics come from the training split (:mod:`sgn_jax.normalization`);
+2. Normalisation statistics come from the training split (:mod:`sgn_jax.surrogate.normalization`);
    the dataset is normalised once (float32).
 3. Each epoch shuffles the training samples and packs them greedily into batches of at most
    ``batch_size`` graphs and at most a static number of edges (:class:`BatchPacker`), so every
@@ -37,12 +37,12 @@ import numpy as np
 import optax
 
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.graph import (
+from sgn_jax.surrogate.graph import (
     GraphError,
     valid_window_ends,
     velocity_columns,
 )
-from sgn_jax.normalization import NormStats, compute_norm_stats, encode_velocities
+from sgn_jax.surrogate.normalization import NormStats, compute_norm_stats, encode_velocities
 
 # --------------------------------------------------------------------------------------------
 # Precomputed graphs

@@ -30,7 +30,7 @@ from scipy.stats import qmc
 
 from sgn_jax.config import ConfigError, MotionConfig
 
-ENVELOPE_PATH = Path(__file__).resolve().parent / "data" / "envelope.toml"
+ENVELOPE_PATH = Path(__file__).resolve().parents[1] / "data" / "envelope.toml"
 _REL_TOL = 1e-9
 
 

@@ -11,7 +11,7 @@ and returns the path.
   count (the two SPEC 7 states).
 - :func:`plot_trajectory_xz`: a top view (x-z) of the balls at one frame, with the jar outline
   and a legend (SGN balls, DEM balls, the line joining the same ball of both, the jar).
-- :func:`plot_run`: all single-run figures from a ``sgn_jax.metrics.Comparison``.
+- :func:`plot_run`: all single-run figures from a ``sgn_jax.analysis.metrics.Comparison``.
 - :func:`plot_case_curves`: all runs of an ensemble case in one figure (energy and MSE_t).
 - :func:`new_figure`, :func:`save_figure`: the figure and the file writer every plot here uses,
   for scripts that draw their own figures.
@@ -29,10 +29,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from sgn_jax.dataset import load_trajectory
-from sgn_jax.io_utils import atomic_write
-from sgn_jax.metrics import align, position_mse, relative_error
-from sgn_jax.prediction import load_prediction
+from sgn_jax.analysis.metrics import align, position_mse, relative_error
+from sgn_jax.records.io_utils import atomic_write
+from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.trajectory import load_trajectory
 
 _DPI = 150
 _PRED_COLOR = "tab:blue"
@@ -144,12 +144,12 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
     """Per-run mean dissipation power (SGN vs DEM) and power vs contact count, by state.
 
     Args:
-        summary: the dict from ``sgn_jax.metrics.ensemble_summary``.
+        summary: the dict from ``sgn_jax.analysis.metrics.ensemble_summary``.
     """
     rows = summary.get("runs")
     if not rows:
-        raise ValueError("plot_ensemble needs the dict from sgn_jax.metrics.ensemble_summary "
-                         "(with a non-empty 'runs' list)")
+        raise ValueError("plot_ensemble needs the dict from "
+                         "sgn_jax.analysis.metrics.ensemble_summary (with a non-empty 'runs' list)")
 
     def column(key: str) -> np.ndarray:
         return np.asarray([np.nan if r[key] is None else r[key] for r in rows], dtype=np.float64)

@@ -1,11 +1,11 @@
 """The contact-impulse surrogate (model kind "contact", issue 19): contact physics built in.
 
-The SGN (:mod:`sgn_jax.model`) maps raw displacement vectors, velocity histories and the jar's
+The SGN (:mod:`sgn_jax.surrogate.model`) maps raw displacement vectors, velocity histories and the jar's
 global state through MLPs and must learn from data rotation invariance, Newton's third law,
 that contacts repel, that the motion acts on the balls only through the walls they touch and
 that dissipation adds up over contacts. This kind builds all of that in and learns only the
 unknown part: the net contact impulse of one surrogate step as a function of a few invariant
-scalars of each contact candidate (an edge of the same graph, :mod:`sgn_jax.graph`).
+scalars of each contact candidate (an edge of the same graph, :mod:`sgn_jax.surrogate.graph`).
 
 One step (window ending at sample n, step ``dt``; N balls of mass m and radius R)::
 
@@ -57,8 +57,8 @@ import jax
 import jax.numpy as jnp
 import jraph
 
-from sgn_jax.graph import SLOT_DIM
-from sgn_jax.model import register_model
+from sgn_jax.surrogate.graph import SLOT_DIM
+from sgn_jax.surrogate.model import register_model
 
 DTYPE = jnp.float32
 
@@ -212,7 +212,7 @@ class ContactNet(nn.Module):
     """The contact-impulse surrogate. ``__call__(raw_graph) -> (accel (n_node, 3) m/s^2,
     dE_target (n_graph,) J)``; :meth:`step_terms` gives the impulses and the energy split.
 
-    Takes the RAW graph of :func:`sgn_jax.graph.build_graph` (``takes_raw_graph``): its inputs
+    Takes the RAW graph of :func:`sgn_jax.surrogate.graph.build_graph` (``takes_raw_graph``): its inputs
     are scaled by fixed physical scales, not by normalisation statistics.
     """
 
@@ -265,7 +265,7 @@ class ContactNet(nn.Module):
 
     def rollout_terms(self, graph: jraph.GraphsTuple):
         """``(accel (n_node, 3), dE_target (n_graph,), ledger (n_graph, 3))`` with ledger
-        ``(diss_pp, diss_pw, work_wall)`` J (what :func:`sgn_jax.rollout.model_predictor`
+        ``(diss_pp, diss_pw, work_wall)`` J (what :func:`sgn_jax.surrogate.rollout.model_predictor`
         uses, so a rollout records the model's own energy ledger)."""
         terms = self.step_terms(graph)
         ledger = jnp.stack([terms["diss_pp"], terms["diss_pw"], terms["work_wall"]], axis=-1)
