@@ -340,6 +340,10 @@ class GraphConfig:
         contact_features: two more edge columns, the surface gap and the overlap of the two
             balls (or of ball and wall), so the network sees a contact coming (issue 10;
             docs/sgn.md). Off: the paper's 3 columns (displacement, phi n).
+        wall_patches: 0 (the paper): one ball-wall edge per ball, to the nearest wall; P > 0:
+            one ball-wall edge per ball and wall patch (floor, lid, side, post), at most P
+            patches, as the DEM has one contact per ball and patch (the contact model, issue
+            19; a ball in the corner of floor and side wall feels both walls).
     """
 
     window: int = 7
@@ -348,8 +352,12 @@ class GraphConfig:
     phi_sb: float = -0.0049
     pp_edges_per_particle: int = 8
     contact_features: bool = False
+    wall_patches: int = 0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.wall_patches <= 8:
+            raise ConfigError(f"[graph] wall_patches must be 0 (nearest wall) or the number of "
+                              f"wall patches (1..8), got {self.wall_patches}")
         if self.window < 1:
             raise ConfigError(f"[graph] window must be >= 1, got {self.window}")
         if self.pp_skin < 0:

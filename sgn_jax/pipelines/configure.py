@@ -26,7 +26,13 @@ from sgn_jax.geometry.sdf_grid import grid_layout, sdf_grid_from_jar
 from sgn_jax.geometry.stl import UNIT_SCALES
 from sgn_jax.motion import Motion, motion_kind_named
 from sgn_jax.records.io_utils import atomic_write
-from sgn_jax.scene import JarGeometry, grid_jar, parametric_jar
+from sgn_jax.scene import (
+    JarGeometry,
+    analytic_jar_query,
+    grid_jar,
+    grid_query,
+    parametric_jar,
+)
 from sgn_jax.surrogate.graph import GraphSpec
 
 
@@ -70,6 +76,7 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
         phi_pw=cfg.graph.phi_pw,
         pp_pair_capacity=max(1, (cfg.graph.pp_edges_per_particle * n) // 2),
         contact_features=cfg.graph.contact_features,
+        wall_patches=cfg.graph.wall_patches,
     )
 
 
@@ -201,6 +208,17 @@ def sdf_grid_from_config(cfg: Any, dtype: Any = jnp.float32, per_patch: bool = T
         )
 
     return sdf_grid_from_mesh(jar_mesh_from_config(cfg.jar), cfg.sdf.spacing, cfg.sdf.margin, dtype)
+
+
+def surrogate_walls_from_config(cfg: Any) -> tuple[Any, Any]:
+    """``(geometry, query)`` through which a surrogate sees the jar's walls: the patch-stacked
+    SDF grid and ``grid_query`` (the paper's featurizer); for a model with one ball-wall edge
+    per wall patch (``[graph] wall_patches``) in a parametric ("emax") jar, the jar's exact
+    analytic patches (``JarParams`` and ``analytic_jar_query``), as the DEM has them: a
+    grid's trilinear side wall is off by up to 2 um, as much as a resting ball's overlap."""
+    if cfg.graph.wall_patches and cfg.jar.kind == "emax":
+        return jar_params_from_config(cfg.jar), analytic_jar_query
+    return sdf_grid_from_config(cfg), grid_query
 
 
 def contact_law_from_config(cfg: Any) -> Any:

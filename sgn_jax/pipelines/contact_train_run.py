@@ -26,7 +26,7 @@ import optax
 
 import sgn_jax
 from sgn_jax.config import config_to_dict, save_config
-from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
+from sgn_jax.pipelines.configure import graph_spec_from_config, surrogate_walls_from_config
 from sgn_jax.pipelines.train_run import at_model_step, check_trajectory_matches
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import atomic_write, git_commit, write_json
@@ -102,7 +102,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     val_trajectories = [at_model_step(t, spec.dt) for t in val_trajectories]
     for i, t in enumerate([*trajectories, *val_trajectories]):
         check_trajectory_matches(t, cfg, f"trajectory {i}")
-    sdf = sdf_grid_from_config(cfg, per_patch=False)
+    sdf, query = surrogate_walls_from_config(cfg)
     phys = physics_from_config(cfg)
     net = ContactNet(physics=phys, hidden=cfg.model.hidden, mlp_layers=cfg.model.mlp_layers)
 
@@ -123,7 +123,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                     offsets=example.offsets[0, : spec.window],
                     offset_velocities=example.offset_velocities[0, : spec.window],
                     frequency_hz=jnp.zeros(()))
-    graph, _ = build_graph(window, sdf, spec)
+    graph, _ = build_graph(window, sdf, spec, query)
     params = net.init(jax.random.PRNGKey(seed), graph)["params"]
     params = {**params, "share_logit": share_logits(shares)}
 
@@ -142,7 +142,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                               jax.tree_util.tree_map(jnp.asarray, opt_state),
                               jnp.asarray(start, jnp.int32))
 
-    loss = make_unroll_loss(net, spec, sdf, None, unroll)
+    loss = make_unroll_loss(net, spec, sdf, query, unroll)
     train_step = make_train_step(loss, tx)
     eval_loss = jax.jit(loss)
 

@@ -23,7 +23,7 @@ from sgn_jax.config import config_to_dict
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     motion_from_config,
-    sdf_grid_from_config,
+    surrogate_walls_from_config,
 )
 from sgn_jax.records.io_utils import git_commit
 from sgn_jax.records.prediction import save_prediction
@@ -131,10 +131,10 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     window0 = initial_window(init_traj, int(start_index), spec.window)
     t0 = float(init_traj.t[start_index])
     motion = motion_from_config(cfg.motion)
-    sdf = sdf_grid_from_config(cfg)
+    sdf, query = surrogate_walls_from_config(cfg)
     chunk = min(int(rcfg.chunk_steps) // k * k or k, n_steps)
     cap = spec.pp_pair_capacity
-    options = dict(checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
+    options = dict(query=query, checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
                    snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
                    snap_velocity=rcfg.snap_velocity,
                    pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),

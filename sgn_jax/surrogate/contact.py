@@ -134,8 +134,6 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
     slots = range(w - h, w)  # the newest h slots, oldest first
 
     vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
-    phi = jnp.stack([_slot(feats, k, slice(3, 4))[:, 0] for k in range(w)])  # (W, n_node)
-    nrm = jnp.stack([_slot(feats, k, slice(4, 7)) for k in range(w)])      # (W, n_node, 3)
     # The wall node's rows hold [offset, offset velocity, frequency] per slot: its "velocity"
     # columns 0..2 are the offset, 3..5 the jar velocity.
     jar_vel = jnp.stack([_slot(feats, k, slice(3, 6)) for k in range(w)])  # (W, n_node, 3)
@@ -155,13 +153,19 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
     n_pp = r_new / dist_slots[-1][:, None]
     gap_pp = dist_slots - 2.0 * radius                                     # (W, E)
 
-    # Ball-wall frame: the SDF normal at the newest slot; gap = -phi - R at each slot.
-    n_pw = nrm[-1, receivers]
-    gap_pw = -phi[:, receivers] - radius                                   # (W, E)
+    # Ball-wall frame: the edge's wall (the nearest wall, or its patch with
+    # GraphSpec.wall_patches) from its feature phi n at the newest slot (phi < 0 inside the
+    # cavity); older gaps by subtracting the approach along n, as for a pair.
+    f_pw = r_new
+    phi_pw = -jnp.sqrt(jnp.sum(f_pw * f_pw, axis=-1) + 1e-30)
+    n_pw = f_pw / phi_pw[:, None]
 
     normal = jnp.where(is_pw[:, None], n_pw, n_pp)
-    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
     u = jnp.einsum("wec,ec->we", v_rel, normal)                            # (W, E) gap rate
+    approach_after = jnp.concatenate([jnp.cumsum((u * dt)[::-1], axis=0)[::-1][1:],
+                                      jnp.zeros_like(u[:1])])             # sum_{j > k} u_j dt
+    gap_pw = (-phi_pw - radius)[None] - approach_after                     # (W, E)
+    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
     v_t = v_rel[-1] - u[-1][:, None] * normal
     speed_t = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1))
     tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]

@@ -50,7 +50,7 @@ import jraph
 import numpy as np
 
 from sgn_jax.errors import SGNJaxError
-from sgn_jax.scene import SDFQuery, grid_query
+from sgn_jax.scene import SDFQuery, grid_query, lab_patch_query, patches_of
 
 # One slot's particle columns: velocity (0..2), phi (3), unit normal (4..6).
 SLOT_DIM = 7
@@ -77,6 +77,11 @@ class GraphSpec:
             (issue 10): ball-ball ``[|x_j - x_i| - 2 R, max(0, 2 R - |x_j - x_i|)]`` (surface
             gap and overlap, m), ball-wall ``[-phi - R, max(0, phi + R)]`` (the same for the
             wall). Off: the paper's 3 columns.
+        wall_patches: 0 (the paper): one ball-wall edge per ball, to the nearest wall. P > 0:
+            one edge per ball and wall PATCH (floor, lid, side, post), as the DEM has one
+            contact per ball and patch, so that a ball in the corner of floor and side wall
+            feels both; P is the capacity (the jar's query may have at most P patches). The
+            node features keep the nearest wall (the max over the same patches).
     """
 
     n_particles: int
@@ -87,6 +92,7 @@ class GraphSpec:
     phi_pw: float = -0.0052
     pp_pair_capacity: int = 96
     contact_features: bool = False
+    wall_patches: int = 0
 
     def __post_init__(self) -> None:
         if self.n_particles < 1 or self.window < 1 or self.pp_pair_capacity < 1:
@@ -105,8 +111,9 @@ class GraphSpec:
 
     @property
     def pw_capacity(self) -> int:
-        """Directed ball-wall edge slots per graph (2 N: never overflows)."""
-        return 2 * self.n_particles
+        """Directed ball-wall edge slots per graph (2 N, or 2 N P with ``wall_patches`` P:
+        never overflows)."""
+        return 2 * self.n_particles * max(1, self.wall_patches)
 
     @property
     def edge_capacity(self) -> int:
@@ -187,6 +194,17 @@ def _default_query() -> SDFQuery:
     return grid_query
 
 
+def _walls_of(query: SDFQuery | None) -> Any:
+    """The wall query behind a lab-frame query made by :func:`sgn_jax.scene.lab_query`."""
+    query = _default_query() if query is None else query
+    walls = getattr(query, "walls", None)
+    if walls is None:
+        raise GraphError("GraphSpec.wall_patches needs a wall query made by "
+                         "sgn_jax.scene.lab_query (grid_query, analytic_jar_query, ...), "
+                         "whose patches it can ask for")
+    return walls
+
+
 def _check_window(window: Window, spec: GraphSpec) -> None:
     w, n = spec.window, spec.n_particles
     expected = {"positions": (w + 1, n, 3), "offsets": (w, 3), "offset_velocities": (w, 3),
@@ -236,6 +254,18 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     n, w = spec.n_particles, spec.window
     wall, pad = n, n + 1
     vel, phi, normal = particle_slot_features(window, sdf, spec, query)
+    if spec.wall_patches:
+        # Every patch at the newest positions (the node features keep the nearest wall: the
+        # max over the same patches, which is what the nearest-wall query returns).
+        patch_query = lab_patch_query(patches_of(_walls_of(query)))
+        phi_patch, normal_patch = patch_query(
+            sdf, jnp.asarray(window.positions[-1], jnp.float64),
+            jnp.asarray(window.offsets[-1], jnp.float64))
+        phi_patch = jnp.asarray(phi_patch, jnp.float64)
+        normal_patch = jnp.asarray(normal_patch, jnp.float64)
+        if phi_patch.shape[-1] > spec.wall_patches:
+            raise GraphError(f"the jar has {phi_patch.shape[-1]} wall patches, more than "
+                             f"GraphSpec.wall_patches = {spec.wall_patches}")
 
     # Nodes: (N, W, 7) -> (N, 7W), slot-major columns.
     particle = jnp.concatenate([vel, phi[..., None], normal], axis=-1)  # (W, N, 7)
@@ -279,12 +309,17 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
         pp_feat_i = jnp.concatenate([-rij, contact], axis=-1)
     efeat = efeat.at[slot].set(pp_feat_j, mode="drop").at[slot + 1].set(pp_feat_i, mode="drop")
 
-    # Ball-wall: wall -> b and b -> wall, both with phi_b n_b, placed after the kept pp edges.
+    # Ball-wall: wall -> b and b -> wall, both with phi_b n_b, placed after the kept pp edges
+    # (with wall_patches: one such pair per ball and patch, ball-major).
+    if spec.wall_patches:
+        balls = jnp.repeat(jnp.arange(n, dtype=jnp.int32), phi_patch.shape[-1])
+        phi_now, normal_now = phi_patch.reshape(-1), normal_patch.reshape(-1, 3)
+    else:
+        balls = jnp.arange(n, dtype=jnp.int32)
     ball_ok = phi_now >= spec.phi_pw
     n_walled = jnp.sum(ball_ok, dtype=jnp.int32)
     ball_rank = jnp.cumsum(ball_ok, dtype=jnp.int32) - 1
     bslot = jnp.where(ball_ok, n_pp_kept + 2 * ball_rank, e_cap)
-    balls = jnp.arange(n, dtype=jnp.int32)
     pw_feat = phi_now[:, None] * normal_now
     if spec.contact_features:
         pw_feat = jnp.concatenate([pw_feat, _contact_columns(-phi_now - spec.ball_radius)],
