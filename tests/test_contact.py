@@ -196,3 +196,33 @@ def test_energy_ledger_closes_over_a_rollout():
     # m g . (v_end - v_start) dt / 2 per ball, tiny against the dissipation here.
     total_pe = w_wall.sum() - d_ke.sum() - d_pe.sum()
     assert abs(total_pe - total) <= 5.0 * m * 9.81 * DT * 5 + 1e-3 * abs(total)
+
+
+def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
+    """With GraphSpec.wall_patches a ball in the corner of floor and side wall has two
+    ball-wall edges (floor normal -y, side normal +x), as the DEM has two contacts; the nearest
+    wall graph has one."""
+    from sgn_jax.geometry import JarParams
+    from sgn_jax.scene import analytic_jar_query
+
+    jar = JarParams(radius=0.02, straight_length=0.035, height=0.047, post_radius=0.0,
+                    has_post=False)
+    n = 2
+    corner = np.array([0.0175 + 0.02 - 0.00499, 0.00499, 0.0])   # touches floor and side
+    centre = np.array([0.0, 0.02, 0.0])                          # touches nothing
+    pos = np.broadcast_to(np.stack([corner, centre]), (W + 1, n, 3))
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
+    counts = {}
+    for patches in (0, 4):
+        spec = GraphSpec(n_particles=n, window=W, ball_radius=R, dt=DT, pp_pair_capacity=1,
+                         wall_patches=patches)
+        graph, c = build_graph(window, jar, spec, analytic_jar_query)
+        counts[patches] = int(c.n_pw) // 2
+        if patches:
+            geo = edge_geometry(graph, PHYS)
+            normals = np.asarray(geo["normal"])[np.asarray(geo["is_pw"])]
+            assert sorted(np.round(normals @ np.array([1.0, 0.0, 0.0]))) == [0.0, 1.0]
+            assert sorted(np.round(normals @ np.array([0.0, -1.0, 0.0]))) == [0.0, 1.0]
+            assert (np.asarray(geo["gate"])[np.asarray(geo["is_pw"])] == 1).all()
+    assert counts == {0: 1, 4: 2}
