@@ -69,7 +69,8 @@ def _read_metrics(out_dir: Path) -> list[dict[str, Any]]:
     if not path.exists():
         return []
     with open(path) as fh:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+        return [{k: int(v) if k == "step" else float(v) for k, v in row.items()}
+                for row in csv.DictReader(fh)]
 
 
 def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,

@@ -198,13 +198,18 @@ def velocity_change_scale(positions: np.ndarray, dt: float, floor: float = 1e-3)
 def dissipation_shares(trajectories: list[Any]) -> tuple[float, float]:
     """The DEM's damping share of all contact losses, ball-ball and ball-wall, over the
     trajectories: (normal + tangential damping) / (damping + slip + rolling), per kind."""
+    def total(t: Any, name: str) -> float:
+        # a record without the slip and rolling arrays (synthetic data) has no such losses
+        values = getattr(t, name, None)
+        return 0.0 if values is None else float(np.sum(values))
+
     out = []
     for kind in ("pp", "pw"):
-        damping = sum(float(np.sum(t[f"diss_{kind}_normal"]) + np.sum(t[f"diss_{kind}_tangential"]))
+        damping = sum(total(t, f"diss_{kind}_normal") + total(t, f"diss_{kind}_tangential")
                       for t in trajectories)
-        total = damping + sum(float(np.sum(t[f"diss_{kind}_slip"]) + np.sum(t[f"diss_{kind}_rolling"]))
-                              for t in trajectories)
-        out.append(damping / total if total > 0 else 1.0)
+        losses = damping + sum(total(t, f"diss_{kind}_slip") + total(t, f"diss_{kind}_rolling")
+                               for t in trajectories)
+        out.append(damping / losses if losses > 0 else 1.0)
     return out[0], out[1]
 
 
