@@ -20,14 +20,15 @@ One step (window ending at sample n, step ``dt``; N balls of mass m and radius R
         outputs    du_n >= 0 (softplus, m/s: repulsive only), du_t = mu du_n tanh(.) (Coulomb
                    cone: |J_t| <= mu J_n), both zero unless contact is possible in this step
         impulse    J_r = m* (-du_n n + du_t t),  t = v_t / |v_t|  (m* = m/2 for a pair, m for a
-                   wall); the sender ball gets -J_r (equal and opposite, exactly)
+                   wall); the sender ball gets -J_r (equal and opposite, exactly: each contact
+                   is computed once, on the primary direction of its edge pair)
     v_{n+1} = v_n + sum_c J / m + g dt          (gravity exact, not learned)
     accel   = (v_{n+1} - v_n) / dt              (what the rollout integrates)
 
 Dissipation is what the model's own impulses take out of the balls, with the midpoint
 velocities ``vbar = (v_n + v_{n+1}) / 2`` of the integrator::
 
-    D_pp = - sum over directed ball-ball edges of J_r . vbar_r
+    D_pp = - sum over ball-ball contacts of J . (vbar_r - vbar_s)   (J on r, -J on s)
     D_pw =   sum over ball-wall edges of J_b . (u_wall - vbar_b)
     D_pp + D_pw = W_wall + W_grav - dKE       (exact identity; W_wall = sum J_b . u_wall,
                                                W_grav = sum m g . vbar dt)
@@ -110,8 +111,14 @@ def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
     return features[:, SLOT_DIM * k + cols.start: SLOT_DIM * k + cols.stop]
 
 
-def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
-    """Per directed edge (E rows): frame, inputs and which edges act.
+def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: bool = False):
+    """Per directed edge (E rows; E / 2 with ``primary_only``): frame, inputs, which edges act.
+
+    ``primary_only``: only the even edge slots, which in the layout of
+    :func:`sgn_jax.surrogate.graph.build_graph` are one direction of every edge: ball-ball
+    ``j -> i`` (slot 2r; its reverse ``i -> j`` is slot 2r + 1) and ball-wall ``wall -> ball``
+    (the ``ball -> wall`` edge follows it); padding slots come in pairs too. The contact model
+    computes each contact once there and gives the partner ball the opposite impulse.
 
     Returns a dict of float32 arrays:
         normal (E, 3): unit normal of the contact, from the receiver ball to its partner;
@@ -124,13 +131,13 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
         v_ball (E, 3): the receiver ball's current velocity v_n (m/s).
     """
     feats = jnp.asarray(graph.nodes["features"], DTYPE)
-    n_node = feats.shape[0]
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
-    senders, receivers = graph.senders, graph.receivers
+    rows = slice(0, None, 2) if primary_only else slice(None)
+    senders, receivers = graph.senders[rows], graph.receivers[rows]
     is_particle = graph.nodes["particle"]
     recv_ball = is_particle[receivers]
-    is_pp = graph.edges["pp"] & recv_ball
-    is_pw = graph.edges["pw"] & recv_ball  # wall -> ball direction only
+    is_pp = graph.edges["pp"][rows] & recv_ball
+    is_pw = graph.edges["pw"][rows] & recv_ball  # wall -> ball direction only
     slots = range(w - h, w)  # the newest h slots, oldest first
 
     vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
@@ -145,7 +152,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
 
     # Ball-ball frame: r = x_s - x_r at the newest slot (edge feature); older slots by
     # subtracting the relative displacements (x_j = x_{j-1} + v_j dt exactly).
-    r_new = jnp.asarray(graph.edges["features"][:, :3], DTYPE)
+    r_new = jnp.asarray(graph.edges["features"][rows, :3], DTYPE)
     disp_after = jnp.cumsum((v_rel * dt)[::-1], axis=0)[::-1]  # sum_{j >= k} v_rel_j dt
     # r at slot k = r_new - sum_{j > k} v_rel_j dt
     r_slots = r_new[None] - jnp.concatenate([disp_after[1:], jnp.zeros_like(disp_after[:1])])
@@ -189,10 +196,9 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics):
     gap_end = gap[-1] + u[-1] * dt
     reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin
     gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
-    del n_node
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
-        "is_pp": is_pp, "is_pw": is_pw,
+        "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "v_ball": vel[-1, receivers],
     }
@@ -235,7 +241,9 @@ class ContactNet(nn.Module):
     def step_terms(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
         """Everything of one step: per-node velocity change and per-graph energies (J)."""
         phys = self.physics
-        geo = edge_geometry(graph, phys)
+        # One row per contact (the primary direction of each edge, half the slots): the MLPs run
+        # once per contact and the partner gets exactly the opposite impulse.
+        geo = edge_geometry(graph, phys, primary_only=True)
         out = jnp.where(geo["is_pw"][:, None], self.pw_net(geo["inputs"]),
                         self.pp_net(geo["inputs"]))
         du_n = IMPULSE_SCALE * nn.softplus(out[:, 0]) * geo["gate"]
@@ -245,21 +253,25 @@ class ContactNet(nn.Module):
         impulse = (m_star * (-du_n))[:, None] * geo["normal"] + (m_star * du_t)[:, None] * geo["tangent"]
         n_node = graph.nodes["features"].shape[0]
         is_particle = graph.nodes["particle"]
-        # Impulse on the receiver; for a ball-ball edge its reverse edge gives the sender the
-        # opposite impulse (same invariant inputs, opposite frame): equal and opposite.
-        total = jax.ops.segment_sum(impulse, graph.receivers, num_segments=n_node)
+        # Impulse on the receiver ball; a ball-ball contact gives its sender ball the opposite
+        # impulse (equal and opposite by construction); a wall takes its reaction itself.
+        receivers, senders = geo["receivers"], geo["senders"]
+        total = (jax.ops.segment_sum(impulse, receivers, num_segments=n_node)
+                 - jax.ops.segment_sum(impulse * geo["is_pp"][:, None], senders,
+                                       num_segments=n_node))
         g = jnp.asarray(phys.gravity, DTYPE)
         dv = jnp.where(is_particle[:, None], total / m + g * phys.dt, 0.0)
 
         feats = jnp.asarray(graph.nodes["features"], DTYPE)
         v_node = feats[:, SLOT_DIM * (phys.window - 1): SLOT_DIM * (phys.window - 1) + 3]
         vbar_node = v_node + 0.5 * dv
-        vbar = vbar_node[graph.receivers]
-        per_edge_pp = -jnp.sum(impulse * vbar, axis=-1) * geo["is_pp"]
+        vbar = vbar_node[receivers]
+        # a pair: J on the receiver, -J on the sender
+        per_edge_pp = -jnp.sum(impulse * (vbar - vbar_node[senders]), axis=-1) * geo["is_pp"]
         per_edge_pw = jnp.sum(impulse * (geo["u_wall"] - vbar), axis=-1) * geo["is_pw"]
         work_wall_e = jnp.sum(impulse * geo["u_wall"], axis=-1) * geo["is_pw"]
         n_graph = graph.n_node.shape[0]
-        edge_graph = _edge_graph_index(graph)
+        edge_graph = _edge_graph_index(graph)[0::2]
         seg = lambda x: jax.ops.segment_sum(x, edge_graph, num_segments=n_graph)  # noqa: E731
         share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
         d_pp, d_pw = seg(per_edge_pp), seg(per_edge_pw)
