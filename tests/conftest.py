@@ -1,13 +1,18 @@
-"""Fixtures shared by the tests of the ``.npz`` record files (test_dataset.py, test_prediction.py).
+"""Fixtures shared by the tests of the ``.npz`` record files (test_dataset.py, test_prediction.py),
+and the session's shared folder, compilation cache and DEM runs (issue 20; at the end).
 
-Both files are read by ``sgn_jax.records.base.read_npz_record``, so the files that fail before any
-validation (missing, not a zip, corrupt, bad meta entry) and the messages they must give are
+Both record files are read by ``sgn_jax.records.base.read_npz_record``, so the files that fail
+before any validation (missing, not a zip, corrupt, bad meta entry) and the messages they must
+give are
 described once here; each test module runs them against its own loader and error class.
 """
 
+import contextlib
 import json
 import os
 import re
+import shutil
+import tempfile
 import zipfile
 
 # The suite never reads or writes the user cache (sgn_jax.records.cache): every test starts cold and
@@ -16,6 +21,33 @@ os.environ["SGN_JAX_NO_CACHE"] = "1"
 
 import numpy as np
 import pytest
+
+# One test session shares one scratch folder (issue 20): JAX's persistent compilation cache
+# (``jax/``), so that a program compiled by one test, one xdist worker or one subprocess
+# (the docs examples, the two-device checks) is loaded, not compiled again, by the next; and
+# the DEM runs the session fixtures below make once (settled packings). The folder is new for
+# every session and removed at its end, so every session starts cold and sees the same thing
+# on any machine; the user cache stays untouched. A cached executable is the compiled program
+# itself: the numbers are the same as without it.
+SESSION_DIR_ENV = "SGN_JAX_TEST_SESSION_DIR"
+
+
+def pytest_configure(config):
+    if hasattr(config, "workerinput") or os.environ.get(SESSION_DIR_ENV):
+        return  # an xdist worker (or a nested session): the controller's folder is inherited
+    directory = tempfile.mkdtemp(prefix="sgn_jax_tests_")
+    config._sgn_jax_session_dir = directory
+    # Set before any test module imports JAX; the workers and every subprocess inherit them.
+    os.environ[SESSION_DIR_ENV] = directory
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.path.join(directory, "jax")
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
+    os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+
+
+def pytest_unconfigure(config):
+    directory = getattr(config, "_sgn_jax_session_dir", None)
+    if directory:
+        shutil.rmtree(directory, ignore_errors=True)
 
 
 def _write_raw(path, arrays, meta):
@@ -142,3 +174,76 @@ def round_trip(tmp_path):
         return record
 
     return run
+
+
+# ---------------------------------------------------------------------------------------------
+# DEM runs that several test files need, made once per session (issue 20).
+
+
+@contextlib.contextmanager
+def _session_lock(name: str):
+    """An exclusive lock on ``name`` in the session folder: the other xdist worker waits here
+    while one makes a shared file, then finds it made."""
+    path = os.path.join(os.environ[SESSION_DIR_ENV], name)
+    with open(path, "w") as fh:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: both workers may make it; the writes are atomic
+            yield
+            return
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@contextlib.contextmanager
+def session_settle_cache():
+    """The package's settled-packing cache (sgn_jax.records.cache) in the session folder, for the
+    calls inside: a packing settled by one test file (or worker) is read by the next. A cached
+    packing is bit-identical to one settled anew (tests/test_cache.py)."""
+    saved = {k: os.environ.get(k) for k in ("SGN_JAX_NO_CACHE", "SGN_JAX_CACHE_DIR")}
+    os.environ["SGN_JAX_NO_CACHE"] = "0"
+    os.environ["SGN_JAX_CACHE_DIR"] = os.environ[SESSION_DIR_ENV]
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+@pytest.fixture(scope="session")
+def short_packings():
+    """``(cfg, packings)``: the standard case with 0.02 s of settling (the docs examples'
+    sizes) and its packings of seeds 0 and 1 (sgn_jax.api.make_packings), made once per worker
+    and settled once per session. Tests must not change them."""
+    import sgn_jax.api as sj
+    from sgn_jax.config import replace_section
+
+    cfg = replace_section(sj.load_config("emax_300rpm"), "dem", settle_time=0.02)
+    with session_settle_cache():
+        packings = sj.make_packings(cfg, seeds=[0, 1])
+    return cfg, packings
+
+
+@pytest.fixture(scope="session")
+def standard_dem_file():
+    """The path of a DEM dataset file of the standard case, seed 0: 0.05 s of settling, then
+    0.101 s of motion (1011 samples). Written once per session into the session folder; read
+    it with ``load_trajectory`` (tests/test_rollout.py, tests/test_graph_consistency.py)."""
+    from sgn_jax.config import builtin_config_path, load_config, replace_section
+    from sgn_jax.records.trajectory import save_trajectory
+    from sgn_jax.pipelines.dem_run import run_dem
+
+    path = os.path.join(os.environ[SESSION_DIR_ENV], "standard_settle0.05_motion0.101.npz")
+    with _session_lock("standard_dem.lock"):
+        if not os.path.isfile(path):
+            cfg = load_config(builtin_config_path("emax_300rpm"))
+            cfg = replace_section(cfg, "dem", settle_time=0.05)
+            run = run_dem(cfg, duration=0.101, progress=False)
+            save_trajectory(path, run.arrays, run.meta)
+    return path

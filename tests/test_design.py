@@ -18,9 +18,12 @@ from sgn_jax.design import DesignError, summarize_estimate
 
 
 @pytest.fixture(scope="module")
-def cfg():
-    # The standard case with a short settling, so that a packing costs seconds.
-    return replace_section(sj.load_config("emax_300rpm"), "dem", settle_time=0.02)
+def cfg(short_packings):
+    # The standard case with a short settling, so that a packing costs seconds; the session's
+    # packings (conftest.py) are of this config.
+    cfg = replace_section(sj.load_config("emax_300rpm"), "dem", settle_time=0.02)
+    assert short_packings[0] == cfg
+    return cfg
 
 
 @pytest.fixture(scope="module")
@@ -29,8 +32,8 @@ def model():
 
 
 @pytest.fixture(scope="module")
-def packings(cfg):
-    return sj.make_packings(cfg, seeds=[0, 1])
+def packings(short_packings):
+    return short_packings[1]  # seeds 0 and 1, settled once per session (conftest.py)
 
 
 def test_packings_hold_one_window_per_seed(cfg, packings):

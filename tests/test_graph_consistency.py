@@ -57,19 +57,18 @@ FEATURE_ATOL = 1e-10  # SI units; bounds the float64 rounding differences (modul
 
 
 @pytest.fixture(scope="module")
-def dem(tmp_path_factory):
-    """A short real DEM trajectory of the standard case: 0.05 s settling, 0.004 s of motion
-    (41 samples), saved and loaded back as training reads it."""
+def dem(standard_dem_file):
+    """A short real DEM trajectory of the standard case: 0.05 s settling, then motion (the
+    session's run shared with tests/test_rollout.py, conftest.py; the tests use its first
+    START + STEPS + 2 samples), saved and loaded back as training reads it."""
     from sgn_jax.config import builtin_config_path, load_config
-    from sgn_jax.pipelines.dem_run import run_dem
-    from sgn_jax.records.trajectory import load_trajectory, save_trajectory
+    from sgn_jax.records.trajectory import load_trajectory
 
-    cfg = load_config(builtin_config_path("emax_300rpm"))
-    cfg = replace_section(cfg, "dem", settle_time=0.05)
-    run = run_dem(cfg, duration=0.004, progress=False)
-    path = tmp_path_factory.mktemp("dem") / "dem.npz"
-    save_trajectory(path, run.arrays, run.meta)
-    traj = load_trajectory(path)
+    traj = load_trajectory(standard_dem_file)
+    want = replace_section(load_config(builtin_config_path("emax_300rpm")), "dem",
+                           settle_time=0.05)
+    assert (traj.config.jar, traj.config.balls, traj.config.dem.settle_time) == (
+        want.jar, want.balls, want.dem.settle_time)
     assert len(traj.pos) >= START + STEPS + 2  # the training window at START + STEPS has a target
     spec = graph_spec_from_config(traj.config)
     return traj, spec, sdf_grid_from_config(traj.config), motion_from_config(traj.config.motion)

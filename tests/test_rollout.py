@@ -48,18 +48,12 @@ START = 7  # the first sample with a full window (W = 7)
 
 
 @pytest.fixture(scope="module")
-def dem(tmp_path_factory):
-    """A short real DEM trajectory of the standard case (0.101 s of motion, 1011 samples)."""
-    from sgn_jax.config import builtin_config_path, load_config
-    from sgn_jax.pipelines.dem_run import run_dem
-    from sgn_jax.records.trajectory import load_trajectory, save_trajectory
+def dem(standard_dem_file):
+    """A short real DEM trajectory of the standard case (0.101 s of motion, 1011 samples; made
+    once per session, conftest.py)."""
+    from sgn_jax.records.trajectory import load_trajectory
 
-    cfg = load_config(builtin_config_path("emax_300rpm"))
-    cfg = replace_section(cfg, "dem", settle_time=0.05)
-    run = run_dem(cfg, duration=0.101, progress=False)
-    path = tmp_path_factory.mktemp("dem") / "dem.npz"
-    save_trajectory(path, run.arrays, run.meta)
-    traj = load_trajectory(path)
+    traj = load_trajectory(standard_dem_file)
     spec = graph_spec_from_config(traj.config)
     return traj, spec, sdf_grid_from_config(traj.config), motion_from_config(traj.config.motion)
 

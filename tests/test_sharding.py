@@ -65,8 +65,13 @@ print(json.dumps({
 
 
 def test_sharded_ensemble_equals_unsharded_on_two_host_devices():
+    # The package's cache in the test session's folder (conftest.py): the packings of seeds
+    # 0 and 1 other tests settled are read, not settled again (bit-identical either way).
+    session = os.environ.get("SGN_JAX_TEST_SESSION_DIR")
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
                SGN_JAX_NO_CACHE="1")
+    if session:
+        env.update(SGN_JAX_NO_CACHE="0", SGN_JAX_CACHE_DIR=session)
     proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-4000:]

@@ -11,9 +11,9 @@ from sgn_jax.config import replace_section
 
 
 @pytest.fixture(scope="module")
-def setting():
-    cfg = replace_section(sj.load_config("emax_300rpm"), "dem", settle_time=0.02)
-    return cfg, sj.load_surrogate(), sj.make_packings(cfg, seeds=[0, 1])
+def setting(short_packings):
+    cfg, packings = short_packings  # settle_time 0.02 s, seeds 0 and 1 (conftest.py)
+    return cfg, sj.load_surrogate(), packings
 
 
 def test_a_sweep_equals_one_ensemble_per_motion(setting):
