@@ -236,8 +236,8 @@ def standard_dem_file():
     0.101 s of motion (1011 samples). Written once per session into the session folder; read
     it with ``load_trajectory`` (tests/test_rollout.py, tests/test_graph_consistency.py)."""
     from sgn_jax.config import builtin_config_path, load_config, replace_section
-    from sgn_jax.records.trajectory import save_trajectory
     from sgn_jax.pipelines.dem_run import run_dem
+    from sgn_jax.records.trajectory import save_trajectory
 
     path = os.path.join(os.environ[SESSION_DIR_ENV], "standard_settle0.05_motion0.101.npz")
     with _session_lock("standard_dem.lock"):
