@@ -45,7 +45,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     info = json.loads((run / "run_info.json").read_text())
     summary = json.loads((run / "summary.json").read_text())
-    files = sorted(Path(args.data).glob("train_*.npz"))[: info["n_train_trajectories"]]
+    # the run's own list of its training files (older runs: the folder's train_*.npz, which
+    # must then be what the run read)
+    files = [Path(f) for f in info.get("train_files", []) if f] or sorted(
+        Path(args.data).glob("train_*.npz"))
+    if len(files) != info["n_train_trajectories"]:
+        print(f"ship_contact: {len(files)} training files found, the run read "
+              f"{info['n_train_trajectories']}", file=sys.stderr)
+        return 2
     provenance = {
         "what": args.what,
         "train_command": args.train_command,

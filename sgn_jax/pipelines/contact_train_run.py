@@ -150,6 +150,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
     info = {"n_train_trajectories": len(trajectories),
+            "train_files": [str(getattr(t, "path", "")) for t in trajectories],
             "n_val_trajectories": len(val_trajectories),
             "n_params": int(sum(p.size for p in jax.tree_util.tree_leaves(params))),
             "model_kind": "contact", "steps": steps, "batch_size": batch_size,
