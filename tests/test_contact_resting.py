@@ -6,10 +6,9 @@ The jar does not move (a circle of zero amplitude), the balls start at rest at t
 overlap, and the rollout runs 0.2 s (2,000 steps) with neither snap-back nor separation.
 """
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import jax.numpy as jnp
 
 import sgn_jax.api as sj
 from sgn_jax.surrogate.graph import GraphSpec, Window

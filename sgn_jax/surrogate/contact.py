@@ -58,10 +58,16 @@ import jax
 import jax.numpy as jnp
 import jraph
 
+from sgn_jax.errors import SGNJaxError
 from sgn_jax.surrogate.graph import SLOT_DIM
 from sgn_jax.surrogate.model import register_model
 
 DTYPE = jnp.float32
+
+
+class ContactModelError(SGNJaxError, ValueError):
+    """The contact model's physics settings are inconsistent."""
+
 
 # Fixed input scales (SI). A contact moves by at most a few m/s * dt = 0.1 mm per step.
 GAP_SCALE_COARSE_M = 1.0e-4   # gap / 0.1 mm, clipped to [-1, 3]
@@ -94,17 +100,7 @@ class ContactPhysics:
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
-            raise ValueError(f"history must be in 1..window={self.window}, got {self.history}")
-
-
-N_EDGE_INPUTS_PER_SLOT = 4
-
-
-def n_edge_inputs(history: int) -> int:
-    """Inputs per edge: 4 per slot (coarse gap, fine gap, u, fine u) + |v_t|, fine |v_t|, the
-    relative normal acceleration term and a constant (the bias of a ball-ball edge is its own
-    MLP)."""
-    return N_EDGE_INPUTS_PER_SLOT * history + 3
+            raise ContactModelError(f"history must be in 1..window={self.window}, got {self.history}")
 
 
 def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
@@ -124,11 +120,13 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         normal (E, 3): unit normal of the contact, from the receiver ball to its partner;
         tangent (E, 3): unit-ish tangential direction of the partner's relative velocity
             (``v_t / sqrt(|v_t|^2 + eps^2)``, 0 when there is no slip);
-        inputs (E, n_edge_inputs): the invariant scalars;
+        inputs (E, 4 history + 3): the invariant scalars (per slot: coarse gap, fine gap, u,
+            fine u; then |v_t|, fine |v_t| and the relative normal acceleration term);
         gate (E,): 1 where the edge acts (a real edge into a ball, contact possible in the step);
         is_pp (E,), is_pw (E,): edge kinds (only edges whose receiver is a ball);
+        senders, receivers (E,): the edges' node indices;
         u_wall (E, 3): the jar's velocity (m/s) for ball-wall edges, 0 otherwise;
-        v_ball (E, 3): the receiver ball's current velocity v_n (m/s).
+        v_node (n_node, 3): every node's velocity at the newest slot, v_n (m/s).
     """
     feats = jnp.asarray(graph.nodes["features"], DTYPE)
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
@@ -200,12 +198,13 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
-        "v_ball": vel[-1, receivers],
+        "v_node": vel[-1],
     }
 
 
 class ImpulseMLP(nn.Module):
-    """``layers`` dense layers (tanh-free: softplus hidden units are smooth), 2 outputs."""
+    """``layers`` dense layers with SiLU between them (smooth), 2 outputs; the output layer
+    starts at zero, so an untrained model gives the same small impulse to every contact."""
 
     hidden: int
     layers: int
@@ -262,9 +261,7 @@ class ContactNet(nn.Module):
         g = jnp.asarray(phys.gravity, DTYPE)
         dv = jnp.where(is_particle[:, None], total / m + g * phys.dt, 0.0)
 
-        feats = jnp.asarray(graph.nodes["features"], DTYPE)
-        v_node = feats[:, SLOT_DIM * (phys.window - 1): SLOT_DIM * (phys.window - 1) + 3]
-        vbar_node = v_node + 0.5 * dv
+        vbar_node = geo["v_node"] + 0.5 * dv
         vbar = vbar_node[receivers]
         # a pair: J on the receiver, -J on the sender
         per_edge_pp = -jnp.sum(impulse * (vbar - vbar_node[senders]), axis=-1) * geo["is_pp"]

@@ -69,7 +69,8 @@ class UnrollSpec:
 
 
 def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery | None,
-                     unroll: UnrollSpec) -> Callable[[Any, UnrollBatch, jax.Array], jax.Array]:
+                     unroll: UnrollSpec
+                     ) -> Callable[[Any, UnrollBatch, jax.Array], tuple[jax.Array, jax.Array]]:
     """``loss(params, batch, key) -> (loss, per_step (K,))`` (jittable)."""
     w, n, dt, k_steps = spec.window, spec.n_particles, spec.dt, unroll.unroll
 
