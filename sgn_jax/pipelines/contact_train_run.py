@@ -11,7 +11,6 @@ optimiser state, every ``checkpoint_every`` steps and at the end) and ``checkpoi
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import time
@@ -27,15 +26,21 @@ import optax
 import sgn_jax
 from sgn_jax.config import config_to_dict, save_config
 from sgn_jax.pipelines.configure import graph_spec_from_config, surrogate_walls_from_config
-from sgn_jax.pipelines.train_run import at_model_step, check_trajectory_matches
+from sgn_jax.pipelines.train_run import (
+    at_model_step,
+    check_trajectory_matches,
+    read_metrics,
+    write_metrics,
+)
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-from sgn_jax.records.io_utils import atomic_write, git_commit, write_json
+from sgn_jax.records.io_utils import git_commit, write_json
 from sgn_jax.surrogate.contact import ContactNet, physics_from_config
 from sgn_jax.surrogate.contact_train import (
     ContactTrainState,
     StretchSource,
     UnrollSpec,
     dissipation_shares,
+    make_optimizer,
     make_train_step,
     make_unroll_loss,
     share_logits,
@@ -55,22 +60,8 @@ def identity_stats(window: int) -> NormStats:
                      pw_edge=ident(3), accel=ident(3), dissipation=ident(1))
 
 
-def _write_metrics(out_dir: Path, rows: list[dict[str, Any]]) -> None:
-    if not rows:
-        return
-    keys = list(rows[0])
-    lines = [",".join(keys)] + [",".join(str(r[k]) for k in keys) for r in rows]
-    with atomic_write(out_dir / "metrics.csv", "w") as fh:
-        fh.write("\n".join(lines) + "\n")
-
-
-def _read_metrics(out_dir: Path) -> list[dict[str, Any]]:
-    path = out_dir / "metrics.csv"
-    if not path.exists():
-        return []
-    with open(path) as fh:
-        return [{k: int(v) if k == "step" else float(v) for k, v in row.items()}
-                for row in csv.DictReader(fh)]
+# The columns of metrics.csv (metrics.jsonl keeps every row as written, for resuming).
+CONTACT_METRIC_FIELDS = ("step", "train_loss", "val_loss", "lr", "seconds")
 
 
 def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
@@ -129,7 +120,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     params = {**params, "share_logit": share_logits(shares)}
 
     schedule = optax.cosine_decay_schedule(lr_init, steps, alpha=lr_final / lr_init)
-    tx = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
+    tx = make_optimizer(schedule)
     opt_state = tx.init(params)
     history: list[dict[str, Any]] = []
     start = 0
@@ -137,7 +128,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
         full = restore_checkpoint(ckpt_latest, opt_state_like=opt_state)
         params, opt_state = full.params, full.opt_state
         start = int(full.meta["global_step"])
-        history = [r for r in _read_metrics(out_dir) if r["step"] <= start]
+        history = [r for r in read_metrics(out_dir) if r["step"] <= start]
         log(f"resuming {out_dir} after step {start}")
     state = ContactTrainState(jax.tree_util.tree_map(jnp.asarray, params),
                               jax.tree_util.tree_map(jnp.asarray, opt_state),
@@ -184,7 +175,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
         if improved:
             save_checkpoint(ckpt_best, step_no, params=state.params, norm_stats=stats,
                             meta=meta, keep=1)
-        _write_metrics(out_dir, history)
+        write_metrics(out_dir, history, CONTACT_METRIC_FIELDS, loss_plot=False)
         log(json.dumps({"step": step_no, "train_loss": round(train_value, 5),
                         "val_loss": round(val_value, 5), "best": improved}))
 

@@ -62,18 +62,21 @@ METRIC_FIELDS = ("epoch", "step", "lr", "train_loss", "train_node", "train_globa
                  "best")
 
 
-def write_metrics(out_dir: Path, history: list[dict[str, Any]]) -> None:
-    """``metrics.jsonl`` and ``metrics.csv`` (rewritten atomically) and ``loss.png``."""
+def write_metrics(out_dir: Path, history: list[dict[str, Any]],
+                  fields: Sequence[str] = METRIC_FIELDS, loss_plot: bool = True) -> None:
+    """``metrics.jsonl`` and ``metrics.csv`` (columns ``fields``; rewritten atomically) and,
+    with ``loss_plot``, ``loss.png`` (losses per epoch)."""
     with atomic_write(out_dir / "metrics.jsonl", "w") as fh:
         for row in history:
             fh.write(json.dumps(row, sort_keys=True) + "\n")
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=METRIC_FIELDS, extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=list(fields), extrasaction="ignore")
     writer.writeheader()
     writer.writerows(history)
     with atomic_write(out_dir / "metrics.csv", "w") as fh:
         fh.write(buf.getvalue())
-    plot_losses(history, out_dir / "loss.png")
+    if loss_plot:
+        plot_losses(history, out_dir / "loss.png")
 
 
 def read_metrics(out_dir: Path) -> list[dict[str, Any]]:
