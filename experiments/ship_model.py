@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -33,13 +32,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main(argv: list[str] | None = None) -> int:
     from sgn_jax.api import (
-        DIGEST_FILE,
-        SHIPPED_MODELS_DIR,
+        SGNJaxError,
+        best_checkpoint_step,
         git_commit,
-        load_trained_model,
         sha256_file,
-        write_checkpoint_digest,
-        write_json,
+        ship_checkpoint,
     )
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -56,11 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     run = Path(args.run)
-    best = run / "checkpoints" / "best"
-    steps = sorted(d for d in best.iterdir() if d.is_dir()) if best.is_dir() else []
-    if len(steps) != 1:
-        print(f"ship_model: expected one checkpoint under {best}, found {len(steps)}",
-              file=sys.stderr)
+    try:
+        step_dir = best_checkpoint_step(run)
+    except SGNJaxError as exc:
+        print(f"ship_model: {exc}", file=sys.stderr)
         return 2
     summary = json.loads((run / "summary.json").read_text())
     history = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()
@@ -105,23 +101,9 @@ def main(argv: list[str] | None = None) -> int:
                              "balls_outside_total": c["balls_outside_total"]}
                       for name, c in results["cases"].items()}}
 
-    target = SHIPPED_MODELS_DIR / args.case
-    staging = target.with_name(target.name + ".new")
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
-    shutil.copytree(steps[0], staging / steps[0].name)
-    if not (staging / steps[0].name / DIGEST_FILE).is_file():  # trained before the file digest
-        write_checkpoint_digest(staging / steps[0].name)
-    for name in ("loss.png", "metrics.csv"):
-        if (run / name).is_file():
-            shutil.copy2(run / name, staging / name)
-    write_json(staging / "PROVENANCE.json", provenance)
-    load_trained_model(staging)  # refuse to ship what does not load
-    if target.exists():
-        shutil.rmtree(target)
-    staging.rename(target)
-    print(json.dumps({"shipped": str(target), "step": steps[0].name,
+    target = ship_checkpoint(step_dir, args.case, provenance,
+                             extra_files=[run / "loss.png", run / "metrics.csv"])
+    print(json.dumps({"shipped": str(target), "step": step_dir.name,
                       "best_epoch": provenance["best_epoch"],
                       "val_loss": provenance["final_losses_best_epoch"]["val_loss"]}))
     return 0

@@ -89,7 +89,13 @@ from sgn_jax.pipelines.dem_run import (
     settle_sample_count,
     setup_from_config,
 )
-from sgn_jax.pipelines.demo import SHIPPED_MODELS_DIR, resolve_checkpoint, shipped_model_dir
+from sgn_jax.pipelines.demo import (
+    SHIPPED_MODELS_DIR,
+    best_checkpoint_step,
+    resolve_checkpoint,
+    ship_checkpoint,
+    shipped_model_dir,
+)
 from sgn_jax.pipelines.experiments import (
     ExperimentError,
     case_config,
@@ -816,6 +822,8 @@ __all__ = [
     "DIGEST_FILE",
     "write_checkpoint_digest",
     "SHIPPED_MODELS_DIR",
+    "best_checkpoint_step",
+    "ship_checkpoint",
     "shipped_model_dir",
     "resolve_checkpoint",
     "enable_compilation_cache",

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -37,11 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     run = Path(args.run)
-    best = run / "checkpoints" / "best"
-    steps = sorted(d for d in best.iterdir() if d.is_dir()) if best.is_dir() else []
-    if len(steps) != 1:
-        print(f"ship_contact: expected one checkpoint under {best}, found {len(steps)}",
-              file=sys.stderr)
+    try:
+        step_dir = sj.best_checkpoint_step(run)
+    except sj.SGNJaxError as exc:
+        print(f"ship_contact: {exc}", file=sys.stderr)
         return 2
     info = json.loads((run / "run_info.json").read_text())
     summary = json.loads((run / "summary.json").read_text())
@@ -59,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         "datasets": [{"file": str(f), "sha256": sj.sha256_file(f)} for f in files],
         "code_commit_at_training": info.get("git_commit"),
         "code_commit_at_shipping": sj.git_commit(),
-        "checkpoint_step": int(steps[0].name),
+        "checkpoint_step": int(step_dir.name),
         "run_info": info,
         "steps_done": summary["steps_done"],
         "train_wall_time_s": summary["seconds"],
@@ -68,22 +66,9 @@ def main(argv: list[str] | None = None) -> int:
                               "summaries": json.loads(Path(r).read_text()).get("summaries")}
                              for r in args.report],
     }
-    target = sj.SHIPPED_MODELS_DIR / args.name
-    staging = target.with_name(target.name + ".new")
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
-    shutil.copytree(steps[0], staging / steps[0].name)
-    if not (staging / steps[0].name / sj.DIGEST_FILE).is_file():
-        sj.write_checkpoint_digest(staging / steps[0].name)
-    if (run / "metrics.csv").is_file():
-        shutil.copy2(run / "metrics.csv", staging / "metrics.csv")
-    sj.write_json(staging / "PROVENANCE.json", provenance)
-    sj.load_trained_model(staging)  # refuse to ship what does not load
-    if target.exists():
-        shutil.rmtree(target)
-    staging.rename(target)
-    print(json.dumps({"shipped": str(target), "step": steps[0].name}))
+    target = sj.ship_checkpoint(step_dir, args.name, provenance,
+                                extra_files=[run / "metrics.csv"])
+    print(json.dumps({"shipped": str(target), "step": step_dir.name}))
     return 0
 
 

@@ -39,9 +39,10 @@ written by ``sgn-jax train``'s ``checkpoints/best``); :func:`shipped_model_dir` 
 from __future__ import annotations
 
 import math
+import shutil
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +65,13 @@ from sgn_jax.pipelines.configure import jar_mesh_from_config
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.rollout_run import run_rollout
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
-from sgn_jax.records.checkpoint import CheckpointError, latest_step, load_trained_model
+from sgn_jax.records.checkpoint import (
+    DIGEST_FILE,
+    CheckpointError,
+    latest_step,
+    load_trained_model,
+    write_checkpoint_digest,
+)
 from sgn_jax.records.io_utils import machine_info, write_json
 from sgn_jax.records.prediction import load_prediction
 from sgn_jax.records.trajectory import load_trajectory
@@ -102,6 +109,44 @@ class DemoError(SGNJaxError, ValueError):
 def shipped_model_dir(case: str = DEFAULT_CASE) -> Path:
     """The directory of the model shipped for ``case`` (may not exist)."""
     return SHIPPED_MODELS_DIR / case
+
+
+def best_checkpoint_step(run: str | Path) -> Path:
+    """The one step directory of a training run's ``checkpoints/best`` (what is shipped)."""
+    best = Path(run) / "checkpoints" / "best"
+    steps = sorted(d for d in best.iterdir() if d.is_dir()) if best.is_dir() else []
+    if len(steps) != 1:
+        raise DemoError(f"expected one checkpoint under {best}, found {len(steps)}")
+    return steps[0]
+
+
+def ship_checkpoint(step_dir: str | Path, name: str, provenance: dict[str, Any],
+                    extra_files: Sequence[str | Path] = ()) -> Path:
+    """Install a checkpoint step as the shipped model ``name`` (``SHIPPED_MODELS_DIR/name``).
+
+    Copies ``step_dir`` (writing its file digests if it predates them), the ``extra_files``
+    that exist (loss plot, metrics) and ``PROVENANCE.json`` into a staging folder, loads the
+    staged model back (refusing to ship what does not load) and only then replaces the old
+    model, so a failed copy never leaves the package without one. Returns the model's folder.
+    """
+    step_dir = Path(step_dir)
+    target = shipped_model_dir(name)
+    staging = target.with_name(target.name + ".new")
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    shutil.copytree(step_dir, staging / step_dir.name)
+    if not (staging / step_dir.name / DIGEST_FILE).is_file():  # trained before the digests
+        write_checkpoint_digest(staging / step_dir.name)
+    for extra in map(Path, extra_files):
+        if extra.is_file():
+            shutil.copy2(extra, staging / extra.name)
+    write_json(staging / "PROVENANCE.json", provenance)
+    load_trained_model(staging)
+    if target.exists():
+        shutil.rmtree(target)
+    staging.rename(target)
+    return target
 
 
 def has_checkpoint(path: str | Path) -> bool:
