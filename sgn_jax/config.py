@@ -258,6 +258,10 @@ class DEMConfig:
         neighbour_skin: m, surface gap within which a ball pair enters the Verlet list.
         contact_law: name of the contact law (sgn_jax.dem.laws registry); "hertz_mindlin" is
             the validated default, other laws are registered by code (docs/dem.md).
+        kick_speed: m/s; 0 (the default): the motion starts from the settled bed at rest. > 0:
+            at t = 0 every ball gets a random velocity on top of the settled bed (direction
+            uniform, magnitude uniform in [0, kick_speed], from the placement seed): isolated
+            impacts at known speeds, training data for contact models (docs/contact.md).
     """
 
     dt: float = 1e-4
@@ -275,8 +279,11 @@ class DEMConfig:
     neighbour_skin: float = 0.001
     # Contact law by registry name (sgn_jax.dem.laws); checked when the DEM is set up.
     contact_law: str = "hertz_mindlin"
+    kick_speed: float = 0.0
 
     def __post_init__(self) -> None:
+        if not self.kick_speed >= 0:
+            raise ConfigError(f"[dem] kick_speed must be >= 0 m/s, got {self.kick_speed}")
         if not isinstance(self.contact_law, str) or not self.contact_law:
             raise ConfigError("[dem] contact_law must be the name of a registered contact law, "
                               f"got {self.contact_law!r}")

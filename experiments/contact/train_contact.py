@@ -4,7 +4,8 @@
         --steps 6000 --minutes 55
 
 Training files: every ``train_*.npz`` of ``--data`` (the envelope's training motions; the
-held-out motions and packings are never read). ``--val`` names files for the validation loss
+held-out motions and packings are never read), and the files of each ``--also GLOB`` (e.g. the
+kicked beds of experiments/contact/kicks.toml: ``--also 'data/kicks/*.npz'``). ``--val`` names files for the validation loss
 (default: none). A killed run continues with ``--resume``. The options are recorded in the
 run's run_info.json; docs/contact.md has the runs and their numbers.
 """
@@ -25,6 +26,8 @@ def main() -> None:
     ap.add_argument("--config", default=os.path.join(HERE, "contact.toml"))
     ap.add_argument("--data", default="data/envelope")
     ap.add_argument("--pattern", default="train_*.npz")
+    ap.add_argument("--also", action="append", default=[],
+                    help="glob of further training files (repeatable)")
     ap.add_argument("--val", default="", help="comma-separated validation files")
     ap.add_argument("--out", required=True)
     ap.add_argument("--steps", type=int, default=6000)
@@ -49,6 +52,11 @@ def main() -> None:
     files = sorted(glob.glob(os.path.join(args.data, args.pattern)))
     if not files:
         raise SystemExit(f"no {args.pattern} files in {args.data}")
+    for pattern in args.also:
+        more = sorted(glob.glob(pattern))
+        if not more:
+            raise SystemExit(f"--also {pattern!r} matches no file")
+        files += more
     print(f"{len(files)} training files")
     trajs = [sj.load_trajectory(f) for f in files]
     val = [sj.load_trajectory(f) for f in args.val.split(",") if f]

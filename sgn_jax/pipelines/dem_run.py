@@ -137,6 +137,21 @@ def initial_state(setup: DEMSetup, seed: int, gap: float = 5e-4) -> DEMState:
     return init_state(setup.spec, setup.params, x_lab, step=-settle_samples * setup.substeps)
 
 
+def kick_balls(state: DEMState, kick_speed: float, seed: int) -> DEMState:
+    """``state`` with every ball given a random velocity (``[dem] kick_speed``): direction
+    uniform on the sphere, magnitude uniform in [0, kick_speed] m/s, from ``seed`` (numpy);
+    spins unchanged. ``kick_speed`` 0 returns ``state`` itself."""
+    if not kick_speed:
+        return state
+    rng = np.random.default_rng([int(seed), 0x6B1C])
+    n = state.vel.shape[0]
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    speed = rng.uniform(0.0, kick_speed, size=(n, 1))
+    vel = jnp.asarray(np.asarray(state.vel) + speed * direction, state.vel.dtype)
+    return state.replace(vel=vel)
+
+
 def settle_sample_count(setup: DEMSetup) -> int:
     return int(round(setup.cfg.dem.settle_time / setup.dt))
 
@@ -174,6 +189,8 @@ def _fingerprint(setup: DEMSetup, seed: int) -> str:
     cfg["dem"].pop("chunk_samples", None)
     if cfg["dem"].get("contact_law") == "hertz_mindlin":
         cfg["dem"].pop("contact_law")  # the default: partial runs of older versions resume
+    if not cfg["dem"].get("kick_speed"):
+        cfg["dem"].pop("kick_speed", None)  # likewise
     return json.dumps({"config": cfg, "seed": seed, "dt_dem": setup.dt_dem,
                        "pp_capacity": setup.pp_capacity, "format": PARTIAL_FORMAT},
                       sort_keys=True)
@@ -213,7 +230,8 @@ def settle_key(setup: DEMSetup, seed: int) -> str:
     is the same packing translated physically, but not bit for bit (settling is chaotic and
     its rounding depends on the absolute positions): it gets its own entry."""
     cfg = config_to_dict(setup.cfg)
-    dem = {k: v for k, v in cfg["dem"].items() if k not in ("duration", "chunk_samples", "seed")}
+    dem = {k: v for k, v in cfg["dem"].items()
+           if k not in ("duration", "chunk_samples", "seed", "kick_speed")}  # not in settling
     rest = [float(v).hex() for v in np.asarray(offset(setup.params.motion, 0.0))]
     key = {"jar": cfg["jar"], "balls": cfg["balls"], "material": cfg["material"], "dem": dem,
            "seed": int(seed), "dt_dem": setup.dt_dem, "pp_capacity": setup.pp_capacity,
@@ -388,7 +406,7 @@ def run_dem(
         state = load_settled(setup, seed)
         settle_cached = state is not None
         if settle_cached:
-            state = reset_ledger_totals(state)
+            state = reset_ledger_totals(kick_balls(state, cfg.dem.kick_speed, seed))
             chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
                                                  observe_jit(params, state)))
             checkpoint(state)
@@ -413,7 +431,7 @@ def run_dem(
             raise DEMError(f"internal: settling ended at step {int(state.step)}, not 0")
         if settle_cache:
             save_settled(setup, seed, state)
-        state = reset_ledger_totals(state)
+        state = reset_ledger_totals(kick_balls(state, cfg.dem.kick_speed, seed))
         chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
                                              observe_jit(params, state)))
         checkpoint(state)
