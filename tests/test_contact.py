@@ -104,6 +104,28 @@ def test_ball_ball_momentum_is_conserved_to_rounding():
     np.testing.assert_allclose(impulses.sum(axis=0), 0.0, atol=1e-6 * scale)
 
 
+def test_gradients_are_finite_for_balls_at_rest():
+    """Balls at rest in a still jar have a relative tangential velocity of exactly 0: the
+    derivative of |v_t| must stay finite there (it was infinite, which made the design study's
+    horizon gradients and the training loss on still-jar data NaN)."""
+    window, _ = scene(np.random.default_rng(0))
+    still = window.replace(positions=jnp.broadcast_to(window.positions[-1], window.positions.shape),
+                           offsets=jnp.zeros_like(window.offsets),
+                           offset_velocities=jnp.zeros_like(window.offset_velocities))
+    _, params, _ = terms_of(still)
+    net = net_with((0.0, -9.81, 0.0))
+
+    def energy(shift):
+        moved = still.replace(positions=still.positions + shift)
+        graph, _ = build_graph(moved, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+        return jnp.sum(terms["dv"] ** 2) + terms["diss_pw"][0]
+
+    grad = jax.grad(energy)(jnp.zeros_like(still.positions))
+    assert np.all(np.isfinite(np.asarray(grad)))
+    assert float(jnp.abs(grad).max()) > 0
+
+
 def rotation_matrix(rng):
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))
     q = q * np.sign(np.diag(r))

@@ -172,7 +172,12 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     gap_pw = (-phi_pw - radius)[None] - approach_after                     # (W, E)
     gap = jnp.where(is_pw[None], gap_pw, gap_pp)
     v_t = v_rel[-1] - u[-1][:, None] * normal
-    speed_t = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1))
+    # |v_t| with a finite derivative at v_t = 0 (a head-on or padded contact): sqrt's
+    # derivative is infinite there, which made the horizon estimator's gradients NaN; the value
+    # is unchanged.
+    speed_sq = jnp.sum(v_t * v_t, axis=-1)
+    positive = speed_sq > 0
+    speed_t = jnp.where(positive, jnp.sqrt(jnp.where(positive, speed_sq, 1.0)), 0.0)
     tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]
 
     g = jnp.asarray(phys.gravity, DTYPE)
