@@ -38,6 +38,9 @@ def main() -> None:
     ap.add_argument("--noise", type=float, default=0.0, help="position random-walk std (m)")
     ap.add_argument("--relative-floor", type=float, default=1e-3,
                     help="m/s; per-ball relative loss with this floor (0: squared error)")
+    ap.add_argument("--impact-weight", type=float, default=0.0,
+                    help="weight of the isolated-impact loss (DEM contact law's answer; 0: off)")
+    ap.add_argument("--impacts", type=int, default=64, help="isolated impacts in that loss")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--lr-final", type=float, default=3e-5)
     ap.add_argument("--hidden", type=int, default=None)
@@ -66,6 +69,7 @@ def main() -> None:
                              position_noise=args.noise,
                              relative_floor=args.relative_floor),
         lr_init=args.lr, lr_final=args.lr_final, seed=args.seed, minutes=args.minutes,
+        impact_weight=args.impact_weight, n_impacts=args.impacts,
         resume=args.resume, progress=not args.no_progress)
     print({k: summary[k] for k in ("steps_done", "best_loss", "seconds")})
 

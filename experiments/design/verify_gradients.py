@@ -10,6 +10,11 @@ ensemble-mean power, with its standard error, is set beside the surrogate's esti
     python experiments/design/verify_gradients.py surrogate            # surrogate gradients
     python experiments/design/verify_gradients.py report               # table + plots
 
+``--out DIR`` (before the command) puts everything in DIR instead of runs/design, e.g. a second
+model's check beside the first (copy the DEM lines, experiments/design/results/dem_powers.jsonl,
+to DIR/dem/worker0.jsonl to reuse them); ``surrogate --checkpoint contact --separation off``
+checks the contact model with the paper's rollout (no ball-ball separation).
+
 Outputs go to runs/design/ (DEM lines in dem/worker*.jsonl, appended and fsynced per run so a
 killed job resumes; surrogate.json; report.md; one plot per point and parameter).
 """
@@ -115,7 +120,8 @@ def cmd_dem_worker(index: int, of: int) -> None:
 def cmd_dem(workers: int) -> None:
     procs = []
     for i in range(workers):
-        cmd = [sys.executable, __file__, "dem-worker", "--index", str(i), "--of", str(workers)]
+        cmd = [sys.executable, __file__, "--out", str(OUT), "dem-worker", "--index", str(i),
+               "--of", str(workers)]
         if workers > 1 and os.path.exists("/usr/bin/taskset"):
             cmd = ["taskset", "-c", str(i % os.cpu_count()), *cmd]
         procs.append(subprocess.Popen(cmd))
@@ -134,7 +140,8 @@ def load_dem() -> dict[tuple, list[float]]:
     return {k: [v[s] for s in sorted(v)] for k, v in table.items()}
 
 
-def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int) -> None:
+def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
+                  separation: bool | None = None) -> None:
     model = sj.load_surrogate(checkpoint)
     results = {}
     path = OUT / "surrogate.json"
@@ -152,7 +159,7 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int) -> None:
         # difference estimator at the DEM's steps (the same packings on both sides).
         study = sj.design_study(model, cfg, names, packings, duration=DURATION,
                                 burn_in=BURN_IN, horizon=horizon, n_segments=segments,
-                                estimator="horizon")
+                                estimator="horizon", separation=separation)
         t0 = time.perf_counter()
         est = study.estimate()
         t_est = time.perf_counter() - t0
@@ -170,7 +177,8 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int) -> None:
                         "gradient_se": float(diff.std(ddof=1) / np.sqrt(diff.size))}
         results[point] = {"theta0": study.theta0.tolist(), "names": names, "estimate": est,
                           "surrogate_fd": fd, "packings_s": t_pack, "estimate_s": t_est,
-                          "horizon": horizon, "segments": segments}
+                          "horizon": horizon, "segments": segments,
+                          "checkpoint": checkpoint, "separation": separation}
         OUT.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(results, indent=1))
         print(json.dumps({point: {"gradient": est["gradient"],
@@ -261,7 +269,9 @@ def cmd_report() -> None:
 
 
 def main() -> None:
+    global OUT
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=OUT, help="output folder (default runs/design)")
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("dem")
     d.add_argument("--workers", type=int, default=2)
@@ -272,14 +282,18 @@ def main() -> None:
     s.add_argument("--checkpoint", default=None)
     s.add_argument("--horizon", type=int, default=100)
     s.add_argument("--segments", type=int, default=8)
+    s.add_argument("--separation", choices=("config", "on", "off"), default="config",
+                   help="the ball-ball separation (default: the point's config)")
     sub.add_parser("report")
     args = p.parse_args()
+    OUT = args.out
     if args.cmd == "dem":
         cmd_dem(args.workers)
     elif args.cmd == "dem-worker":
         cmd_dem_worker(args.index, args.of)
     elif args.cmd == "surrogate":
-        cmd_surrogate(args.checkpoint, args.horizon, args.segments)
+        cmd_surrogate(args.checkpoint, args.horizon, args.segments,
+                      {"config": None, "on": True, "off": False}[args.separation])
     else:
         cmd_report()
 

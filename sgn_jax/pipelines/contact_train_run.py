@@ -11,6 +11,7 @@ optimiser state, every ``checkpoint_every`` steps and at the end) and ``checkpoi
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -25,7 +26,11 @@ import optax
 
 import sgn_jax
 from sgn_jax.config import config_to_dict, save_config
-from sgn_jax.pipelines.configure import graph_spec_from_config, surrogate_walls_from_config
+from sgn_jax.pipelines.configure import (
+    graph_spec_from_config,
+    params_from_config,
+    surrogate_walls_from_config,
+)
 from sgn_jax.pipelines.train_run import (
     at_model_step,
     check_trajectory_matches,
@@ -40,6 +45,7 @@ from sgn_jax.surrogate.contact_train import (
     StretchSource,
     UnrollSpec,
     dissipation_shares,
+    impact_stretches,
     make_optimizer,
     make_train_step,
     make_unroll_loss,
@@ -69,12 +75,16 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                   batch_size: int = 32, unroll: UnrollSpec | None = None,
                   lr_init: float = 1e-3, lr_final: float = 3e-5, seed: int = 0,
                   minutes: float | None = None, checkpoint_every: int = 250,
+                  impact_weight: float = 0.0, n_impacts: int = 64,
                   resume: bool = False, progress: bool = True,
                   log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train a contact-impulse surrogate; see the module docstring.
 
     ``steps`` is the run's total number of optimiser steps (also when resuming); ``minutes``
-    stops earlier (after a checkpoint) when the wall-clock budget is spent. Returns a summary.
+    stops earlier (after a checkpoint) when the wall-clock budget is spent. ``impact_weight``
+    > 0 adds ``impact_weight`` x the same unrolled loss on ``n_impacts`` isolated head-on
+    impacts whose answer is the DEM contact law's (:func:`impact_stretches`, seeded by
+    ``seed``; the same set every step). Returns a summary.
     """
     from tqdm.auto import tqdm
 
@@ -135,8 +145,22 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                               jnp.asarray(start, jnp.int32))
 
     loss = make_unroll_loss(net, spec, sdf, query, unroll)
-    train_step = make_train_step(loss, tx)
     eval_loss = jax.jit(loss)
+    if impact_weight > 0:
+        laws = params_from_config(cfg)
+        impacts = jax.tree_util.tree_map(jnp.asarray, impact_stretches(
+            laws.pw, laws.pp, cfg.balls.radius, spec.dt, spec.window, unroll.unroll, n_impacts,
+            seed, gravity=-float(cfg.dem.gravity[1])))
+        pair_spec = dataclasses.replace(spec, n_particles=2, pp_pair_capacity=1)
+        impact_loss = make_unroll_loss(net, pair_spec, sdf, query,
+                                       dataclasses.replace(unroll, position_noise=0.0))
+        data_loss = loss
+
+        def loss(params, batch, key):  # noqa: F811  (the data's loss plus the impacts')
+            value, per_step = data_loss(params, batch, key)
+            return value + impact_weight * impact_loss(params, impacts, key)[0], per_step
+
+    train_step = make_train_step(loss, tx)
 
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
@@ -148,6 +172,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
             "unroll": unroll.unroll, "pushforward": unroll.pushforward,
             "position_noise": unroll.position_noise,
             "relative_floor": unroll.relative_floor, "lr_init": lr_init, "lr_final": lr_final,
+            "impact_weight": impact_weight, "n_impacts": n_impacts if impact_weight > 0 else 0,
             "dissipation_shares": {"pp": shares[0], "pw": shares[1]},
             "loss_scales": train_src.scales.tolist(), "git_commit": git_commit(),
             "sgn_jax_version": sgn_jax.__version__}
