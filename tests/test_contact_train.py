@@ -64,3 +64,43 @@ def test_dissipation_shares_are_the_dem_damping_fractions():
         diss_pw_rolling = np.array([0.0, 0.5])
 
     assert dissipation_shares([Rec()]) == (0.75, 0.5)
+
+
+def test_impact_stretches_answer_with_the_configs_restitution():
+    """The isolated impacts of the impact loss are the DEM law's: rebound / approach = the
+    config's restitution (0.3) for ball-floor and ball-ball, ballistic before the contact, no
+    overlap before the onset, and the floor ball's bystander never near it."""
+    import math
+
+    from sgn_jax.pipelines.configure import params_from_config
+    from sgn_jax.surrogate.contact_train import impact_stretches
+
+    cfg = sj.load_config("emax_300rpm")
+    laws = params_from_config(cfg)
+    r, dt, w, k = cfg.balls.radius, 1e-4, 7, 12
+    batch = impact_stretches(laws.pw, laws.pp, r, dt, w, k, 16, seed=0)
+    pos = np.asarray(batch.positions)
+    assert pos.shape == (16, w + 1 + k, 2, 3)
+    v = np.diff(pos, axis=1) / dt
+    g_dt = 9.81 * dt
+    checked = 0
+    for i in range(16):
+        if i % 2 == 0:  # ball 0 on the floor: normal velocity along +y
+            vn = v[i, :, 0, 1]
+            gap = pos[i, :, 0, 1] - r
+            assert np.linalg.norm(pos[i, :, 1] - pos[i, :, 0], axis=-1).min() > 0.02
+        else:           # ball on ball along x
+            vn = v[i, :, 1, 0] - v[i, :, 0, 0]
+            gap = pos[i, :, 1, 0] - pos[i, :, 0, 0] - 2 * r
+        first, last = np.flatnonzero(gap < 0)[[0, -1]]
+        assert 1 < first and last + 2 < len(vn)
+        # the last step wholly before the contact and the last one wholly after it
+        approach, rebound = -vn[first - 2], vn[-1]
+        if i % 2 == 0:
+            if approach < 0.1:
+                continue  # gravity's change within a step (1 mm/s) is too large a share
+            approach += 1.5 * g_dt   # gravity's change up to the contact and after it,
+            rebound += g_dt * (len(vn) - last - 1.5)  # to within half a step each
+        checked += 1
+        assert rebound / approach == pytest.approx(cfg.material.restitution, abs=0.02), i
+    assert checked >= 10 and math.isfinite(float(pos.sum()))
