@@ -75,6 +75,7 @@ from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
+    params_from_config as dem_params_from_config,
     motion_from_config,
     sdf_grid_from_config,
 )
@@ -143,7 +144,7 @@ from sgn_jax.regime import (
     regime_windows,
 )
 from sgn_jax.scene import Scene, WallQuery
-from sgn_jax.surrogate.contact_train import UnrollSpec
+from sgn_jax.surrogate.contact_train import UnrollSpec, impact_stretches
 from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 from sgn_jax.surrogate.rollout import (
     RolloutError,
@@ -810,6 +811,8 @@ __all__ = [
     "train_contact",
     "UnrollSpec",
     "contact_census",
+    "impact_stretches",
+    "dem_params_from_config",
     # configs, checkpoints and the shipped models
     "ConfigError",
     "config_from_dict",

@@ -29,13 +29,12 @@ import json
 import math
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.dem.contact import make_contact_law
-from sgn_jax.surrogate.graph import GraphSpec, Window
-from sgn_jax.surrogate.rollout import make_rollout, model_predictor
+from sgn_jax.api import GraphSpec, Window, make_rollout, model_predictor
 
 SPEEDS = (0.05, 0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)
 
@@ -43,11 +42,8 @@ SPEEDS = (0.05, 0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)
 def dem_impact(cfg, speed: float, wall: bool) -> tuple[float, float]:
     """(restitution, deepest overlap m) of a 1-D head-on Hertz contact with the DEM's damping
     (gamma_n = damping_factor sqrt(S_n m*), S_n = 2 Y* sqrt(R* d)), explicit at 1e-7 s."""
-    mat, balls = cfg.material, cfg.balls
-    mass = balls.density * 4.0 / 3.0 * math.pi * balls.radius ** 3
-    law = make_contact_law(mat.young, mat.poisson, mat.restitution, mat.friction,
-                           mat.rolling_friction, balls.radius, mass,
-                           *(() if wall else (balls.radius, mass)))
+    laws = sj.dem_params_from_config(cfg)
+    law = jax.tree_util.tree_map(float, laws.pw if wall else laws.pp)
     m, dt = law.mass_eff, 1e-7
     d, v, deepest = 0.0, speed, 0.0          # overlap and its rate (approach > 0)
     while True:
