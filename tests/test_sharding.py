@@ -22,6 +22,7 @@ import pytest
 
 SCRIPT = r"""
 import json
+import sys
 import jax
 import numpy as np
 import sgn_jax.api as sj
@@ -35,12 +36,15 @@ placed = sj.shard_packings(packings.windows)
 devices = sorted(str(d) for d in placed.positions.sharding.device_set)
 plain = sj.rollout_ensemble(model, cfg, packings, 0.01)
 sharded = sj.rollout_ensemble(model, cfg, packings, 0.01, shard=True)
-study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.02, burn_in=0.01,
-                        n_segments=1)
-study_sharded = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.02,
-                                burn_in=0.01, n_segments=1, shard=True)
-p0, g0 = jax.value_and_grad(study.power)(study.theta0)
-p1, g1 = jax.value_and_grad(study_sharded.power)(study_sharded.theta0)
+p0 = p1 = float("nan")
+g0 = g1 = [float("nan")]
+if sys.argv[1] == "study":  # the design study sharded too (slow tier)
+    study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.02, burn_in=0.01,
+                            n_segments=1)
+    study_sharded = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.02,
+                                    burn_in=0.01, n_segments=1, shard=True)
+    p0, g0 = jax.value_and_grad(study.power)(study.theta0)
+    p1, g1 = jax.value_and_grad(study_sharded.power)(study_sharded.theta0)
 import dataclasses
 singles = []
 for k in range(2):
@@ -64,7 +68,7 @@ print(json.dumps({
 """
 
 
-def test_sharded_ensemble_equals_unsharded_on_two_host_devices():
+def _two_device_run(what: str) -> dict:
     # The package's cache in the test session's folder (conftest.py): the packings of seeds
     # 0 and 1 other tests settled are read, not settled again (bit-identical either way).
     session = os.environ.get("SGN_JAX_TEST_SESSION_DIR")
@@ -72,14 +76,29 @@ def test_sharded_ensemble_equals_unsharded_on_two_host_devices():
                SGN_JAX_NO_CACHE="1")
     if session:
         env.update(SGN_JAX_NO_CACHE="0", SGN_JAX_CACHE_DIR=session)
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", SCRIPT, what], env=env, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-4000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _check_ensemble(out: dict) -> None:
     assert len(out["devices"]) == 2                      # one packing on each device
     assert out["max_pos_diff_alone"] == 0.0              # each device runs its packing alone
     assert out["max_pos_diff"] < 1e-5                     # vs the batched run: float32 rounding
     assert out["energy_sharded"] == pytest.approx(out["energy_plain"], rel=2e-3)
+    assert "multiple of 2" in out["odd"]
+
+
+def test_sharded_ensemble_equals_unsharded_on_two_host_devices():
+    """The default run: the sharded ensemble rollout (the design study's sharding, the same
+    ``shard_packings`` placement under a gradient, is checked in the slow tier below)."""
+    _check_ensemble(_two_device_run("ensemble"))
+
+
+@pytest.mark.slow
+def test_sharded_ensemble_and_design_study_equal_unsharded_on_two_host_devices():
+    out = _two_device_run("study")
+    _check_ensemble(out)
     assert out["power"][1] == pytest.approx(out["power"][0], rel=2e-2)
     assert out["grad"][1] == pytest.approx(out["grad"][0], rel=5e-2)
-    assert "multiple of 2" in out["odd"]
