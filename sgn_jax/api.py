@@ -54,6 +54,7 @@ from sgn_jax.config import (
     resolve_config,
     save_config,
 )
+from sgn_jax.dem.contact import head_on_normal_force
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.design import (
     PARAMETER_UNITS,
@@ -75,9 +76,11 @@ from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
-    params_from_config as dem_params_from_config,
     motion_from_config,
     sdf_grid_from_config,
+)
+from sgn_jax.pipelines.configure import (
+    params_from_config as dem_params_from_config,
 )
 from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.dem_run import (
@@ -813,6 +816,7 @@ __all__ = [
     "contact_census",
     "impact_stretches",
     "dem_params_from_config",
+    "head_on_normal_force",
     # configs, checkpoints and the shipped models
     "ConfigError",
     "config_from_dict",

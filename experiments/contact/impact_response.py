@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import jax
@@ -40,17 +39,14 @@ SPEEDS = (0.05, 0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)
 
 
 def dem_impact(cfg, speed: float, wall: bool) -> tuple[float, float]:
-    """(restitution, deepest overlap m) of a 1-D head-on Hertz contact with the DEM's damping
-    (gamma_n = damping_factor sqrt(S_n m*), S_n = 2 Y* sqrt(R* d)), explicit at 1e-7 s."""
+    """(restitution, deepest overlap m) of a 1-D head-on contact with the DEM's normal force
+    (``sj.head_on_normal_force``: Hertz spring and damping, not clipped), explicit at 1e-7 s."""
     laws = sj.dem_params_from_config(cfg)
     law = jax.tree_util.tree_map(float, laws.pw if wall else laws.pp)
     m, dt = law.mass_eff, 1e-7
     d, v, deepest = 0.0, speed, 0.0          # overlap and its rate (approach > 0)
     while True:
-        s_n = 2.0 * law.young_eff * math.sqrt(law.radius_eff * max(d, 0.0))
-        force = (4.0 / 3.0) * law.young_eff * math.sqrt(law.radius_eff * d) * d \
-            + law.damping_factor * math.sqrt(s_n * m) * v
-        v -= force / m * dt if d > 0 else 0.0   # not clipped (SPEC section 3)
+        v -= float(sj.head_on_normal_force(law, d, v)) / m * dt
         d += v * dt
         deepest = max(deepest, d)
         if d < 0:

@@ -24,6 +24,7 @@ from typing import Any, NamedTuple
 
 import flax.struct
 import jax.numpy as jnp
+import numpy as np
 
 # --------------------------------------------------------------------------------------------
 # Material
@@ -118,6 +119,20 @@ def hertz_energy(law: ContactLaw, overlap: jnp.ndarray) -> jnp.ndarray:
     """Elastic energy of the Hertz spring (8/15) Y* sqrt(R*) d^(5/2) (J), zero for d <= 0."""
     d = jnp.maximum(overlap, 0.0)
     return (8.0 / 15.0) * law.young_eff * jnp.sqrt(law.radius_eff * d) * d * d
+
+
+def head_on_normal_force(law: ContactLaw, overlap: Any, approach_rate: Any) -> Any:
+    """The normal force (N, repulsive positive) of :func:`contact_forces` for a head-on
+    contact: the Hertz spring plus its damping ``gamma_n v_n``, not clipped (SPEC section 3),
+    zero out of contact. numpy, for the host-side 1-D references of a contact
+    (:func:`sgn_jax.surrogate.contact_train.impact_stretches`,
+    experiments/contact/impact_response.py); ``law``'s fields and the arguments may be floats
+    or arrays of one shape."""
+    d = np.maximum(overlap, 0.0)
+    sqrt_rd = np.sqrt(law.radius_eff * d)
+    spring = (4.0 / 3.0) * law.young_eff * sqrt_rd * d
+    gamma_n = law.damping_factor * np.sqrt(2.0 * law.young_eff * sqrt_rd * law.mass_eff)
+    return np.where(np.asarray(overlap) > 0, spring + gamma_n * approach_rate, 0.0)
 
 
 # --------------------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from sgn_jax.dem.contact import head_on_normal_force
 from sgn_jax.scene import SDFQuery
 from sgn_jax.surrogate.contact import ContactNet
 from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
@@ -242,8 +243,8 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
     Ball on floor: ball 0 falls onto the plane y = 0 (gravity on), ball 1 falls freely far
     above it (a bystander with no contact). Ball on ball: both balls move along x towards each
     other at half the approach speed each, 20 mm above the floor, and fall together. The
-    normal force is the DEM's Hertz spring plus its damping ``gamma_n = damping_factor
-    sqrt(S_n m*) v_n`` (not clipped, SPEC section 3), integrated at ``integration_dt``.
+    normal force is the DEM's (:func:`sgn_jax.dem.contact.head_on_normal_force`: the Hertz
+    spring plus its damping, not clipped), integrated at ``integration_dt``.
 
     Args:
         law_pw, law_pp: :class:`sgn_jax.dem.contact.ContactLaw` of ball-wall and ball-ball.
@@ -260,10 +261,9 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
     # 1-D normal problem: overlap d(t) with d(onset) = 0, rate +speed at the onset.
     # Before the onset the motion is ballistic; integrate from the onset to the last slot.
     t_slots = np.arange(n_slots) * dt
-    mass = np.where(is_wall, law_pw.mass_eff, law_pp.mass_eff)
-    young = np.where(is_wall, law_pw.young_eff, law_pp.young_eff)
-    radius_eff = np.where(is_wall, law_pw.radius_eff, law_pp.radius_eff)
-    damping = np.where(is_wall, law_pw.damping_factor, law_pp.damping_factor)
+    # each impact's law (fields of shape (n_impacts,))
+    law = jax.tree_util.tree_map(lambda w, p: np.where(is_wall, float(w), float(p)),
+                                 law_pw, law_pp)
     accel_free = np.where(is_wall, gravity, 0.0)   # gravity pushes a floor contact in (d up)
     d = np.zeros(n_impacts)
     rate = speed.copy()
@@ -277,10 +277,8 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
         if now.any():
             r, c = np.nonzero(now)
             overlap[r, c] = d[r] + rate[r] * frac[r, c]
-        sqrt_rd = np.sqrt(radius_eff * np.maximum(d, 0.0))
-        force = np.where(d > 0, (4.0 / 3.0) * young * sqrt_rd * d
-                         + damping * np.sqrt(2.0 * young * sqrt_rd * mass) * rate, 0.0)
-        rate = rate + (accel_free - force / mass) * integration_dt
+        force = head_on_normal_force(law, d, rate)
+        rate = rate + (accel_free - force / law.mass_eff) * integration_dt
         d = d + rate * integration_dt
     before = t_slots[None, :] < onset[:, None]
     dt_before = t_slots[None, :] - onset[:, None]      # < 0 before the onset
