@@ -318,7 +318,7 @@ class DesignStudy:
     Attributes:
         names: the D parameter names (``motion.rpm``, ``jar.straight_length``, ...).
         theta0: (D,) their values at the config's design point (SI units; rpm for rpm).
-        power: ``power(theta) -> () W``, jitted; ``jax.value_and_grad(power)(theta)`` gives the
+        power: ``power(theta) -> () W`` (compiled); ``jax.value_and_grad(power)(theta)`` gives the
             power and its estimated gradient (W per unit).
         ensemble: the underlying :class:`sgn_jax.design.EnsemblePower`.
         duration, burn_in: seconds of rollout and of the burn-in at its start; the power is

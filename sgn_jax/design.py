@@ -268,7 +268,8 @@ class EnsemblePower:
     """The jittable functions of one design study (see :func:`make_ensemble_power`).
 
     ``power(theta, params, stats, windows)`` -> () W, ensemble mean; ``jax.value_and_grad``
-    w.r.t. ``theta`` returns the truncated-horizon gradient estimate. ``estimate(...)`` ->
+    w.r.t. ``theta`` returns the study estimator's gradient (the mean of ``estimate``'s, from
+    the same compiled program; jittable, and compiled programs when called eagerly). ``estimate(...)`` ->
     :class:`PowerEstimate` (per packing and segment, for standard errors). ``forward(...)`` ->
     (K,) powers without any gradient work (for finite differences and curves).
     """
@@ -433,33 +434,31 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         return PowerEstimate(power_W=powers, gradient=grad, horizon_energy_J=energy,
                              side_powers_W=sides)
 
+    # ``power``'s derivative IS the estimate's mean gradient: its forward pass runs the
+    # compiled ``estimate`` program and keeps the gradient for the backward pass, so that
+    # ``jax.value_and_grad(power)`` and ``estimate`` compile one program, not two (for a
+    # design study of the hidden-256 SGN each takes tens of seconds to compile). Called without
+    # a derivative, ``power`` runs the cheaper compiled ``forward``.
+    estimate_jit, forward_jit = jax.jit(estimate), jax.jit(forward)
+
     @jax.custom_vjp
     def power(theta, params, stats, windows):
-        return jnp.mean(forward(theta, params, stats, windows))
+        return jnp.mean(forward_jit(theta, params, stats, windows))
 
     def power_fwd(theta, params, stats, windows):
-        theta = jnp.asarray(theta, F64)
-        if estimator == "difference":
-            powers = forward(theta, params, stats, windows)
-            return jnp.mean(powers), (theta, params, stats, windows, None, None)
-        powers, starts, t_eff = jax.vmap(one_forward, in_axes=(None, None, None, 0))(
-            theta, params, stats, windows)
-        return jnp.mean(powers), (theta, params, stats, windows, starts, t_eff)
+        est = estimate_jit(jnp.asarray(theta, F64), params, stats, windows)
+        return jnp.mean(est.power_W), (jnp.mean(est.gradient, axis=(0, 1)), params, stats,
+                                       windows)
 
     def power_bwd(residuals, g):
-        theta, params, stats, windows, starts, t_eff = residuals
-        if estimator == "difference":
-            grad, _ = difference_gradients(theta, params, stats, windows)
-        else:
-            _, grad = segment_gradients(theta, params, stats, starts, t_eff)
+        grad, params, stats, windows = residuals
         zeros = jax.tree_util.tree_map(_zero_cotangent, (params, stats, windows))
-        return (g * jnp.mean(grad, axis=(0, 1)), *zeros)
+        return (g * grad, *zeros)
 
     power.defvjp(power_fwd, power_bwd)
-    return EnsemblePower(power=jax.jit(power), estimate=jax.jit(estimate),
-                         forward=jax.jit(forward), names=names, n_burn=n_burn,
-                         n_measure=n_measure, horizon=horizon, n_segments=n_segments,
-                         estimator=estimator, steps=tuple(steps or ()))
+    return EnsemblePower(power=power, estimate=estimate_jit, forward=forward_jit, names=names,
+                         n_burn=n_burn, n_measure=n_measure, horizon=horizon,
+                         n_segments=n_segments, estimator=estimator, steps=tuple(steps or ()))
 
 
 def default_step(name: str, value: float) -> float:

@@ -67,14 +67,14 @@ def random_params(net, graph, seed=0):
     return jax.tree_util.tree_map_with_path(perturb, params)
 
 
-def net_with(gravity):
+def net_with(gravity, passes=1):
     phys = ContactPhysics(**{**PHYS.__dict__, "gravity": tuple(float(g) for g in gravity)})
-    return ContactNet(physics=phys, hidden=32, mlp_layers=3)
+    return ContactNet(physics=phys, hidden=32, mlp_layers=3, passes=passes)
 
 
-def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None):
+def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, passes=1):
     graph, _ = build_graph(window, None, SPEC, floor_query(up))
-    net = net_with(gravity)
+    net = net_with(gravity, passes)
     params = random_params(net, graph) if params is None else params
     return net.apply({"params": params}, graph, method=ContactNet.step_terms), params, graph
 
@@ -90,9 +90,9 @@ def test_contact_kind_is_registered_and_builds_from_the_whole_config():
     assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
 
 
-def test_ball_ball_momentum_is_conserved_to_rounding():
+def test_ball_ball_momentum_is_conserved_to_rounding(passes=1):
     window, _ = scene(np.random.default_rng(0))
-    terms, _, graph = terms_of(window)
+    terms, _, graph = terms_of(window, passes=passes)
     geo = edge_geometry(graph, PHYS)
     assert float(jnp.sum(geo["gate"] * geo["is_pp"])) >= 4  # two touching pairs act
     # The floor ball (index 4) alone touches a wall: the other balls' momentum change is
@@ -132,42 +132,64 @@ def rotation_matrix(rng):
     return q if np.linalg.det(q) > 0 else -q
 
 
-def test_rotated_scene_gives_rotated_accelerations():
+def test_rotated_scene_gives_rotated_accelerations(passes=1):
     rng = np.random.default_rng(1)
     window, _ = scene(np.random.default_rng(2))
-    terms, params, _ = terms_of(window)
+    terms, params, _ = terms_of(window, passes=passes)
     rot = rotation_matrix(rng)
     window_r, _ = scene(np.random.default_rng(2), rot)
     up_r = rot @ np.array([0.0, 1.0, 0.0])
     g_r = rot @ np.array([0.0, -9.81, 0.0])
-    terms_r, _, _ = terms_of(window_r, up=up_r, gravity=g_r, params=params)
+    terms_r, _, _ = terms_of(window_r, up=up_r, gravity=g_r, params=params, passes=passes)
     dv, dv_r = np.asarray(terms["dv"][:5]), np.asarray(terms_r["dv"][:5])
     np.testing.assert_allclose(dv_r, dv @ rot.T, atol=1e-5 * np.abs(dv).max())
     for name in ("diss_pp", "diss_pw", "work_wall"):
         np.testing.assert_allclose(terms_r[name][0], terms[name][0], rtol=1e-4, atol=1e-12)
 
 
-def test_permuted_balls_give_permuted_accelerations():
+def test_permuted_balls_give_permuted_accelerations(passes=1):
     window, _ = scene(np.random.default_rng(3))
-    terms, params, _ = terms_of(window)
+    terms, params, _ = terms_of(window, passes=passes)
     perm = np.array([3, 0, 4, 1, 2])
     window_p = window.replace(positions=window.positions[:, perm])
-    terms_p, _, _ = terms_of(window_p, params=params)
+    terms_p, _, _ = terms_of(window_p, params=params, passes=passes)
     np.testing.assert_allclose(np.asarray(terms_p["dv"][:5]), np.asarray(terms["dv"][:5])[perm],
                                rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(terms_p["diss_pp"][0], terms["diss_pp"][0], rtol=1e-5)
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(seed):
+def test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(seed, passes=1):
     window, _ = scene(np.random.default_rng(10 + seed))
-    terms, _, _ = terms_of(window)
+    terms, _, _ = terms_of(window, passes=passes)
     du_n, du_t = np.asarray(terms["du_n"]), np.asarray(terms["du_t"])
     assert (du_n >= 0).all() and du_n.max() > 0
     assert (np.abs(du_t) <= PHYS.friction * du_n + 1e-12).all()
     # Out of reach (gated off): no impulse at all.
     gate = np.asarray(terms["gate"])
     assert (du_n[gate == 0] == 0).all()
+
+
+def test_two_passes_keep_the_built_in_physics_and_start_as_one_pass():
+    """The learned Jacobi pass (``passes`` = 2) sees every contact's tentative impulses; the
+    impulse is still per contact, equal and opposite, repulsive and in the cone: momentum,
+    rotation, permutation and the cone hold as for one pass. Its corrections start at zero:
+    a freshly initialised 2-pass model with the first pass's parameters IS the 1-pass model."""
+    test_ball_ball_momentum_is_conserved_to_rounding(passes=2)
+    test_rotated_scene_gives_rotated_accelerations(passes=2)
+    test_permuted_balls_give_permuted_accelerations(passes=2)
+    test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(0, passes=2)
+
+    window, _ = scene(np.random.default_rng(0))
+    one, params_one, graph = terms_of(window)
+    fresh = net_with((0.0, -9.81, 0.0), passes=2).init(jax.random.PRNGKey(9), graph)["params"]
+    assert set(fresh) == {*params_one, "pp_refine_0", "pw_refine_0"}
+    two, params_two, _ = terms_of(window, params={**fresh, **params_one}, passes=2)
+    np.testing.assert_array_equal(np.asarray(two["dv"]), np.asarray(one["dv"]))
+    # ...and a trained correction changes it
+    perturbed = random_params(net_with((0.0, -9.81, 0.0), passes=2), graph, seed=3)
+    moved, _, _ = terms_of(window, params={**perturbed, **params_one}, passes=2)
+    assert float(jnp.abs(moved["dv"] - one["dv"]).max()) > 1e-4
 
 
 def test_energy_ledger_closes_over_a_rollout():

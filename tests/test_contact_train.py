@@ -20,28 +20,28 @@ def test_a_resumed_run_equals_an_unbroken_one(tmp_path):
     cfg = small_config()
     trajs = [synthetic_trajectory(40, 6, seed=s) for s in (1, 2)]
     kwargs = dict(batch_size=2, unroll=UnrollSpec(unroll=2, relative_floor=1e-3),
-                  checkpoint_every=1, progress=False, steps=3)
+                  checkpoint_every=1, progress=False, steps=2)
 
     class Killed(Exception):
         pass
 
-    def kill_after_step_2(line):
-        if '"step": 2' in line:
-            raise Killed  # the process dies right after step 2's checkpoint
+    def kill_after_step_1(line):
+        if '"step": 1' in line:
+            raise Killed  # the process dies right after step 1's checkpoint
 
     with pytest.raises(Killed):
-        train_contact(cfg, trajs, tmp_path / "broken", log=kill_after_step_2, **kwargs)
+        train_contact(cfg, trajs, tmp_path / "broken", log=kill_after_step_1, **kwargs)
     resumed = train_contact(cfg, trajs, tmp_path / "broken", resume=True, log=lambda _: None,
                             **kwargs)
     whole = train_contact(cfg, trajs, tmp_path / "whole", log=lambda _: None, **kwargs)
-    assert resumed["steps_done"] == whole["steps_done"] == 3
+    assert resumed["steps_done"] == whole["steps_done"] == 2
     a = sj.load_trained_model(tmp_path / "broken", which="latest")
     b = sj.load_trained_model(tmp_path / "whole", which="latest")
     for x, y in zip(np.concatenate([np.ravel(v) for v in _leaves(a.params)]),
                     np.concatenate([np.ravel(v) for v in _leaves(b.params)]), strict=True):
         assert x == y
     rows = (tmp_path / "broken" / "metrics.csv").read_text().splitlines()
-    assert [r.split(",")[0] for r in rows[1:]] == ["1", "2", "3"]
+    assert [r.split(",")[0] for r in rows[1:]] == ["1", "2"]
     assert all(np.isfinite(float(r.split(",")[1])) for r in rows[1:])
     # the loaded model is the contact kind with its fitted damping shares
     assert a.model.__class__.__name__ == "ContactNet"
@@ -104,3 +104,26 @@ def test_impact_stretches_answer_with_the_configs_restitution():
         checked += 1
         assert rebound / approach == pytest.approx(cfg.material.restitution, abs=0.02), i
     assert checked >= 10 and math.isfinite(float(pos.sum()))
+
+
+def test_warm_start_takes_the_matching_submodules_and_refuses_a_foreign_checkpoint():
+    """``train_contact(init_from=...)``: a 2-pass model starts its first pass from a trained
+    1-pass model (same names and shapes), its correction pass and the data's dissipation
+    shares fresh; a checkpoint with nothing in common is an error, not a silent fresh start."""
+    from sgn_jax.pipelines.contact_train_run import _warm_start
+    from sgn_jax.surrogate.train import TrainingError
+
+    fresh = {"pp_net": {"dense_0": {"kernel": np.zeros((4, 8))}},
+             "pw_net": {"dense_0": {"kernel": np.zeros((4, 8))}},
+             "pp_refine_0": {"dense_0": {"kernel": np.zeros((8, 8))}},
+             "share_logit": np.zeros(2)}
+    donor = {"pp_net": {"dense_0": {"kernel": np.ones((4, 8))}},
+             "pw_net": {"dense_0": {"kernel": np.ones((4, 16))}},   # another width: not taken
+             "share_logit": np.ones(2)}
+    params, names = _warm_start(fresh, donor, "donor")
+    assert names == ["pp_net"]
+    assert float(params["pp_net"]["dense_0"]["kernel"].sum()) == 32.0
+    assert float(np.sum(params["pw_net"]["dense_0"]["kernel"])) == 0.0
+    assert float(np.sum(params["share_logit"])) == 0.0
+    with pytest.raises(TrainingError, match="no parameter of this model"):
+        _warm_start(fresh, {"encoder": {"w": np.ones(3)}}, "sgn checkpoint")

@@ -44,6 +44,10 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--lr-final", type=float, default=3e-5)
     ap.add_argument("--hidden", type=int, default=None)
+    ap.add_argument("--passes", type=int, default=None,
+                    help="impulse passes ([model] interaction_layers; 2: a learned Jacobi pass)")
+    ap.add_argument("--init", default=None,
+                    help="checkpoint directory to warm-start matching parameters from")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--no-progress", action="store_true")
@@ -52,6 +56,8 @@ def main() -> None:
     cfg = sj.load_config(args.config)
     if args.hidden is not None:
         cfg = sj.replace_section(cfg, "model", hidden=args.hidden)
+    if args.passes is not None:
+        cfg = sj.replace_section(cfg, "model", interaction_layers=args.passes)
     files = sorted(glob.glob(os.path.join(args.data, args.pattern)))
     if not files:
         raise SystemExit(f"no {args.pattern} files in {args.data}")
@@ -69,7 +75,7 @@ def main() -> None:
                              position_noise=args.noise,
                              relative_floor=args.relative_floor),
         lr_init=args.lr, lr_final=args.lr_final, seed=args.seed, minutes=args.minutes,
-        impact_weight=args.impact_weight, n_impacts=args.impacts,
+        impact_weight=args.impact_weight, n_impacts=args.impacts, init_from=args.init,
         resume=args.resume, progress=not args.no_progress)
     print({k: summary[k] for k in ("steps_done", "best_loss", "seconds")})
 

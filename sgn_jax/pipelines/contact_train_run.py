@@ -39,7 +39,7 @@ from sgn_jax.pipelines.train_run import (
 )
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import git_commit, write_json
-from sgn_jax.surrogate.contact import ContactNet, physics_from_config
+from sgn_jax.surrogate.contact import make_contact_net
 from sgn_jax.surrogate.contact_train import (
     ContactTrainState,
     StretchSource,
@@ -70,12 +70,35 @@ def identity_stats(window: int) -> NormStats:
 CONTACT_METRIC_FIELDS = ("step", "train_loss", "val_loss", "lr", "seconds")
 
 
+def _warm_start(params: dict[str, Any], donor: dict[str, Any], source: Any
+                ) -> tuple[dict[str, Any], list[str]]:
+    """``params`` with each top-level entry (a submodule's parameters) that ``donor`` has with
+    the same tree structure and shapes taken from ``donor``; the dissipation shares stay the
+    data's. Raises when nothing matches (the wrong checkpoint)."""
+    out, names = dict(params), []
+    for name, value in donor.items():
+        if name == "share_logit" or name not in params:
+            continue
+        same = (jax.tree_util.tree_structure(value) == jax.tree_util.tree_structure(params[name])
+                and all(np.shape(a) == np.shape(b) for a, b in zip(
+                    jax.tree_util.tree_leaves(value), jax.tree_util.tree_leaves(params[name]),
+                    strict=True)))
+        if same:
+            out[name] = jax.tree_util.tree_map(jnp.asarray, value)
+            names.append(name)
+    if not names:
+        raise TrainingError(f"init_from={source}: no parameter of this model ({sorted(params)}) "
+                            "matches the checkpoint's in name and shape")
+    return out, sorted(names)
+
+
 def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                   val_trajectories: Sequence[Any] = (), steps: int = 4000,
                   batch_size: int = 32, unroll: UnrollSpec | None = None,
                   lr_init: float = 1e-3, lr_final: float = 3e-5, seed: int = 0,
                   minutes: float | None = None, checkpoint_every: int = 250,
                   impact_weight: float = 0.0, n_impacts: int = 64,
+                  init_from: str | Path | None = None,
                   resume: bool = False, progress: bool = True,
                   log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train a contact-impulse surrogate; see the module docstring.
@@ -84,7 +107,10 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     stops earlier (after a checkpoint) when the wall-clock budget is spent. ``impact_weight``
     > 0 adds ``impact_weight`` x the same unrolled loss on ``n_impacts`` isolated head-on
     impacts whose answer is the DEM contact law's (:func:`impact_stretches`, seeded by
-    ``seed``; the same set every step). Returns a summary.
+    ``seed``; the same set every step). ``init_from`` (a checkpoint directory, e.g. a trained
+    1-pass model's ``checkpoints/best``) starts every parameter of the same name and shape from
+    it (warm start: a 2-pass model from a trained first pass, its correction at zero); the rest
+    start fresh. Returns a summary.
     """
     from tqdm.auto import tqdm
 
@@ -105,8 +131,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     for i, t in enumerate([*trajectories, *val_trajectories]):
         check_trajectory_matches(t, cfg, f"trajectory {i}")
     sdf, query = surrogate_walls_from_config(cfg)
-    phys = physics_from_config(cfg)
-    net = ContactNet(physics=phys, hidden=cfg.model.hidden, mlp_layers=cfg.model.mlp_layers)
+    net = make_contact_net(cfg)
 
     def source(trajs: Sequence[Any]) -> StretchSource:
         return StretchSource(
@@ -128,6 +153,10 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     graph, _ = build_graph(window, sdf, spec, query)
     params = net.init(jax.random.PRNGKey(seed), graph)["params"]
     params = {**params, "share_logit": share_logits(shares)}
+    warm_names: list[str] = []
+    if init_from is not None and existing is None:
+        params, warm_names = _warm_start(params, restore_checkpoint(init_from).params, init_from)
+        log(f"warm start from {init_from}: {', '.join(warm_names)}")
 
     schedule = optax.cosine_decay_schedule(lr_init, steps, alpha=lr_final / lr_init)
     tx = make_optimizer(schedule)
@@ -173,6 +202,8 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
             "position_noise": unroll.position_noise,
             "relative_floor": unroll.relative_floor, "lr_init": lr_init, "lr_final": lr_final,
             "impact_weight": impact_weight, "n_impacts": n_impacts if impact_weight > 0 else 0,
+            "passes": net.passes,
+            "init_from": None if init_from is None else str(init_from),
             "dissipation_shares": {"pp": shares[0], "pw": shares[1]},
             "loss_scales": train_src.scales.tolist(), "git_commit": git_commit(),
             "sgn_jax_version": sgn_jax.__version__}

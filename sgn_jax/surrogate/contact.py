@@ -126,6 +126,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         is_pp (E,), is_pw (E,): edge kinds (only edges whose receiver is a ball);
         senders, receivers (E,): the edges' node indices;
         u_wall (E, 3): the jar's velocity (m/s) for ball-wall edges, 0 otherwise;
+        jar_dv (E, 3): the jar's velocity change over the last step (m/s) for ball-wall
+            edges (the estimate of its change over the next), 0 otherwise;
         v_node (n_node, 3): every node's velocity at the newest slot, v_n (m/s).
     """
     feats = jnp.asarray(graph.nodes["features"], DTYPE)
@@ -203,6 +205,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
+        "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
         "v_node": vel[-1],
     }
 
@@ -228,44 +231,96 @@ class ContactNet(nn.Module):
 
     Takes the RAW graph of :func:`sgn_jax.surrogate.graph.build_graph` (``takes_raw_graph``): its inputs
     are scaled by fixed physical scales, not by normalisation statistics.
+
+    ``passes`` (``[model] interaction_layers`` of the config): with 1, every contact's impulse
+    is a function of its own invariants alone. A contact in a bed, though, shares each of its
+    balls with other contacts whose impulses act within the same step (a force chain), and a
+    per-contact function can only learn the average of "isolated impact" and "contact in a
+    chain". With ``passes`` = P > 1, pass p > 1 sees what the previous passes' impulses of ALL
+    contacts would do: the end-of-step gap rate and slip speed of its contact with every
+    ball's tentative velocity ``v_n + sum J / m + g dt`` (as one sweep of a projected
+    Gauss-Seidel/Jacobi contact solver does), and corrects the contact's impulse logits
+    (a learned Jacobi iteration). The corrections start at zero, so a model of P passes starts
+    as its first pass. Every pass is per contact, on invariant scalars, and the final impulse is
+    applied equal and opposite: the conservation and symmetry properties are unchanged.
     """
 
     physics: ContactPhysics = ContactPhysics()
     hidden: int = 64
     mlp_layers: int = 3
+    passes: int = 1
     takes_raw_graph = True
 
     def setup(self):
+        if self.passes < 1:
+            raise ContactModelError(f"passes must be >= 1, got {self.passes}")
         self.pp_net = ImpulseMLP(self.hidden, self.mlp_layers)
         self.pw_net = ImpulseMLP(self.hidden, self.mlp_layers)
+        self.pp_refine = [ImpulseMLP(self.hidden, self.mlp_layers)
+                          for p in range(self.passes - 1)]
+        self.pw_refine = [ImpulseMLP(self.hidden, self.mlp_layers)
+                          for p in range(self.passes - 1)]
         # Damping share of all losses per contact kind, as logits (fitted after training).
         self.share_logit = self.param("share_logit", nn.initializers.constant(2.0), (2,),
                                       DTYPE)
 
-    def step_terms(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
-        """Everything of one step: per-node velocity change and per-graph energies (J)."""
+    def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
+        """Impulse (E, 3) N s on each contact's receiver ball from the logits (E, 2):
+        ``du_n >= 0`` (softplus: repulsive only), ``|du_t| <= mu du_n`` (Coulomb cone)."""
         phys = self.physics
-        # One row per contact (the primary direction of each edge, half the slots): the MLPs run
-        # once per contact and the partner gets exactly the opposite impulse.
-        geo = edge_geometry(graph, phys, primary_only=True)
-        out = jnp.where(geo["is_pw"][:, None], self.pw_net(geo["inputs"]),
-                        self.pp_net(geo["inputs"]))
-        du_n = IMPULSE_SCALE * nn.softplus(out[:, 0]) * geo["gate"]
-        du_t = phys.friction * du_n * jnp.tanh(out[:, 1])
-        m = phys.ball_mass
-        m_star = jnp.where(geo["is_pw"], m, 0.5 * m)
-        impulse = (m_star * (-du_n))[:, None] * geo["normal"] + (m_star * du_t)[:, None] * geo["tangent"]
-        n_node = graph.nodes["features"].shape[0]
-        is_particle = graph.nodes["particle"]
-        # Impulse on the receiver ball; a ball-ball contact gives its sender ball the opposite
-        # impulse (equal and opposite by construction); a wall takes its reaction itself.
+        du_n = IMPULSE_SCALE * nn.softplus(logits[:, 0]) * geo["gate"]
+        du_t = phys.friction * du_n * jnp.tanh(logits[:, 1])
+        m_star = jnp.where(geo["is_pw"], phys.ball_mass, 0.5 * phys.ball_mass)
+        impulse = ((m_star * (-du_n))[:, None] * geo["normal"]
+                   + (m_star * du_t)[:, None] * geo["tangent"])
+        return impulse, du_n, du_t
+
+    def _velocity_change(self, geo: dict[str, jax.Array], impulse: jax.Array, n_node: int,
+                         is_particle: jax.Array) -> jax.Array:
+        """(n_node, 3) m/s: the impulses (a ball-ball contact gives its sender ball the
+        opposite impulse, equal and opposite by construction; a wall takes its reaction itself)
+        plus gravity (exact, not learned); 0 for the wall node."""
         receivers, senders = geo["receivers"], geo["senders"]
         total = (jax.ops.segment_sum(impulse, receivers, num_segments=n_node)
                  - jax.ops.segment_sum(impulse * geo["is_pp"][:, None], senders,
                                        num_segments=n_node))
-        g = jnp.asarray(phys.gravity, DTYPE)
-        dv = jnp.where(is_particle[:, None], total / m + g * phys.dt, 0.0)
+        g = jnp.asarray(self.physics.gravity, DTYPE)
+        return jnp.where(is_particle[:, None], total / self.physics.ball_mass
+                         + g * self.physics.dt, 0.0)
 
+    def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array) -> jax.Array:
+        """(E, 4) invariant scalars of each contact at the end of the step if every ball's
+        velocity changed by ``dv``: the gap rate u' and the slip speed |v_t'| (clipped, and
+        fine-scaled as the first pass's inputs). The jar's velocity at the end of the step is
+        estimated from its last change (``jar_dv``; exact for a uniform acceleration)."""
+        v_end = geo["v_node"] + dv
+        receivers, senders = geo["receivers"], geo["senders"]
+        partner = jnp.where(geo["is_pw"][:, None], geo["u_wall"] + geo["jar_dv"], v_end[senders])
+        v_rel = partner - v_end[receivers]
+        u_end = jnp.einsum("ec,ec->e", v_rel, geo["normal"])
+        v_t = v_rel - u_end[:, None] * geo["normal"]
+        slip = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + TANGENT_EPS ** 2) - TANGENT_EPS
+        return jnp.stack([jnp.clip(u_end, -10.0, 10.0), jnp.tanh(u_end / SPEED_SCALE_FINE),
+                          jnp.clip(slip, 0.0, 10.0), jnp.tanh(slip / SPEED_SCALE_FINE)], axis=-1)
+
+    def step_terms(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
+        """Everything of one step: per-node velocity change and per-graph energies (J)."""
+        # One row per contact (the primary direction of each edge, half the slots): the MLPs run
+        # once per contact and the partner gets exactly the opposite impulse.
+        geo = edge_geometry(graph, self.physics, primary_only=True)
+        n_node = graph.nodes["features"].shape[0]
+        is_particle = graph.nodes["particle"]
+        is_pw = geo["is_pw"][:, None]
+        logits = jnp.where(is_pw, self.pw_net(geo["inputs"]), self.pp_net(geo["inputs"]))
+        for pp_refine, pw_refine in zip(self.pp_refine, self.pw_refine, strict=True):
+            impulse, _, _ = self._impulses(geo, logits)
+            dv = self._velocity_change(geo, impulse, n_node, is_particle)
+            x = jnp.concatenate([geo["inputs"], self._tentative_inputs(geo, dv)], axis=-1)
+            logits = logits + jnp.where(is_pw, pw_refine(x), pp_refine(x))
+        impulse, du_n, du_t = self._impulses(geo, logits)
+        dv = self._velocity_change(geo, impulse, n_node, is_particle)
+
+        receivers, senders = geo["receivers"], geo["senders"]
         vbar_node = geo["v_node"] + 0.5 * dv
         vbar = vbar_node[receivers]
         # a pair: J on the receiver, -J on the sender
@@ -313,9 +368,11 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
 
 def make_contact_net(cfg: Any) -> ContactNet:
     """The factory of kind "contact": a :class:`ContactNet` of a whole experiment config
-    (``[model] hidden`` and ``mlp_layers`` size its two impulse MLPs)."""
+    (``[model] hidden`` and ``mlp_layers`` size its impulse MLPs; ``interaction_layers`` is
+    its number of impulse ``passes``, 1 for a per-contact model)."""
     return ContactNet(physics=physics_from_config(cfg), hidden=int(cfg.model.hidden),
-                      mlp_layers=int(cfg.model.mlp_layers))
+                      mlp_layers=int(cfg.model.mlp_layers),
+                      passes=int(cfg.model.interaction_layers))
 
 
 register_model("contact", make_contact_net, builds_from="config",
