@@ -147,7 +147,13 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
     windows = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *windows)
     caps = spec.pp_pair_capacity
     tier_caps = tuple(sorted({c for c in (caps // 4, caps // 2) if 0 < c < caps}))
-    rollout = make_rollout(spec, model_predictor(surrogate.model), n_steps, 10,
+    # tiers only where they help the model kind, and a kind's single-rollout form for one
+    # rollout (as sgn_jax.pipelines.rollout_run decides)
+    tiers = tiers and getattr(surrogate.model, "capacity_tiers_help", True)
+    model = surrogate.model
+    if batch == 1 and hasattr(model, "for_single_rollout"):
+        model = model.for_single_rollout()
+    rollout = make_rollout(spec, model_predictor(model), n_steps, 10,
                            pp_capacity_tiers=tier_caps if (tiers and batch == 1) else (),
                            jit=False)
     args = (surrogate.params, surrogate.norm_stats)

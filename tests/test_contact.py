@@ -270,3 +270,50 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
             assert sorted(np.round(normals @ np.array([0.0, -1.0, 0.0]))) == [0.0, 1.0]
             assert (np.asarray(geo["gate"])[np.asarray(geo["is_pw"])] == 1).all()
     assert counts == {0: 1, 4: 2}
+
+
+@pytest.mark.parametrize("patches", [0, 4])
+def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
+    """``ContactPhysics.wall_patches`` known (from the config, as the graphs') and the model's
+    single-rollout form (``rows_by_kind``): each MLP runs only on its own kind's rows, half the
+    work; the impulses are those of running both MLPs on every row (``wall_patches=None``), on
+    a scene with ball-ball and ball-wall contacts."""
+    import dataclasses
+
+    from sgn_jax.geometry import JarParams
+    from sgn_jax.scene import analytic_jar_query
+
+    jar = JarParams(radius=0.02, straight_length=0.035, height=0.047, post_radius=0.0,
+                    has_post=False)
+    rng = np.random.default_rng(7)
+    # a small heap on the floor near the side wall, moving: both contact kinds act
+    # (more ball-ball and ball-wall rows than N: the ball-wall rows do not start at row 0)
+    centres = np.array([[0.025, 0.00499, 0.0], [0.025, 0.0149, 0.0], [0.0151, 0.00499, 0.0],
+                        [0.0200, 0.0120, 0.0070], [0.0340, 0.00499, 0.0]])
+    vel = rng.normal(0.0, 0.2, (1, 5, 3)) + rng.normal(0.0, 0.02, (W + 1, 5, 3))
+    pos = centres[None] + np.cumsum(vel * DT, axis=0) - (vel * DT).sum(0)[None]
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.asarray(rng.normal(0.0, 0.1, (W, 3))),
+                    frequency_hz=jnp.asarray(5.0))
+    spec = dataclasses.replace(SPEC, wall_patches=patches)
+    graph, _ = build_graph(window, jar, spec, analytic_jar_query)
+    out = {}
+    for known in (None, patches):
+        for passes in (1, 2):
+            phys = dataclasses.replace(PHYS, wall_patches=known)
+            net = ContactNet(physics=phys, hidden=32, mlp_layers=3, passes=passes)
+            params = random_params(net, graph, seed=11)
+            net = net.for_single_rollout()      # rows by kind where the patches are known
+            out[known, passes] = net.apply({"params": params}, graph,
+                                           method=ContactNet.step_terms)
+    for passes in (1, 2):
+        both, own = out[None, passes], out[patches, passes]
+        gate = np.asarray(both["gate"]) > 0
+        geo = edge_geometry(graph, PHYS, primary_only=True)
+        assert np.asarray(geo["is_pp"])[gate].any() and np.asarray(geo["is_pw"])[gate].any()
+        if patches == 0:
+            assert int(np.sum(geo["is_pp"])) + int(np.sum(geo["is_pw"])) > 5
+        np.testing.assert_allclose(np.asarray(own["du_n"]), np.asarray(both["du_n"]),
+                                   rtol=1e-5, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(own["dv"]), np.asarray(both["dv"]),
+                                   rtol=1e-5, atol=1e-9)

@@ -75,7 +75,10 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     """Roll a trained SGN out from a dataset's window and save a prediction file.
 
     Runs in jitted chunks of ``[rollout] chunk_steps`` with a progress bar, with ball-pair
-    capacity tiers of 1/4 and 1/2 of the graph's capacity (:func:`make_rollout`; speed only).
+    capacity tiers of 1/4 and 1/2 of the graph's capacity (:func:`make_rollout`; speed only)
+    for a model kind they speed up (its ``capacity_tiers_help``, default True; the contact
+    kind runs faster without them), and the model's single-rollout form where it has one
+    (``for_single_rollout``).
 
     Args:
         trained_model: :class:`sgn_jax.records.checkpoint.TrainedModel` (model, params, stats,
@@ -138,8 +141,12 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
                    snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
                    snap_velocity=rcfg.snap_velocity,
                    pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),
-                   pp_capacity_tiers=tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap))
-    predictor = model_predictor(trained_model.model)
+                   pp_capacity_tiers=(tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap)
+                                      if getattr(trained_model.model, "capacity_tiers_help", True)
+                                      else ()))
+    # one rollout, not vmapped: a model kind may run faster so (ContactNet.for_single_rollout)
+    single = getattr(trained_model.model, "for_single_rollout", None)
+    predictor = model_predictor(single() if single is not None else trained_model.model)
     params = jax.device_put(trained_model.params)
     stats = jax.device_put(trained_model.norm_stats)
 

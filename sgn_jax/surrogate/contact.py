@@ -87,6 +87,11 @@ class ContactPhysics:
         window: W, slots of the graph's windows. history: slots used as inputs (<= W).
         gate_margin: m; an edge acts only if its gap now or at the end of a ballistic step is
             below this (contact possible within the step); elsewhere its impulse is exactly 0.
+        wall_patches: the graphs' ``GraphSpec.wall_patches`` (from the same config), or None.
+            Known, a model with ``rows_by_kind`` runs each contact kind's MLP only on its own
+            rows (the graph's layout: the ball-ball contacts first, then at most N max(1, P)
+            ball-wall contacts), half the work of running both MLPs on every row; None runs
+            both on every row (correct for any graph; what a hand-built physics gets).
     """
 
     ball_radius: float = 0.005
@@ -97,6 +102,7 @@ class ContactPhysics:
     window: int = 7
     history: int = 3
     gate_margin: float = 5.0e-5
+    wall_patches: int | None = None
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
@@ -249,7 +255,24 @@ class ContactNet(nn.Module):
     hidden: int = 64
     mlp_layers: int = 3
     passes: int = 1
+    rows_by_kind: bool = False
     takes_raw_graph = True
+
+    def for_single_rollout(self) -> ContactNet:
+        """This model as one rollout (no vmap) runs fastest: each MLP on its own kind's rows
+        (``rows_by_kind``; with the config's ``wall_patches``), and no pair-capacity tiers
+        (``capacity_tiers_help``). Measured on one core, 0.2 s of the standard case:
+        1.84 s per simulated second with both MLPs on every row, 1.26 s with each on its
+        own rows (tiers: 1.6-1.75 s). Vmapped over packings (ensembles, design studies,
+        training) the per-packing row offset turns the slices into a gather and a scatter
+        and the plain model is faster (batch 32 on two cores: 1.57 against 1.83-1.93 s/s),
+        so only the single-rollout drivers ask for this (sgn_jax.pipelines.rollout_run,
+        benchmarks/bench_ratio.py). The numbers are the same to float32 rounding."""
+        return self.clone(rows_by_kind=True)
+
+    # Pair-capacity tiers (make_rollout's pp_capacity_tiers) switch between graphs of several
+    # capacities every step: they speed up the SGN's single rollout, not this model's.
+    capacity_tiers_help = False
 
     def setup(self):
         if self.passes < 1:
@@ -263,6 +286,31 @@ class ContactNet(nn.Module):
         # Damping share of all losses per contact kind, as logits (fitted after training).
         self.share_logit = self.param("share_logit", nn.initializers.constant(2.0), (2,),
                                       DTYPE)
+
+    def _per_kind(self, pp_net: nn.Module, pw_net: nn.Module, geo: dict[str, jax.Array],
+                  x: jax.Array, n_balls: int) -> jax.Array:
+        """(R, 2) outputs: ``pw_net`` on the ball-wall rows, ``pp_net`` on the others.
+
+        The primary rows of :func:`sgn_jax.surrogate.graph.build_graph` hold the kept ball-ball
+        contacts at ``[0, kept)``, the ball-wall ones right after them (at most N max(1, P)),
+        then padding. With ``physics.wall_patches`` known, ``pp_net`` runs on the first
+        R - N max(1, P) rows (the ball-ball capacity) and ``pw_net`` on the N max(1, P) rows
+        from ``kept`` on: each row gets the same output as from running both everywhere
+        (padding rows, gated off, may differ), at half the cost."""
+        is_pw = geo["is_pw"][:, None]
+        rows = x.shape[0]
+        patches = self.physics.wall_patches
+        wall_rows = n_balls * max(1, patches or 0)
+        pair_rows = rows - wall_rows
+        if not self.rows_by_kind or patches is None or pair_rows < 1:
+            return jnp.where(is_pw, pw_net(x), pp_net(x))
+        kept = jnp.sum(geo["is_pp"], dtype=jnp.int32)   # ball-ball rows come first
+        pp_out = jnp.concatenate([pp_net(x[:pair_rows]),
+                                  jnp.zeros((wall_rows, 2), x.dtype)])
+        pw_out = jax.lax.dynamic_update_slice_in_dim(
+            jnp.zeros((rows, 2), x.dtype),
+            pw_net(jax.lax.dynamic_slice_in_dim(x, kept, wall_rows)), kept, axis=0)
+        return jnp.where(is_pw, pw_out, pp_out)
 
     def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
         """Impulse (E, 3) N s on each contact's receiver ball from the logits (E, 2):
@@ -310,13 +358,12 @@ class ContactNet(nn.Module):
         geo = edge_geometry(graph, self.physics, primary_only=True)
         n_node = graph.nodes["features"].shape[0]
         is_particle = graph.nodes["particle"]
-        is_pw = geo["is_pw"][:, None]
-        logits = jnp.where(is_pw, self.pw_net(geo["inputs"]), self.pp_net(geo["inputs"]))
+        logits = self._per_kind(self.pp_net, self.pw_net, geo, geo["inputs"], n_node - 2)
         for pp_refine, pw_refine in zip(self.pp_refine, self.pw_refine, strict=True):
             impulse, _, _ = self._impulses(geo, logits)
             dv = self._velocity_change(geo, impulse, n_node, is_particle)
             x = jnp.concatenate([geo["inputs"], self._tentative_inputs(geo, dv)], axis=-1)
-            logits = logits + jnp.where(is_pw, pw_refine(x), pp_refine(x))
+            logits = logits + self._per_kind(pp_refine, pw_refine, geo, x, n_node - 2)
         impulse, du_n, du_t = self._impulses(geo, logits)
         dv = self._velocity_change(geo, impulse, n_node, is_particle)
 
@@ -358,12 +405,15 @@ def _edge_graph_index(graph: jraph.GraphsTuple) -> jax.Array:
 
 def physics_from_config(cfg: Any) -> ContactPhysics:
     """The :class:`ContactPhysics` of an experiment config (read by attribute: ``balls``,
-    ``material.friction``, ``dem.dt`` and ``gravity``, ``graph.window``; no config import)."""
+    ``material.friction``, ``dem.dt`` and ``gravity``, ``graph.window`` and ``wall_patches``;
+    no config import). The config's graphs have the same ``wall_patches``
+    (``graph_spec_from_config``), so each contact kind's MLP runs on its own rows only."""
     radius = float(cfg.balls.radius)
     mass = float(cfg.balls.density) * 4.0 / 3.0 * math.pi * radius ** 3
     return ContactPhysics(ball_radius=radius, ball_mass=mass, dt=float(cfg.dem.dt),
                           gravity=tuple(float(g) for g in cfg.dem.gravity),
-                          friction=float(cfg.material.friction), window=int(cfg.graph.window))
+                          friction=float(cfg.material.friction), window=int(cfg.graph.window),
+                          wall_patches=int(cfg.graph.wall_patches))
 
 
 def make_contact_net(cfg: Any) -> ContactNet:
