@@ -123,6 +123,7 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
     )
     from sgn_jax.surrogate.graph import windows_from_arrays
     from sgn_jax.surrogate.model import count_params
+    from sgn_jax.surrogate.rollout import single_rollout_model
 
     cfg = _config()
     surrogate = _surrogate(model)
@@ -147,13 +148,11 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
     windows = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *windows)
     caps = spec.pp_pair_capacity
     tier_caps = tuple(sorted({c for c in (caps // 4, caps // 2) if 0 < c < caps}))
-    # tiers only where they help the model kind, and a kind's single-rollout form for one
-    # rollout (as sgn_jax.pipelines.rollout_run decides)
-    tiers = tiers and getattr(surrogate.model, "capacity_tiers_help", True)
-    model = surrogate.model
-    if batch == 1 and hasattr(model, "for_single_rollout"):
-        model = model.for_single_rollout()
-    rollout = make_rollout(spec, model_predictor(model), n_steps, 10,
+    module = surrogate.model
+    if batch == 1:  # one rollout: the kind's single-rollout form and tiers rule (as run_rollout)
+        module, kind_tiers = single_rollout_model(module)
+        tiers = tiers and kind_tiers
+    rollout = make_rollout(spec, model_predictor(module), n_steps, 10,
                            pp_capacity_tiers=tier_caps if (tiers and batch == 1) else (),
                            jit=False)
     args = (surrogate.params, surrogate.norm_stats)

@@ -17,6 +17,7 @@ example must print a finite power (W) and gradient (W/rpm). Two tiers (issue 20)
 from __future__ import annotations
 
 import ast
+import importlib
 import inspect
 import math
 import os
@@ -140,14 +141,9 @@ def test_readme_example_prints_a_finite_power_and_gradient(tmp_path):
 # removed or renamed, a parameter renamed or dropped, one positional argument too many. That
 # is checked here for every call of a public name, statically, in well under a second.
 
-_PUBLIC_MODULES = {"sgn_jax", "sgn_jax.api"}
-
-
 def _module_aliases(tree: ast.AST) -> tuple[dict[str, object], dict[str, object]]:
     """(alias -> module, name -> object) of the block's ``import sgn_jax...`` and
     ``from sgn_jax... import name`` statements."""
-    import importlib
-
     modules, names = {}, {}
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):

@@ -153,7 +153,6 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     graph, _ = build_graph(window, sdf, spec, query)
     params = net.init(jax.random.PRNGKey(seed), graph)["params"]
     params = {**params, "share_logit": share_logits(shares)}
-    warm_names: list[str] = []
     if init_from is not None and existing is None:
         params, warm_names = _warm_start(params, restore_checkpoint(init_from).params, init_from)
         log(f"warm start from {init_from}: {', '.join(warm_names)}")

@@ -36,6 +36,7 @@ from sgn_jax.surrogate.rollout import (
     jar_state_window,
     make_rollout_advance,
     model_predictor,
+    single_rollout_model,
 )
 
 
@@ -137,16 +138,14 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     sdf, query = surrogate_walls_from_config(cfg)
     chunk = min(int(rcfg.chunk_steps) // k * k or k, n_steps)
     cap = spec.pp_pair_capacity
+    model, tiers = single_rollout_model(trained_model.model)   # one rollout, not vmapped
     options = dict(query=query, checkpoint_steps=min(rcfg.checkpoint_steps, chunk) // k * k or k,
                    snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
                    snap_velocity=rcfg.snap_velocity,
                    pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),
                    pp_capacity_tiers=(tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap)
-                                      if getattr(trained_model.model, "capacity_tiers_help", True)
-                                      else ()))
-    # one rollout, not vmapped: a model kind may run faster so (ContactNet.for_single_rollout)
-    single = getattr(trained_model.model, "for_single_rollout", None)
-    predictor = model_predictor(single() if single is not None else trained_model.model)
+                                      if tiers else ()))
+    predictor = model_predictor(model)
     params = jax.device_put(trained_model.params)
     stats = jax.device_put(trained_model.norm_stats)
 

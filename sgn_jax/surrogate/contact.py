@@ -266,8 +266,8 @@ class ContactNet(nn.Module):
         own rows (tiers: 1.6-1.75 s). Vmapped over packings (ensembles, design studies,
         training) the per-packing row offset turns the slices into a gather and a scatter
         and the plain model is faster (batch 32 on two cores: 1.57 against 1.83-1.93 s/s),
-        so only the single-rollout drivers ask for this (sgn_jax.pipelines.rollout_run,
-        benchmarks/bench_ratio.py). The numbers are the same to float32 rounding."""
+        so only the single-rollout drivers ask for this
+        (:func:`sgn_jax.surrogate.rollout.single_rollout_model`). The numbers are the same to float32 rounding."""
         return self.clone(rows_by_kind=True)
 
     # Pair-capacity tiers (make_rollout's pp_capacity_tiers) switch between graphs of several
@@ -280,9 +280,9 @@ class ContactNet(nn.Module):
         self.pp_net = ImpulseMLP(self.hidden, self.mlp_layers)
         self.pw_net = ImpulseMLP(self.hidden, self.mlp_layers)
         self.pp_refine = [ImpulseMLP(self.hidden, self.mlp_layers)
-                          for p in range(self.passes - 1)]
+                          for _ in range(self.passes - 1)]
         self.pw_refine = [ImpulseMLP(self.hidden, self.mlp_layers)
-                          for p in range(self.passes - 1)]
+                          for _ in range(self.passes - 1)]
         # Damping share of all losses per contact kind, as logits (fitted after training).
         self.share_logit = self.param("share_logit", nn.initializers.constant(2.0), (2,),
                                       DTYPE)

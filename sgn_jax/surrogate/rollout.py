@@ -226,6 +226,17 @@ def model_predictor(model_or_predict: Any) -> Predictor:
     return predictor
 
 
+def single_rollout_model(model: Any) -> tuple[Any, bool]:
+    """``(module, tiers)`` for ONE rollout, not vmapped over packings: the model kind's
+    single-rollout form where it has one (``for_single_rollout()``; the contact kind runs each
+    MLP on its own rows there) and whether pair-capacity tiers speed it up
+    (``capacity_tiers_help``, default True). The single-rollout drivers (``run_rollout``, the
+    demo, ``benchmarks/bench_ratio.py``) decide by this, one place for both rules."""
+    tiers = bool(getattr(model, "capacity_tiers_help", True))
+    single = getattr(model, "for_single_rollout", None)
+    return (single() if single is not None else model), tiers
+
+
 NO_LEDGER = (float("nan"),) * 3
 
 
@@ -641,5 +652,6 @@ __all__ = [
     "make_rollout_step",
     "RolloutOptions",
     "model_predictor",
+    "single_rollout_model",
     "replay_predictor",
 ]
