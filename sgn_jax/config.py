@@ -399,6 +399,8 @@ class ModelConfig:
         mlp_layers: linear layers per MLP (>= 2).
         interaction_layers: message-passing (interaction) layers (>= 1).
         velocity_encoding: "absolute" (the paper) or "differences" (see above).
+        spin: the balls' angular velocities as rollout state (kind "contact" only; the SGN has
+            no spin and refuses it).
     """
 
     kind: str = "sgn"
@@ -406,6 +408,7 @@ class ModelConfig:
     mlp_layers: int = 4
     interaction_layers: int = 1
     velocity_encoding: str = "absolute"
+    spin: bool = False
 
     def __post_init__(self) -> None:
         # Whether the kind is registered is checked where the model is built (the registry

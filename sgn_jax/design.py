@@ -55,7 +55,7 @@ from sgn_jax.motion import (
     offset,
     velocity,
 )
-from sgn_jax.surrogate.graph import GraphSpec, Window
+from sgn_jax.surrogate.graph import GraphSpec, Window, with_spins
 from sgn_jax.surrogate.rollout import (
     Predictor,
     RolloutState,
@@ -230,7 +230,7 @@ def anchored_window(window: Window, t_now: jax.Array, base_motion: Motion, motio
     base_offsets = offset(base_motion, jnp.asarray(t_now, F64) + rel)
     jar_frame = jax.lax.stop_gradient(window.positions - base_offsets[:, None, :])
     new_offsets = offset(motion, t_eff + rel)
-    window = window.replace(
+    window = with_spins(window).replace(
         positions=jar_frame + new_offsets[:, None, :],
         offsets=new_offsets[1:],
         offset_velocities=velocity(motion, t_eff + rel[1:]),

@@ -22,6 +22,7 @@ class SyntheticTrajectory:
     diss_pw_normal: np.ndarray
     diss_pw_tangential: np.ndarray
     meta: dict[str, Any]
+    omega: np.ndarray | None = None
 
 
 def synthetic_trajectory(n_samples: int = 64, n_particles: int = 8, *, dt: float = 1e-4,
@@ -32,7 +33,7 @@ def synthetic_trajectory(n_samples: int = 64, n_particles: int = 8, *, dt: float
     Half of the balls sit in a row on the floor (centre height just above R, so ball-wall edges
     come and go; neighbours 0.6-1.4 mm apart, so ball-ball edges too); the others float higher,
     spaced so that some pairs cross the ball-ball cutoff. Dissipation: random smooth, >= 0,
-    first sample 0.
+    first sample 0. Spins (``omega``): smooth, up to 40 rad/s.
     """
     rng = np.random.default_rng(seed)
     t = np.arange(n_samples) * dt
@@ -60,9 +61,11 @@ def synthetic_trajectory(n_samples: int = 64, n_particles: int = 8, *, dt: float
                                                      + rng.uniform(0, 6))) for _ in range(4)]
     for d in diss:
         d[0] = 0.0
+    omega = 40.0 * np.sin(0.5 * freq * t[:, None, None] + phase)
     meta = {"dt": dt, "ball_radius": radius, "n_balls": n_particles,
             "config": {"motion": {"kind": "circle", "rpm": 60.0 * frequency_hz,
                                   "amplitude": amplitude, "phase": 0.0}}}
     return SyntheticTrajectory(t=t, pos=pos, offset=offset, offset_vel=offset_vel,
                                diss_pp_normal=diss[0], diss_pp_tangential=diss[1],
-                               diss_pw_normal=diss[2], diss_pw_tangential=diss[3], meta=meta)
+                               diss_pw_normal=diss[2], diss_pw_tangential=diss[3], meta=meta,
+                               omega=omega)

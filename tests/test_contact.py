@@ -67,14 +67,16 @@ def random_params(net, graph, seed=0):
     return jax.tree_util.tree_map_with_path(perturb, params)
 
 
-def net_with(gravity, passes=1):
-    phys = ContactPhysics(**{**PHYS.__dict__, "gravity": tuple(float(g) for g in gravity)})
-    return ContactNet(physics=phys, hidden=32, mlp_layers=3, passes=passes)
+def net_with(gravity, passes=1, spin=False):
+    phys = ContactPhysics(**{**PHYS.__dict__, "gravity": tuple(float(g) for g in gravity),
+                             "rolling_friction": 0.045})
+    return ContactNet(physics=phys, hidden=32, mlp_layers=3, passes=passes, spin=spin)
 
 
-def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, passes=1):
+def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, passes=1,
+             spin=False):
     graph, _ = build_graph(window, None, SPEC, floor_query(up))
-    net = net_with(gravity, passes)
+    net = net_with(gravity, passes, spin)
     params = random_params(net, graph) if params is None else params
     return net.apply({"params": params}, graph, method=ContactNet.step_terms), params, graph
 
@@ -317,3 +319,162 @@ def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
                                    rtol=1e-5, atol=1e-9)
         np.testing.assert_allclose(np.asarray(own["dv"]), np.asarray(both["dv"]),
                                    rtol=1e-5, atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------
+# Spin as state (``ContactNet(spin=True)``, ``[model] spin = true``)
+
+
+def spinning_scene(seed, rotation=None):
+    window, rot = scene(np.random.default_rng(seed), rotation)
+    spins = np.random.default_rng(seed + 100).normal(0.0, 60.0, (5, 3))   # rad/s, R w ~ 0.3 m/s
+    return window.replace(spins=jnp.asarray(spins @ rot.T)), rot
+
+
+@pytest.mark.parametrize("passes", [1, 2])
+def test_spin_conserves_the_pairs_linear_and_angular_momentum(passes):
+    """The tangential impulse acts at the contact point (the midpoint of a pair) and turns
+    both balls, rolling friction is an internal torque: the ball-ball contacts change neither
+    the total momentum nor the total angular momentum (about any point) of the balls."""
+    window, _ = spinning_scene(0)
+    terms, _, _ = terms_of(window, passes=passes, spin=True)
+    m, inertia = PHYS.ball_mass, 0.4 * PHYS.ball_mass * R ** 2
+    g_dv = np.array([0.0, -9.81 * DT, 0.0])
+    # balls 0-3 touch one another, not a wall (ball 4 alone is on the floor)
+    dp = m * (np.asarray(terms["dv"][:4], np.float64) - g_dv)
+    dl_spin = inertia * np.asarray(terms["dw"][:4], np.float64)
+    x = np.asarray(window.positions[-1, :4], np.float64)
+    assert np.abs(dl_spin).max() > 1e-9 and np.abs(dp).max() > 1e-6
+    np.testing.assert_allclose(dp.sum(axis=0), 0.0, atol=1e-6 * np.abs(dp).max())
+    dl = np.cross(x, dp).sum(axis=0) + dl_spin.sum(axis=0)
+    np.testing.assert_allclose(dl, 0.0, atol=1e-5 * (np.abs(dl_spin).max()
+                                                      + np.abs(np.cross(x, dp)).max()))
+
+
+def test_spin_rotated_scene_gives_rotated_accelerations_and_spin_changes():
+    window, _ = spinning_scene(2)
+    terms, params, _ = terms_of(window, spin=True)
+    rot = rotation_matrix(np.random.default_rng(1))
+    window_r, _ = spinning_scene(2, rot)
+    terms_r, _, _ = terms_of(window_r, up=rot @ np.array([0.0, 1.0, 0.0]),
+                             gravity=rot @ np.array([0.0, -9.81, 0.0]), params=params, spin=True)
+    for name in ("dv", "dw"):
+        a, a_r = np.asarray(terms[name][:5]), np.asarray(terms_r[name][:5])
+        np.testing.assert_allclose(a_r, a @ rot.T, atol=2e-5 * np.abs(a).max())
+    # ...and permuting the balls permutes them
+    perm = np.array([3, 0, 4, 1, 2])
+    window_p = window.replace(positions=window.positions[:, perm], spins=window.spins[perm])
+    terms_p, _, _ = terms_of(window_p, params=params, spin=True)
+    np.testing.assert_allclose(np.asarray(terms_p["dw"][:5]), np.asarray(terms["dw"][:5])[perm],
+                               rtol=1e-5, atol=1e-6 * float(jnp.abs(terms["dw"]).max()))
+
+
+def test_spin_model_needs_spins_in_the_graph():
+    from sgn_jax.surrogate.contact import ContactModelError
+
+    window, _ = scene(np.random.default_rng(0))            # no spins
+    with pytest.raises(ContactModelError, match="spins"):
+        terms_of(window, spin=True)
+
+
+def test_rolling_friction_brakes_a_twisting_ball_and_never_reverses_it():
+    """A ball resting on the floor of a still jar and turning about the vertical: no slip at
+    the contact point (w x n = 0), so only rolling friction acts: it slows the turn by at
+    most mu_r R J_n / I per step and never reverses it."""
+    r0 = R - 0.5e-6
+    pos = np.tile(np.array([[0.0, r0, 0.0], [0.03, r0, 0.0], [0.06, r0, 0.0],
+                            [0.09, r0, 0.0], [0.12, r0, 0.0]]), (W + 1, 1, 1))
+    spins = np.array([[0.0, 5.0, 0.0], [0.0, 1e-3, 0.0], [0.0, -40.0, 0.0], [0, 0, 0],
+                      [0, 0, 0]])
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
+                    spins=jnp.asarray(spins))
+    terms, _, _ = terms_of(window, spin=True)
+    dw = np.asarray(terms["dw"][:3], np.float64)
+    w_end = spins[:3] + dw
+    assert (terms["du_n"] > 0).any()
+    # never reversed (to float32 rounding of the cap I |w|)
+    assert (w_end[:, 1] * np.sign(spins[:3, 1]) >= -1e-6 * np.abs(spins[:3, 1])).all()
+    assert (np.abs(w_end[:, 1]) <= np.abs(spins[:3, 1]) + 1e-9).all()   # only braked
+    np.testing.assert_allclose(dw[:, [0, 2]], 0.0, atol=1e-9)
+    assert abs(dw[2, 1]) > 0
+
+
+def test_spin_energy_ledger_closes_over_a_rollout():
+    """With spin, the ledger counts the rotational energy: jar work + gravity's work - change
+    of translational and rotational kinetic energy = the model's dissipation, every step and
+    over 200 steps (the rollout integrates the spins: w_{n+1} = w_n + dw)."""
+    from sgn_jax.surrogate.graph import slide_window
+
+    window, _ = spinning_scene(5)
+    query = floor_query((0.0, 1.0, 0.0))
+    graph, _ = build_graph(window, None, SPEC, query)
+    net = net_with((0.0, -9.81, 0.0), spin=True)
+    params = random_params(net, graph, seed=4)
+    g = np.array([0.0, -9.81, 0.0])
+    m, inertia = PHYS.ball_mass, 0.4 * PHYS.ball_mass * R ** 2
+
+    @jax.jit
+    def step(window):
+        graph, _ = build_graph(window, None, SPEC, query)
+        return net.apply({"params": params}, graph, method=ContactNet.step_terms)
+
+    rows, t = [], 0.0
+    for _s in range(200):
+        terms = step(window)
+        pos = np.asarray(window.positions, np.float64)
+        w_now = np.asarray(window.spins, np.float64)
+        v_now = (pos[-1] - pos[-2]) / DT
+        v_next = v_now + np.asarray(terms["dv"][:5], np.float64)
+        w_next = w_now + np.asarray(terms["dw"][:5], np.float64)
+        x_next = pos[-1] + v_next * DT
+        d_ke = 0.5 * m * np.sum(v_next ** 2 - v_now ** 2)
+        d_rot = 0.5 * inertia * np.sum(w_next ** 2 - w_now ** 2)
+        w_grav = m * np.sum((0.5 * (v_now + v_next)) @ g) * DT
+        rows.append((float(terms["work_wall"][0]), w_grav, d_ke, d_rot,
+                     float(terms["diss_pp"][0]) + float(terms["diss_pw"][0])))
+        t += DT
+        jar_v = np.array([0.3 * np.cos(40 * t), 0.0, 0.3 * np.sin(40 * t)])
+        jar_x = np.asarray(window.offsets[-1]) + jar_v * DT
+        window = slide_window(window, jnp.asarray(x_next), jnp.asarray(jar_x),
+                              jnp.asarray(jar_v)).replace(spins=jnp.asarray(w_next))
+    w_wall, w_grav, d_ke, d_rot, diss = (np.array(c) for c in zip(*rows, strict=True))
+    assert np.abs(d_rot).sum() > 1e-3 * np.abs(d_ke).sum()   # the spins carry energy
+    assert np.isfinite(diss).all() and np.abs(diss).sum() > 0
+    flow = np.abs(w_wall) + np.abs(d_ke) + np.abs(w_grav) + np.abs(d_rot)
+    np.testing.assert_array_less(np.abs(w_wall + w_grav - d_ke - d_rot - diss),
+                                 1e-4 * flow + 1e-12)
+    assert diss.sum() == pytest.approx(w_wall.sum() + w_grav.sum() - d_ke.sum() - d_rot.sum(),
+                                       rel=1e-4)
+    # without the rotational energy the ledger would not close: the check can fail
+    assert abs(d_rot.sum()) > 1e-3 * abs(diss.sum())
+
+
+def test_the_rollout_integrates_the_spins_of_a_spin_model():
+    """The rollout carries the spins: w_{n+1} = w_n + dw of the model's step, saved per frame
+    (``RolloutResult.spins``, the prediction's ``omega_model``); a window without spins starts
+    from zeros."""
+    from sgn_jax.motion import CircleMotion
+    from sgn_jax.surrogate.rollout import jar_state_window, make_rollout, model_predictor
+
+    window, _ = spinning_scene(7)
+    query = floor_query((0.0, 1.0, 0.0))
+    graph, _ = build_graph(window, None, SPEC, query)
+    net = net_with((0.0, -9.81, 0.0), spin=True)
+    params = random_params(net, graph, seed=2)
+    motion = CircleMotion(rpm=jnp.asarray(300.0), amplitude=jnp.asarray(0.0))
+    run = make_rollout(SPEC, model_predictor(net), 4, 1, snap_back=False, query=query)
+    res = run(params, None, window, motion, None, 0.0)
+    spins = np.asarray(res.spins)
+    assert spins.shape == (5, 5, 3)
+    np.testing.assert_array_equal(spins[0], np.asarray(window.spins))
+    # the rollout's first step: the window's jar state recomputed from the motion (a still jar)
+    graph0, _ = build_graph(jar_state_window(window, motion, 0.0, DT), None, SPEC, query)
+    first = net.apply({"params": params}, graph0, method=ContactNet.step_terms)
+    dw = np.asarray(first["dw"][:5], np.float64)
+    assert np.abs(dw).max() > 1.0
+    np.testing.assert_allclose(spins[1] - spins[0], dw, rtol=0, atol=1e-5 * np.abs(dw).max())
+    assert np.abs(spins[-1] - spins[0]).max() > 0
+    assert "omega_model" in res.prediction_arrays()
+    bare = run(params, None, window.replace(spins=None), motion, None, 0.0)
+    np.testing.assert_array_equal(np.asarray(bare.spins[0]), 0.0)

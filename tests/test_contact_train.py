@@ -1,5 +1,7 @@
 """Training of the contact model: the unrolled loss learns, and a killed run resumes exactly."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -16,11 +18,23 @@ def small_config():
     return sj.replace_section(cfg, "model", kind="contact", hidden=8, mlp_layers=2)
 
 
-def test_a_resumed_run_equals_an_unbroken_one(tmp_path):
+TRAIN_KWARGS = dict(batch_size=2, unroll=UnrollSpec(unroll=2, relative_floor=1e-3),
+                    checkpoint_every=1, progress=False, steps=2)
+
+
+@pytest.fixture(scope="module")
+def unbroken_run(tmp_path_factory):
+    """A 2-step run of a small spinless contact model on synthetic data."""
+    out = tmp_path_factory.mktemp("contact_train") / "whole"
+    trajs = [synthetic_trajectory(40, 6, seed=s) for s in (1, 2)]
+    return train_contact(small_config(), trajs, out, log=lambda _: None, **TRAIN_KWARGS), out
+
+
+def test_a_resumed_run_equals_an_unbroken_one(tmp_path, unbroken_run):
     cfg = small_config()
     trajs = [synthetic_trajectory(40, 6, seed=s) for s in (1, 2)]
-    kwargs = dict(batch_size=2, unroll=UnrollSpec(unroll=2, relative_floor=1e-3),
-                  checkpoint_every=1, progress=False, steps=2)
+    kwargs = TRAIN_KWARGS
+    whole, whole_dir = unbroken_run
 
     class Killed(Exception):
         pass
@@ -33,10 +47,9 @@ def test_a_resumed_run_equals_an_unbroken_one(tmp_path):
         train_contact(cfg, trajs, tmp_path / "broken", log=kill_after_step_1, **kwargs)
     resumed = train_contact(cfg, trajs, tmp_path / "broken", resume=True, log=lambda _: None,
                             **kwargs)
-    whole = train_contact(cfg, trajs, tmp_path / "whole", log=lambda _: None, **kwargs)
     assert resumed["steps_done"] == whole["steps_done"] == 2
     a = sj.load_trained_model(tmp_path / "broken", which="latest")
-    b = sj.load_trained_model(tmp_path / "whole", which="latest")
+    b = sj.load_trained_model(whole_dir, which="latest")
     for x, y in zip(np.concatenate([np.ravel(v) for v in _leaves(a.params)]),
                     np.concatenate([np.ravel(v) for v in _leaves(b.params)]), strict=True):
         assert x == y
@@ -45,6 +58,35 @@ def test_a_resumed_run_equals_an_unbroken_one(tmp_path):
     assert all(np.isfinite(float(r.split(",")[1])) for r in rows[1:])
     # the loaded model is the contact kind with its fitted damping shares
     assert a.model.__class__.__name__ == "ContactNet"
+
+
+def test_a_spin_model_trains_warm_started_from_a_spinless_one(tmp_path, unbroken_run):
+    """``[model] spin = true`` trains on the records' spins (``omega``): warm-started from a
+    spinless model, its first layers take the donor's rows and zeros for the new inputs (the
+    contact-point slip), the loss is finite, and the saved model carries spin. Records
+    without spins are refused before any work."""
+    import jax.numpy as jnp
+
+    from sgn_jax.surrogate.train import TrainingError
+
+    _, donor_dir = unbroken_run
+    cfg = sj.replace_section(small_config(), "model", spin=True)
+    trajs = [synthetic_trajectory(40, 6, seed=s) for s in (1, 2)]
+    lines = []
+    summary = train_contact(cfg, trajs, tmp_path / "spin", init_from=donor_dir / "checkpoints"
+                            / "latest", log=lines.append, **{**TRAIN_KWARGS, "steps": 1})
+    assert any("warm start" in line and "pp_net" in line and "pw_net" in line for line in lines)
+    assert summary["spin"] is True and np.isfinite(summary["best_loss"])
+    spin_model = sj.load_trained_model(tmp_path / "spin", which="latest")
+    donor = sj.load_trained_model(donor_dir, which="latest")
+    assert spin_model.model.spin
+    k_spin = spin_model.params["pp_net"]["dense_0"]["kernel"]
+    k_donor = donor.params["pp_net"]["dense_0"]["kernel"]
+    assert k_spin.shape[0] == k_donor.shape[0] + 2        # |v_t| at the contact point, twice
+    assert float(jnp.abs(k_spin[: k_donor.shape[0]] - k_donor).max()) < 0.05   # one small step
+    bare = [dataclasses.replace(t, omega=None) for t in trajs]
+    with pytest.raises(TrainingError, match="omega"):
+        train_contact(cfg, bare, tmp_path / "bare", log=lambda _: None, **TRAIN_KWARGS)
 
 
 def _leaves(tree):
@@ -127,3 +169,12 @@ def test_warm_start_takes_the_matching_submodules_and_refuses_a_foreign_checkpoi
     assert float(np.sum(params["share_logit"])) == 0.0
     with pytest.raises(TrainingError, match="no parameter of this model"):
         _warm_start(fresh, {"encoder": {"w": np.ones(3)}}, "sgn checkpoint")
+    # A first layer with inputs appended (a spin model from a spinless donor): the donor's rows
+    # and zeros for the new ones; a donor with MORE rows is not taken.
+    wider = {**fresh, "pp_net": {"dense_0": {"kernel": np.full((6, 8), 7.0)}}}
+    params, names = _warm_start(wider, donor, "donor")
+    kernel = np.asarray(params["pp_net"]["dense_0"]["kernel"])
+    assert names == ["pp_net"] and kernel.shape == (6, 8)
+    assert (kernel[:4] == 1.0).all() and (kernel[4:] == 0.0).all()
+    with pytest.raises(TrainingError, match="no parameter of this model"):
+        _warm_start(fresh, {"pp_net": {"dense_0": {"kernel": np.ones((5, 8))}}}, "donor")

@@ -85,6 +85,9 @@ def one_run(model, cfg, traj, duration, window):
         if finite:
             v = np.diff(pos, axis=0) / dt                      # v_{k+1}, k = 0 .. S-1
             ke = 0.5 * mass * np.sum(v ** 2, axis=(1, 2))
+            if "omega_model" in a:   # a model with spin state: its rotational energy too
+                spin = np.asarray(a["omega_model"])[1:]        # w_{k+1}, k = 0 .. S-1
+                ke = ke + 0.5 * 0.4 * mass * radius ** 2 * np.sum(spin ** 2, axis=(1, 2))
             g = np.asarray(cfg.dem.gravity, np.float64)
             pe = -mass * np.sum(pos @ g, axis=1)
             # jar work + gravity's work (from the positions) - d(KE) over steps 2 .. S

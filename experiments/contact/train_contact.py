@@ -46,6 +46,10 @@ def main() -> None:
     ap.add_argument("--hidden", type=int, default=None)
     ap.add_argument("--passes", type=int, default=None,
                     help="impulse passes ([model] interaction_layers; 2: a learned Jacobi pass)")
+    ap.add_argument("--spin", action="store_true",
+                    help="the balls' spins as rollout state ([model] spin = true)")
+    ap.add_argument("--spin-weight", type=float, default=1.0,
+                    help="weight of the spin error (R |w - w_DEM|) beside the velocity's")
     ap.add_argument("--init", default=None,
                     help="checkpoint directory to warm-start matching parameters from")
     ap.add_argument("--seed", type=int, default=0)
@@ -58,6 +62,8 @@ def main() -> None:
         cfg = sj.replace_section(cfg, "model", hidden=args.hidden)
     if args.passes is not None:
         cfg = sj.replace_section(cfg, "model", interaction_layers=args.passes)
+    if args.spin:
+        cfg = sj.replace_section(cfg, "model", spin=True)
     files = sorted(glob.glob(os.path.join(args.data, args.pattern)))
     if not files:
         raise SystemExit(f"no {args.pattern} files in {args.data}")
@@ -73,7 +79,8 @@ def main() -> None:
         cfg, trajs, args.out, val_trajectories=val, steps=args.steps, batch_size=args.batch,
         unroll=sj.UnrollSpec(unroll=args.unroll, pushforward=args.pushforward,
                              position_noise=args.noise,
-                             relative_floor=args.relative_floor),
+                             relative_floor=args.relative_floor,
+                             spin_weight=args.spin_weight),
         lr_init=args.lr, lr_final=args.lr_final, seed=args.seed, minutes=args.minutes,
         impact_weight=args.impact_weight, n_impacts=args.impacts, init_from=args.init,
         resume=args.resume, progress=not args.no_progress)

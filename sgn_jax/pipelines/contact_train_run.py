@@ -74,17 +74,33 @@ def _warm_start(params: dict[str, Any], donor: dict[str, Any], source: Any
                 ) -> tuple[dict[str, Any], list[str]]:
     """``params`` with each top-level entry (a submodule's parameters) that ``donor`` has with
     the same tree structure and shapes taken from ``donor``; the dissipation shares stay the
-    data's. Raises when nothing matches (the wrong checkpoint)."""
+    data's. Raises when nothing matches (the wrong checkpoint).
+
+    A leaf with MORE rows than the donor's (a first layer that takes inputs appended after
+    the donor's, as a spin model's contact-point slip after a spinless model's inputs) takes the
+    donor's rows and zeros for the new ones: the new inputs start without effect, so the model
+    starts as its donor."""
     out, names = dict(params), []
+
+    def fits(a: Any, b: Any) -> bool:   # donor leaf a into leaf b
+        sa, sb = np.shape(a), np.shape(b)
+        return sa == sb or (len(sa) == len(sb) == 2 and sa[1] == sb[1] and sa[0] < sb[0])
+
+    def take(a: Any, b: Any) -> jax.Array:
+        a = jnp.asarray(a)
+        if a.shape == np.shape(b):
+            return a
+        return jnp.zeros(np.shape(b), a.dtype).at[: a.shape[0]].set(a)
+
     for name, value in donor.items():
         if name == "share_logit" or name not in params:
             continue
         same = (jax.tree_util.tree_structure(value) == jax.tree_util.tree_structure(params[name])
-                and all(np.shape(a) == np.shape(b) for a, b in zip(
+                and all(fits(a, b) for a, b in zip(
                     jax.tree_util.tree_leaves(value), jax.tree_util.tree_leaves(params[name]),
                     strict=True)))
         if same:
-            out[name] = jax.tree_util.tree_map(jnp.asarray, value)
+            out[name] = jax.tree_util.tree_map(take, value, params[name])
             names.append(name)
     if not names:
         raise TrainingError(f"init_from={source}: no parameter of this model ({sorted(params)}) "
@@ -133,13 +149,21 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     sdf, query = surrogate_walls_from_config(cfg)
     net = make_contact_net(cfg)
 
+    if net.spin:
+        lacking = [str(getattr(t, "path", i)) for i, t in
+                   enumerate([*trajectories, *val_trajectories]) if getattr(t, "omega", None) is None]
+        if lacking:
+            raise TrainingError(f"[model] spin = true trains on the DEM's spins (omega), which "
+                                f"these records lack: {lacking[:3]}")
+
     def source(trajs: Sequence[Any]) -> StretchSource:
         return StretchSource(
             positions=[np.asarray(t.pos, np.float64) for t in trajs],
             offsets=[np.asarray(t.offset, np.float64) for t in trajs],
             offset_velocities=[np.asarray(t.offset_vel, np.float64) for t in trajs],
             scales=np.array([velocity_change_scale(np.asarray(t.pos), spec.dt) for t in trajs]),
-            window=spec.window, unroll=unroll.unroll)
+            window=spec.window, unroll=unroll.unroll,
+            spins=[np.asarray(t.omega, np.float64) for t in trajs] if net.spin else None)
 
     train_src = source(trajectories)
     val_src = source(val_trajectories) if val_trajectories else None
@@ -149,7 +173,8 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     window = Window(positions=example.positions[0, : spec.window + 1],
                     offsets=example.offsets[0, : spec.window],
                     offset_velocities=example.offset_velocities[0, : spec.window],
-                    frequency_hz=jnp.zeros(()))
+                    frequency_hz=jnp.zeros(()),
+                    spins=None if example.spins is None else example.spins[0, 0])
     graph, _ = build_graph(window, sdf, spec, query)
     params = net.init(jax.random.PRNGKey(seed), graph)["params"]
     params = {**params, "share_logit": share_logits(shares)}
@@ -201,7 +226,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
             "position_noise": unroll.position_noise,
             "relative_floor": unroll.relative_floor, "lr_init": lr_init, "lr_final": lr_final,
             "impact_weight": impact_weight, "n_impacts": n_impacts if impact_weight > 0 else 0,
-            "passes": net.passes,
+            "passes": net.passes, "spin": net.spin, "spin_weight": unroll.spin_weight,
             "init_from": None if init_from is None else str(init_from),
             "dissipation_shares": {"pp": shares[0], "pw": shares[1]},
             "loss_scales": train_src.scales.tolist(), "git_commit": git_commit(),

@@ -58,14 +58,17 @@ def _effective_config(trained_cfg: Any, override: Any) -> Any:
 
 
 def initial_window(traj: Any, start_index: int, window: int, freq: float = 0.0) -> Window:
-    """The :class:`Window` of a trajectory ending at sample ``start_index`` (float64 numpy)."""
+    """The :class:`Window` of a trajectory ending at sample ``start_index`` (float64 numpy),
+    with the balls' spins there where the trajectory records them (``omega``; a model with
+    spin state starts from them, every other kind ignores them)."""
     n_samples = int(np.shape(traj.pos)[0])
     if not window <= start_index < n_samples:
         raise RolloutError(
             f"start index {start_index} is out of range: a window of {window} slots needs "
             f"{window} earlier samples, so use {window} <= start index <= {n_samples - 1}")
     wins = windows_from_arrays(traj.pos, traj.offset, traj.offset_vel, freq,
-                               np.array([start_index]), window)
+                               np.array([start_index]), window,
+                               omega=getattr(traj, "omega", None))
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[0], wins)
 
 

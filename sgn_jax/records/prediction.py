@@ -31,7 +31,9 @@ name                               shape      dtype    meaning
 Optional extra arrays, written for a model kind that reports its own energy ledger (the
 contact model, :mod:`sgn_jax.surrogate.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
 ball-ball and ball-wall impulses took out of the balls in each step, and ``work_wall_model``
-(S,) J, the work of its ball-wall impulses at the jar's velocity.
+(S,) J, the work of its ball-wall impulses at the jar's velocity; and ``omega_model`` (P, N, 3)
+rad/s, the balls' spins at the frames (a model with spin state integrates them; zeros without),
+whose rotational energy its ledger counts.
 
 The rollout starts at ``t_start = t_step[0] - dt``: the time of the newest true sample of the
 initial window; step s ends at ``t_start + (s + 1) dt``. Frames may include ``t_start`` itself.
@@ -273,12 +275,7 @@ def prediction_from_trajectory(traj: Any, start_index: int, n_steps: int, *,
                                ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Arrays and meta of a prediction that replays the DEM exactly ("perfect surrogate").
 
-    Optional extra arrays, written for a model kind that reports its own energy ledger (the
-contact model, :mod:`sgn_jax.surrogate.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
-ball-ball and ball-wall impulses took out of the balls in each step, and ``work_wall_model``
-(S,) J, the work of its ball-wall impulses at the jar's velocity.
-
-The rollout starts at sample ``start_index`` (t_start = traj.t[start_index]); step s ends at
+    The rollout starts at sample ``start_index`` (t_start = traj.t[start_index]); step s ends at
     sample start_index + 1 + s; dE is the DEM's normal + tangential damping (pp + pw) of that
     interval; frames every ``save_every`` steps from t_start on. ``n_pp_edges`` follows the
     graph's rule (2 x pairs with centre distance <= 2 R + pp_skin); ``n_pw_edges`` is

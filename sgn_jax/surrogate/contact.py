@@ -92,6 +92,9 @@ class ContactPhysics:
             rows (the graph's layout: the ball-ball contacts first, then at most N max(1, P)
             ball-wall contacts), half the work of running both MLPs on every row; None runs
             both on every row (correct for any graph; what a hand-built physics gets).
+        rolling_friction: mu_r of the config's material (EDEM type A, as the DEM): with spin
+            state, each contact brakes its balls' relative rotation by an angular impulse of
+            at most mu_r R J_n (J_n its normal impulse), never reversing it. Unused without spin.
     """
 
     ball_radius: float = 0.005
@@ -103,6 +106,12 @@ class ContactPhysics:
     history: int = 3
     gate_margin: float = 5.0e-5
     wall_patches: int | None = None
+    rolling_friction: float = 0.0
+
+    @property
+    def inertia(self) -> float:
+        """A ball's moment of inertia (2/5) m R^2 (kg m^2)."""
+        return 0.4 * self.ball_mass * self.ball_radius ** 2
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
@@ -113,7 +122,8 @@ def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
     return features[:, SLOT_DIM * k + cols.start: SLOT_DIM * k + cols.stop]
 
 
-def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: bool = False):
+def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: bool = False,
+                  spin: bool = False):
     """Per directed edge (E rows; E / 2 with ``primary_only``): frame, inputs, which edges act.
 
     ``primary_only``: only the even edge slots, which in the layout of
@@ -135,6 +145,11 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         jar_dv (E, 3): the jar's velocity change over the last step (m/s) for ball-wall
             edges (the estimate of its change over the next), 0 otherwise;
         v_node (n_node, 3): every node's velocity at the newest slot, v_n (m/s).
+
+    With ``spin`` (the graph's ``nodes["spin"]``, the balls' angular velocities w at t_n) the
+    tangent is that of the slip at the CONTACT POINT, v_rel - R (w_r + w_s) x n (a wall does
+    not turn: its node's spin is 0), the inputs gain its speed (clipped and fine-scaled), and
+    the dict gains ``w_node`` (n_node, 3) rad/s and ``w_rel`` (E, 3), w_r - w_s (w_r for a wall).
     """
     feats = jnp.asarray(graph.nodes["features"], DTYPE)
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
@@ -180,13 +195,25 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     gap_pw = (-phi_pw - radius)[None] - approach_after                     # (W, E)
     gap = jnp.where(is_pw[None], gap_pw, gap_pp)
     v_t = v_rel[-1] - u[-1][:, None] * normal
-    # |v_t| with a finite derivative at v_t = 0 (a head-on or padded contact): sqrt's
-    # derivative is infinite there, which made the horizon estimator's gradients NaN; the value
-    # is unchanged.
-    speed_sq = jnp.sum(v_t * v_t, axis=-1)
-    positive = speed_sq > 0
-    speed_t = jnp.where(positive, jnp.sqrt(jnp.where(positive, speed_sq, 1.0)), 0.0)
-    tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]
+    speed_t = _safe_norm(v_t)
+    extra = {}
+    if spin:
+        if "spin" not in graph.nodes:
+            raise ContactModelError("a contact model with spin needs the balls' spins in the "
+                                    "graph: build it from a Window with spins (the rollout "
+                                    "carries them; zeros for balls at rest)")
+        w_node = jnp.asarray(graph.nodes["spin"], DTYPE)
+        w_r, w_s = w_node[receivers], w_node[senders]      # the wall node's spin row is 0
+        # The contact arm as the DEM's, R - overlap / 2: for a pair the contact point is the
+        # midpoint of the centres, so the pair's angular momentum is conserved exactly.
+        arm = radius - 0.5 * jnp.maximum(-gap[-1], 0.0)
+        # contact point velocities: receiver v_r + w_r x (a n), partner v_s + w_s x (-a n)
+        v_t_contact = v_t - arm[:, None] * jnp.cross(w_r + w_s, normal)  # (w x n): tangential
+        slip_c = _safe_norm(v_t_contact)
+        tangent = v_t_contact / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
+        extra = {"w_node": w_node, "w_rel": w_r - w_s, "arm": arm}
+    else:
+        tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]
 
     g = jnp.asarray(phys.gravity, DTYPE)
     # Relative acceleration of the partner along n over one step (m/s): for a wall the jar's
@@ -202,6 +229,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
                  jnp.tanh(u[k] / SPEED_SCALE_FINE)]
     cols += [jnp.clip(speed_t, 0.0, 10.0), jnp.tanh(speed_t / SPEED_SCALE_FINE),
              jnp.tanh(acc_term / SPEED_SCALE_FINE)]
+    if spin:
+        cols += [jnp.clip(slip_c, 0.0, 10.0), jnp.tanh(slip_c / SPEED_SCALE_FINE)]
     inputs = jnp.stack(cols, axis=-1)
 
     gap_end = gap[-1] + u[-1] * dt
@@ -212,8 +241,17 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
-        "v_node": vel[-1],
+        "v_node": vel[-1], **extra,
     }
+
+
+def _safe_norm(v: jax.Array) -> jax.Array:
+    """|v| over the last axis with a finite derivative at v = 0 (a head-on or padded contact):
+    sqrt's derivative is infinite there, which made the horizon estimator's gradients NaN; the
+    value is unchanged."""
+    speed_sq = jnp.sum(v * v, axis=-1)
+    positive = speed_sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, speed_sq, 1.0)), 0.0)
 
 
 class ImpulseMLP(nn.Module):
@@ -249,6 +287,15 @@ class ContactNet(nn.Module):
     (a learned Jacobi iteration). The corrections start at zero, so a model of P passes starts
     as its first pass. Every pass is per contact, on invariant scalars, and the final impulse is
     applied equal and opposite: the conservation and symmetry properties are unchanged.
+
+    ``spin`` (``[model] spin = true``): the balls' angular velocities are rollout state (the
+    window's ``spins``, the graph's ``nodes["spin"]``). The tangential impulse then acts along
+    the slip of the contact POINT and turns both balls (dw = R n x J / I, the same on both
+    balls of a pair: angular momentum about the contact is conserved), the rolling friction of
+    the config's material brakes their relative rotation (at most mu_r R J_n, never reversing
+    it), and the outputs are (n_node, 6): linear and angular accelerations. A ball that rolls
+    along a wall, which a spinless model can only let slide or stick, is then representable
+    (docs/contact.md).
     """
 
     physics: ContactPhysics = ContactPhysics()
@@ -256,6 +303,7 @@ class ContactNet(nn.Module):
     mlp_layers: int = 3
     passes: int = 1
     rows_by_kind: bool = False
+    spin: bool = False
     takes_raw_graph = True
 
     def for_single_rollout(self) -> ContactNet:
@@ -323,6 +371,34 @@ class ContactNet(nn.Module):
                    + (m_star * du_t)[:, None] * geo["tangent"])
         return impulse, du_n, du_t
 
+    def _angular_impulses(self, geo: dict[str, jax.Array], impulse: jax.Array, du_n: jax.Array
+                          ) -> tuple[jax.Array, jax.Array]:
+        """(E, 3) N m s each: the angular impulse on each contact's receiver ball and on its
+        sender ball (0 for a wall). The contact force acts at R n from the receiver's centre
+        and (as -J) at -R n from the sender's: both get R n x J (R: the arm, R - overlap / 2,
+        as the DEM's). Rolling friction (EDEM type A, as the DEM):
+        -min(mu_r R J_n, I_eff |w_rel|) w_rel / |w_rel| on the receiver and the opposite on the
+        sender, I_eff = I / 2 for a pair (both balls brake), I for a wall; the cap keeps one
+        step from reversing the relative rotation."""
+        phys = self.physics
+        arm, inertia = geo["arm"], phys.inertia
+        a_contact = arm[:, None] * jnp.cross(geo["normal"], impulse)
+        m_star = jnp.where(geo["is_pw"], phys.ball_mass, 0.5 * phys.ball_mass)
+        w_rel = geo["w_rel"]
+        w_norm = _safe_norm(w_rel)
+        i_eff = jnp.where(geo["is_pw"], inertia, 0.5 * inertia)
+        roll = jnp.minimum(phys.rolling_friction * arm * m_star * du_n, i_eff * w_norm)
+        roll_dir = w_rel / jnp.where(w_norm > 0, w_norm, 1.0)[:, None]
+        l_roll = -roll[:, None] * roll_dir
+        return a_contact + l_roll, (a_contact - l_roll) * geo["is_pp"][:, None]
+
+    def _spin_change(self, geo: dict[str, jax.Array], a_recv: jax.Array, a_send: jax.Array,
+                     n_node: int, is_particle: jax.Array) -> jax.Array:
+        """(n_node, 3) rad/s: the angular impulses summed per ball over I; 0 for the wall."""
+        total = (jax.ops.segment_sum(a_recv, geo["receivers"], num_segments=n_node)
+                 + jax.ops.segment_sum(a_send, geo["senders"], num_segments=n_node))
+        return jnp.where(is_particle[:, None], total / self.physics.inertia, 0.0)
+
     def _velocity_change(self, geo: dict[str, jax.Array], impulse: jax.Array, n_node: int,
                          is_particle: jax.Array) -> jax.Array:
         """(n_node, 3) m/s: the impulses (a ball-ball contact gives its sender ball the
@@ -336,17 +412,23 @@ class ContactNet(nn.Module):
         return jnp.where(is_particle[:, None], total / self.physics.ball_mass
                          + g * self.physics.dt, 0.0)
 
-    def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array) -> jax.Array:
+    def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array,
+                          dw: jax.Array | None = None) -> jax.Array:
         """(E, 4) invariant scalars of each contact at the end of the step if every ball's
-        velocity changed by ``dv``: the gap rate u' and the slip speed |v_t'| (clipped, and
-        fine-scaled as the first pass's inputs). The jar's velocity at the end of the step is
-        estimated from its last change (``jar_dv``; exact for a uniform acceleration)."""
+        velocity changed by ``dv`` (and, with spin, its spin by ``dw``): the gap rate u' and the
+        slip speed |v_t'| (of the contact point with spin; clipped, and fine-scaled as the first
+        pass's inputs). The jar's velocity at the end of the step is estimated from its last
+        change (``jar_dv``; exact for a uniform acceleration)."""
         v_end = geo["v_node"] + dv
         receivers, senders = geo["receivers"], geo["senders"]
         partner = jnp.where(geo["is_pw"][:, None], geo["u_wall"] + geo["jar_dv"], v_end[senders])
         v_rel = partner - v_end[receivers]
         u_end = jnp.einsum("ec,ec->e", v_rel, geo["normal"])
         v_t = v_rel - u_end[:, None] * geo["normal"]
+        if dw is not None:
+            w_end = geo["w_node"] + dw
+            v_t = v_t - geo["arm"][:, None] * jnp.cross(w_end[receivers] + w_end[senders],
+                                                       geo["normal"])
         slip = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + TANGENT_EPS ** 2) - TANGENT_EPS
         return jnp.stack([jnp.clip(u_end, -10.0, 10.0), jnp.tanh(u_end / SPEED_SCALE_FINE),
                           jnp.clip(slip, 0.0, 10.0), jnp.tanh(slip / SPEED_SCALE_FINE)], axis=-1)
@@ -355,17 +437,25 @@ class ContactNet(nn.Module):
         """Everything of one step: per-node velocity change and per-graph energies (J)."""
         # One row per contact (the primary direction of each edge, half the slots): the MLPs run
         # once per contact and the partner gets exactly the opposite impulse.
-        geo = edge_geometry(graph, self.physics, primary_only=True)
+        geo = edge_geometry(graph, self.physics, primary_only=True, spin=self.spin)
         n_node = graph.nodes["features"].shape[0]
         is_particle = graph.nodes["particle"]
+
+        def kinematics(logits):
+            impulse, du_n, du_t = self._impulses(geo, logits)
+            dv = self._velocity_change(geo, impulse, n_node, is_particle)
+            if not self.spin:
+                return impulse, du_n, du_t, dv, None, None
+            a_recv, a_send = self._angular_impulses(geo, impulse, du_n)
+            dw = self._spin_change(geo, a_recv, a_send, n_node, is_particle)
+            return impulse, du_n, du_t, dv, dw, (a_recv, a_send)
+
         logits = self._per_kind(self.pp_net, self.pw_net, geo, geo["inputs"], n_node - 2)
         for pp_refine, pw_refine in zip(self.pp_refine, self.pw_refine, strict=True):
-            impulse, _, _ = self._impulses(geo, logits)
-            dv = self._velocity_change(geo, impulse, n_node, is_particle)
-            x = jnp.concatenate([geo["inputs"], self._tentative_inputs(geo, dv)], axis=-1)
+            _, _, _, dv, dw, _ = kinematics(logits)
+            x = jnp.concatenate([geo["inputs"], self._tentative_inputs(geo, dv, dw)], axis=-1)
             logits = logits + self._per_kind(pp_refine, pw_refine, geo, x, n_node - 2)
-        impulse, du_n, du_t = self._impulses(geo, logits)
-        dv = self._velocity_change(geo, impulse, n_node, is_particle)
+        impulse, du_n, du_t, dv, dw, angular = kinematics(logits)
 
         receivers, senders = geo["receivers"], geo["senders"]
         vbar_node = geo["v_node"] + 0.5 * dv
@@ -373,15 +463,33 @@ class ContactNet(nn.Module):
         # a pair: J on the receiver, -J on the sender
         per_edge_pp = -jnp.sum(impulse * (vbar - vbar_node[senders]), axis=-1) * geo["is_pp"]
         per_edge_pw = jnp.sum(impulse * (geo["u_wall"] - vbar), axis=-1) * geo["is_pw"]
+        if self.spin:
+            # the work of the angular impulses on the midpoint spins (I dw . wbar = d KE_rot)
+            wbar_node = geo["w_node"] + 0.5 * dw
+            a_recv, a_send = angular
+            rot_work = (jnp.sum(a_recv * wbar_node[receivers], axis=-1)
+                        + jnp.sum(a_send * wbar_node[senders], axis=-1))
+            per_edge_pp = per_edge_pp - rot_work * geo["is_pp"]
+            per_edge_pw = per_edge_pw - rot_work * geo["is_pw"]
         work_wall_e = jnp.sum(impulse * geo["u_wall"], axis=-1) * geo["is_pw"]
         n_graph = graph.n_node.shape[0]
         edge_graph = _edge_graph_index(graph)[0::2]
         seg = lambda x: jax.ops.segment_sum(x, edge_graph, num_segments=n_graph)  # noqa: E731
         share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
         d_pp, d_pw = seg(per_edge_pp), seg(per_edge_pw)
-        return {"dv": dv, "diss_pp": d_pp, "diss_pw": d_pw, "work_wall": seg(work_wall_e),
-                "dE_target": share[0] * d_pp + share[1] * d_pw, "du_n": du_n, "du_t": du_t,
-                "gate": geo["gate"]}
+        terms = {"dv": dv, "diss_pp": d_pp, "diss_pw": d_pw, "work_wall": seg(work_wall_e),
+                 "dE_target": share[0] * d_pp + share[1] * d_pw, "du_n": du_n, "du_t": du_t,
+                 "gate": geo["gate"]}
+        if self.spin:
+            terms["dw"] = dw
+        return terms
+
+    def _accelerations(self, terms: dict[str, jax.Array]) -> jax.Array:
+        """(n_node, 3) m/s^2, or with spin (n_node, 6): then the angular ones (rad/s^2)."""
+        dt = self.physics.dt
+        if self.spin:
+            return jnp.concatenate([terms["dv"], terms["dw"]], axis=-1) / dt
+        return terms["dv"] / dt
 
     def rollout_terms(self, graph: jraph.GraphsTuple):
         """``(accel (n_node, 3), dE_target (n_graph,), ledger (n_graph, 3))`` with ledger
@@ -389,12 +497,12 @@ class ContactNet(nn.Module):
         uses, so a rollout records the model's own energy ledger)."""
         terms = self.step_terms(graph)
         ledger = jnp.stack([terms["diss_pp"], terms["diss_pw"], terms["work_wall"]], axis=-1)
-        return terms["dv"] / self.physics.dt, terms["dE_target"], ledger
+        return self._accelerations(terms), terms["dE_target"], ledger
 
     def __call__(self, graph: jraph.GraphsTuple, stats: Any = None):
         del stats
         terms = self.step_terms(graph)
-        return terms["dv"] / self.physics.dt, terms["dE_target"]
+        return self._accelerations(terms), terms["dE_target"]
 
 
 def _edge_graph_index(graph: jraph.GraphsTuple) -> jax.Array:
@@ -413,16 +521,19 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
     return ContactPhysics(ball_radius=radius, ball_mass=mass, dt=float(cfg.dem.dt),
                           gravity=tuple(float(g) for g in cfg.dem.gravity),
                           friction=float(cfg.material.friction), window=int(cfg.graph.window),
-                          wall_patches=int(cfg.graph.wall_patches))
+                          wall_patches=int(cfg.graph.wall_patches),
+                          rolling_friction=float(cfg.material.rolling_friction))
 
 
 def make_contact_net(cfg: Any) -> ContactNet:
     """The factory of kind "contact": a :class:`ContactNet` of a whole experiment config
     (``[model] hidden`` and ``mlp_layers`` size its impulse MLPs; ``interaction_layers`` is
-    its number of impulse ``passes``, 1 for a per-contact model)."""
+    its number of impulse ``passes``, 1 for a per-contact model; ``spin`` makes the balls'
+    angular velocities rollout state)."""
     return ContactNet(physics=physics_from_config(cfg), hidden=int(cfg.model.hidden),
                       mlp_layers=int(cfg.model.mlp_layers),
-                      passes=int(cfg.model.interaction_layers))
+                      passes=int(cfg.model.interaction_layers),
+                      spin=bool(cfg.model.spin))
 
 
 register_model("contact", make_contact_net, builds_from="config",

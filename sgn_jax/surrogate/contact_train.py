@@ -46,12 +46,15 @@ class UnrollBatch:
         offsets: (B, W + K, 3) m, jar offset at ``t_{n-W+1} .. t_{n+K}``.
         offset_velocities: (B, W + K, 3) m/s.
         scale: (B,) m/s, the loss scale of each sample's trajectory.
+        spins: (B, 1 + K, N, 3) rad/s, the balls' angular velocities at ``t_n .. t_{n+K}``
+            (the DEM's ``omega``), or None; a model with spin state needs them.
     """
 
     positions: jax.Array
     offsets: jax.Array
     offset_velocities: jax.Array
     scale: jax.Array
+    spins: jax.Array | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,12 +64,15 @@ class UnrollSpec:
     random walk (std per slot) so the model sees states slightly off the DEM's;
     ``relative_floor`` > 0 (m/s) switches to the per-ball relative loss
     ``huber(|v - v_DEM| / sqrt(|dv_DEM|^2 + floor^2))``, in which a resting ball weighs as
-    much as a hard impact (else the squared error over the trajectory's scale)."""
+    much as a hard impact (else the squared error over the trajectory's scale).
+    ``spin_weight``: for a model with spin state, the weight of the same error of the
+    contact-point speed of the spin, R |w - w_DEM| (against R |dw_DEM|), beside the velocity's."""
 
     unroll: int = 4
     pushforward: bool = False
     position_noise: float = 0.0
     relative_floor: float = 0.0
+    spin_weight: float = 1.0
 
 
 def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery | None,
@@ -74,8 +80,19 @@ def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery
                      ) -> Callable[[Any, UnrollBatch, jax.Array], tuple[jax.Array, jax.Array]]:
     """``loss(params, batch, key) -> (loss, per_step (K,))`` (jittable)."""
     w, n, dt, k_steps = spec.window, spec.n_particles, spec.dt, unroll.unroll
+    spin, radius = bool(net.spin), spec.ball_radius
 
-    def one(params, positions, offsets, offset_velocities, scale, key):
+    def error(new, true, true_prev, scale):
+        """Per-ball error of a velocity (or R times a spin) against the DEM's."""
+        if unroll.relative_floor > 0:
+            # per ball, relative to its own change (with a floor): a resting ball (|dv| ~ g dt)
+            # weighs as much as a ball in a hard impact (|dv| ~ 1 m/s)
+            ref = jnp.sqrt(jnp.sum((true - true_prev) ** 2, axis=-1) + unroll.relative_floor ** 2)
+            ratio = jnp.sqrt(jnp.sum((new - true) ** 2, axis=-1) + 1e-30) / ref
+            return jnp.mean(optax.huber_loss(ratio, delta=1.0))
+        return jnp.mean(jnp.sum((new - true) ** 2, axis=-1)) / scale ** 2
+
+    def one(params, positions, offsets, offset_velocities, scale, spins, key):
         pos0 = positions[: w + 1]
         if unroll.position_noise > 0:
             steps = unroll.position_noise * jax.random.normal(key, pos0.shape, F64)
@@ -85,11 +102,12 @@ def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery
             pos0 = pos0 + walk
         freq = jnp.zeros((), F64)
 
-        def step(win_pos, k):
+        def step(carry, k):
+            win_pos, w_now = carry
             window = Window(positions=win_pos,
                             offsets=jax.lax.dynamic_slice_in_dim(offsets, k, w),
                             offset_velocities=jax.lax.dynamic_slice_in_dim(offset_velocities, k, w),
-                            frequency_hz=freq)
+                            frequency_hz=freq, spins=w_now)
             graph, _ = build_graph(window, sdf, spec, query)
             terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
             dv = terms["dv"][:n].astype(F64)
@@ -98,29 +116,34 @@ def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery
             x_next = win_pos[-1] + v_next * dt
             x_true_next = jax.lax.dynamic_index_in_dim(positions, w + 1 + k, keepdims=False)
             x_true_now = jax.lax.dynamic_index_in_dim(positions, w + k, keepdims=False)
+            x_true_prev = jax.lax.dynamic_index_in_dim(positions, w + k - 1, keepdims=False)
             v_true = (x_true_next - x_true_now) / dt
-            if unroll.relative_floor > 0:
-                # per ball, relative to its own velocity change (with a floor): a resting ball
-                # (|dv| ~ g dt) weighs as much as a ball in a hard impact (|dv| ~ 1 m/s)
-                x_true_prev = jax.lax.dynamic_index_in_dim(positions, w + k - 1, keepdims=False)
-                dv_true = v_true - (x_true_now - x_true_prev) / dt
-                ref = jnp.sqrt(jnp.sum(dv_true ** 2, axis=-1) + unroll.relative_floor ** 2)
-                ratio = jnp.sqrt(jnp.sum((v_next - v_true) ** 2, axis=-1) + 1e-30) / ref
-                err = jnp.mean(optax.huber_loss(ratio, delta=1.0))
-            else:
-                err = jnp.mean(jnp.sum((v_next - v_true) ** 2, axis=-1)) / scale ** 2
+            err = error(v_next, v_true, (x_true_now - x_true_prev) / dt, scale)
+            w_next = None
+            if spin:
+                w_next = w_now + terms["dw"][:n].astype(F64)
+                w_true = jax.lax.dynamic_index_in_dim(spins, k + 1, keepdims=False)
+                w_true_now = jax.lax.dynamic_index_in_dim(spins, k, keepdims=False)
+                err = err + unroll.spin_weight * error(radius * w_next, radius * w_true,
+                                                       radius * w_true_now, scale)
             new_pos = jnp.concatenate([win_pos[1:], x_next[None]])
             if unroll.pushforward:
-                new_pos = jax.lax.stop_gradient(new_pos)
-            return new_pos, err
+                new_pos, w_next = jax.lax.stop_gradient((new_pos, w_next))
+            return (new_pos, w_next), err
 
-        _, errs = jax.lax.scan(step, pos0, jnp.arange(k_steps))
+        w0 = spins[0] if spin else None
+        _, errs = jax.lax.scan(step, (pos0, w0), jnp.arange(k_steps))
         return errs
 
     def loss(params, batch: UnrollBatch, key):
         keys = jax.random.split(key, batch.scale.shape[0])
-        errs = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0))(
-            params, batch.positions, batch.offsets, batch.offset_velocities, batch.scale, keys)
+        if spin and batch.spins is None:
+            raise ValueError("a contact model with spin trains on stretches with spins "
+                             "(UnrollBatch.spins, the DEM's omega)")
+        spins = batch.spins if spin else None
+        errs = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0 if spin else None, 0))(
+            params, batch.positions, batch.offsets, batch.offset_velocities, batch.scale, spins,
+            keys)
         per_step = jnp.mean(errs, axis=0)
         return jnp.mean(per_step).astype(jnp.float32), per_step
 
@@ -164,7 +187,8 @@ class StretchSource:
     """The arrays of the training trajectories and how to draw stretches from them.
 
     ``positions[i]`` (T_i, N, 3), ``offsets[i]`` and ``offset_velocities[i]`` (T_i, 3) per
-    trajectory; ``scales[i]`` its loss scale (m/s).
+    trajectory; ``scales[i]`` its loss scale (m/s); ``spins[i]`` (T_i, N, 3) rad/s its
+    angular velocities (the DEM's ``omega``), or None (a model without spin state).
     """
 
     positions: list[np.ndarray]
@@ -173,21 +197,25 @@ class StretchSource:
     scales: np.ndarray
     window: int
     unroll: int
+    spins: list[np.ndarray] | None = None
 
     def draw(self, rng: np.random.Generator, batch_size: int) -> UnrollBatch:
         """B stretches: trajectories uniformly (every motion weighs alike), ends uniformly."""
         w, k = self.window, self.unroll
         traj = rng.integers(0, len(self.positions), batch_size)
-        pos, off, offv = [], [], []
+        pos, off, offv, spins = [], [], [], []
         for i in traj:
             t = len(self.positions[i])
             n = int(rng.integers(w, t - 1 - k))  # the first window ends at sample n
             pos.append(self.positions[i][n - w: n + k + 1])
             off.append(self.offsets[i][n - w + 1: n + k + 1])
             offv.append(self.offset_velocities[i][n - w + 1: n + k + 1])
+            if self.spins is not None:
+                spins.append(self.spins[i][n: n + k + 1])
         return UnrollBatch(positions=np.stack(pos), offsets=np.stack(off),
                            offset_velocities=np.stack(offv),
-                           scale=np.asarray(self.scales[traj], np.float64))
+                           scale=np.asarray(self.scales[traj], np.float64),
+                           spins=np.stack(spins) if self.spins is not None else None)
 
 
 def velocity_change_scale(positions: np.ndarray, dt: float, floor: float = 1e-3) -> float:
@@ -250,7 +278,7 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
         law_pw, law_pp: :class:`sgn_jax.dem.contact.ContactLaw` of ball-wall and ball-ball.
     Returns:
         an :class:`UnrollBatch` (positions (n_impacts, window + 1 + unroll, 2, 3), zero jar
-        offsets and velocities, scale 1).
+        offsets and velocities, scale 1, zero spins).
     """
     rng = np.random.default_rng([int(seed), 0x1A7C])
     n_slots = window + 1 + unroll
@@ -297,4 +325,5 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
     return UnrollBatch(positions=positions,
                        offsets=np.zeros((n_impacts, n_slots - 1, 3)),
                        offset_velocities=np.zeros((n_impacts, n_slots - 1, 3)),
-                       scale=np.ones(n_impacts))
+                       scale=np.ones(n_impacts),
+                       spins=np.zeros((n_impacts, 1 + unroll, 2, 3)))   # head-on: no spin

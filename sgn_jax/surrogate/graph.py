@@ -154,6 +154,12 @@ class Window:
         offsets: (W, 3) m, jar offset at the slot times ``t_{n-W+1} .. t_n``.
         offset_velocities: (W, 3) m/s, jar velocity at the slot times.
         frequency_hz: () Hz, the motion's rotational frequency (``motion.frequency_hz``).
+        spins: (N, 3) rad/s, the balls' angular velocities at the newest sample ``t_n`` (lab
+            frame), or None. A model kind that carries spin as state (the contact model with
+            ``[model] spin = true``) reads them from the graph (``nodes["spin"]``) and the
+            rollout integrates them; every other kind ignores them. The rollout fills zeros
+            (balls not turning) where a window has none (:func:`sgn_jax.surrogate.rollout.
+            jar_state_window`).
 
     Batched windows carry a leading axis on every field (``jax.vmap(build_graph, ...)``).
     """
@@ -162,6 +168,16 @@ class Window:
     offsets: jax.Array
     offset_velocities: jax.Array
     frequency_hz: jax.Array
+    spins: jax.Array | None = None
+
+
+def with_spins(window: Window) -> Window:
+    """``window`` with float64 spins: zeros (balls not turning) where it has none. A rollout's
+    carry always holds them (:func:`sgn_jax.surrogate.rollout.jar_state_window`)."""
+    positions = jnp.asarray(window.positions)
+    spins = (jnp.zeros(positions.shape[1:], jnp.float64) if window.spins is None
+             else jnp.asarray(window.spins, jnp.float64))
+    return window.replace(spins=spins)
 
 
 def slide_window(window: Window, new_position: jax.Array, new_offset: jax.Array,
@@ -169,7 +185,7 @@ def slide_window(window: Window, new_position: jax.Array, new_offset: jax.Array,
     """Drop the oldest slot and append the state at the next sample (for the rollout).
 
     ``new_position`` (N, 3) is ``x_{n+1}``; ``new_offset`` and ``new_offset_velocity`` (3,) are
-    the jar state at ``t_{n+1}``.
+    the jar state at ``t_{n+1}``. ``spins`` are left as they are (the rollout sets them).
     """
     pos = jnp.concatenate([window.positions[1:], new_position[None].astype(window.positions.dtype)])
     off = jnp.concatenate([window.offsets[1:], new_offset[None].astype(window.offsets.dtype)])
@@ -209,6 +225,8 @@ def _check_window(window: Window, spec: GraphSpec) -> None:
     w, n = spec.window, spec.n_particles
     expected = {"positions": (w + 1, n, 3), "offsets": (w, 3), "offset_velocities": (w, 3),
                 "frequency_hz": ()}
+    if window.spins is not None:
+        expected["spins"] = (n, 3)
     for name, shape in expected.items():
         got = tuple(jnp.shape(getattr(window, name)))
         if got != shape:
@@ -333,9 +351,14 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     is_pp = edge_ids < n_pp_kept
     is_pw = (edge_ids >= n_pp_kept) & (edge_ids < n_real)
 
+    nodes = {"features": node_features.astype(jnp.float32), "particle": is_particle,
+             "wall": is_wall}
+    if window.spins is not None:
+        # (N + 2, 3) rad/s, float64 (a resting ball's spin is tiny); 0 for the wall and padding
+        nodes["spin"] = jnp.concatenate([jnp.asarray(window.spins, jnp.float64),
+                                         jnp.zeros((2, 3), jnp.float64)])
     graph = jraph.GraphsTuple(
-        nodes={"features": node_features.astype(jnp.float32), "particle": is_particle,
-               "wall": is_wall},
+        nodes=nodes,
         edges={"features": efeat.astype(jnp.float32), "pp": is_pp, "pw": is_pw},
         senders=senders,
         receivers=receivers,
@@ -385,8 +408,10 @@ def valid_window_ends(n_samples: int, window: int) -> np.ndarray:
 
 
 def windows_from_arrays(pos: np.ndarray, offset: np.ndarray, offset_vel: np.ndarray,
-                        frequency_hz: float, ends: np.ndarray, window: int) -> Window:
-    """Batched :class:`Window` (leading axis S) ending at samples ``ends`` (S,), numpy float64."""
+                        frequency_hz: float, ends: np.ndarray, window: int,
+                        omega: np.ndarray | None = None) -> Window:
+    """Batched :class:`Window` (leading axis S) ending at samples ``ends`` (S,), numpy float64;
+    with ``omega`` (T, N, 3) rad/s (a DEM record's), the windows carry the spins at ``ends``."""
     ends = np.asarray(ends, np.int64)
     if ends.size and (ends.min() < window or ends.max() > len(pos) - 1):
         raise GraphError(f"window ends must lie in [{window}, {len(pos) - 1}]")
@@ -397,6 +422,7 @@ def windows_from_arrays(pos: np.ndarray, offset: np.ndarray, offset_vel: np.ndar
         offsets=np.asarray(offset, np.float64)[slot_idx],
         offset_velocities=np.asarray(offset_vel, np.float64)[slot_idx],
         frequency_hz=np.full(len(ends), float(frequency_hz), np.float64),
+        spins=None if omega is None else np.asarray(omega, np.float64)[ends],
     )
 
 

@@ -66,6 +66,7 @@ from sgn_jax.surrogate.graph import (
     Window,
     build_graph,
     slide_window,
+    with_spins,
 )
 from sgn_jax.surrogate.model import make_predict
 
@@ -76,7 +77,9 @@ Predictor = Callable[[Any, Any, jraph.GraphsTuple, jax.Array], tuple[jax.Array, 
 """``predictor(params, stats, raw_graph, step) -> (accel (>= N, 3) m/s^2, dE () J)``.
 
 ``step`` is the int32 step index since the rollout's start; rows beyond the N balls of
-``accel`` are ignored."""
+``accel`` are ignored. A kind that carries spin as state returns ``accel`` (>= N, 6): the
+linear accelerations (m/s^2) and then the angular ones (rad/s^2), which the rollout integrates
+into the window's ``spins``."""
 
 
 class RolloutError(SGNJaxError, ValueError):
@@ -140,6 +143,8 @@ class RolloutResult:
         positions: (P, N, 3) f64 m, ball positions at t_pos.
         offsets: (P, 3) f64 m, jar offset at t_pos.
         final: the :class:`RolloutState` after the last step (to continue the rollout).
+        spins: (P, N, 3) f64 rad/s, the balls' angular velocities at t_pos (0 throughout for a
+            kind without spin state).
     """
 
     t_step: jax.Array
@@ -148,6 +153,7 @@ class RolloutResult:
     positions: jax.Array
     offsets: jax.Array
     final: RolloutState
+    spins: jax.Array
 
     @property
     def energy(self) -> jax.Array:
@@ -174,14 +180,16 @@ class RolloutResult:
 
     def ledger_arrays(self) -> dict[str, np.ndarray]:
         """The model's own energy ledger per step (J), for a kind that reports one (extra
-        arrays of the prediction file: ``diss_pp_model``, ``diss_pw_model``, ``work_wall_model``);
-        empty otherwise."""
+        arrays of the prediction file: ``diss_pp_model``, ``diss_pw_model``, ``work_wall_model``,
+        and the spins of the frames ``omega_model`` (P, N, 3) rad/s, whose rotational energy
+        the ledger counts); empty otherwise."""
         s = self.steps
         if np.all(np.isnan(np.asarray(s.diss_pp))):
             return {}
         return {"diss_pp_model": np.asarray(s.diss_pp, np.float64),
                 "diss_pw_model": np.asarray(s.diss_pw, np.float64),
-                "work_wall_model": np.asarray(s.work_wall, np.float64)}
+                "work_wall_model": np.asarray(s.work_wall, np.float64),
+                "omega_model": np.asarray(self.spins, np.float64)}
 
 
 @flax.struct.dataclass
@@ -272,10 +280,12 @@ def _default_query() -> SDFQuery:
 
 def jar_state_window(window: Window, motion: Motion, t0: jax.Array, dt: float) -> Window:
     """``window`` with its jar state (offsets, velocities at the slot times
-    ``t0 - (W-1) dt .. t0``, rotational frequency) recomputed from ``motion`` (float64)."""
+    ``t0 - (W-1) dt .. t0``, rotational frequency) recomputed from ``motion`` (float64), and
+    its spins as float64 (zeros, balls not turning, where the window has none: the rollout's
+    carry always holds them)."""
     w = jnp.shape(window.offsets)[0]
     times = jnp.asarray(t0, F64) + dt * jnp.arange(-(w - 1), 1, dtype=F64)
-    return window.replace(
+    return with_spins(window).replace(
         positions=jnp.asarray(window.positions, F64),
         offsets=jnp.asarray(offset(motion, times), F64),
         offset_velocities=jnp.asarray(velocity(motion, times), F64),
@@ -378,6 +388,14 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                                               window, state.step)
         accel = jnp.asarray(accel)[:n].astype(F64)
         de = jnp.asarray(de).astype(F64).reshape(())
+        spins = window.spins
+        if accel.shape[-1] == 6:  # a kind with spin state: linear, then angular acceleration
+            if spins is None:
+                raise RolloutError("this model carries the balls' spins as state: start the "
+                                   "rollout from init_state/jar_state_window (zero spins), or "
+                                   "give the window spins")
+            spins = spins + accel[:, 3:] * dt
+            accel = accel[:, :3]
 
         x_n = window.positions[-1]
         v_n = (x_n - window.positions[-2]) / dt
@@ -386,7 +404,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         t_next = t0 + (state.step + 1).astype(F64) * dt
         jar_offset = jnp.asarray(offset(motion, t_next), F64)
         jar_velocity = jnp.asarray(velocity(motion, t_next), F64)
-        window = slide_window(window, x_next, jar_offset, jar_velocity)
+        window = slide_window(window, x_next, jar_offset, jar_velocity).replace(spins=spins)
 
         if snap.pp_max_overlap is not None:  # before the wall snap, so that walls win
             shift, _ = separate_pairs(window.positions[-1], spec.ball_radius,
@@ -450,6 +468,13 @@ def _jit_canonical(fn: Callable[..., RolloutResult], state_arg: bool) -> Callabl
     wrapper._cache_size = jitted._cache_size  # type: ignore[attr-defined]
     wrapper.jitted = jitted  # type: ignore[attr-defined]
     return wrapper
+
+
+def _spins_of(window: Window) -> jax.Array:
+    """(N, 3) rad/s: the window's spins, zeros where it has none."""
+    if window.spins is None:
+        return jnp.zeros(window.positions.shape[1:], F64)
+    return window.spins
 
 
 def _as_f64(window: Window) -> Window:
@@ -569,7 +594,8 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
 
         def frame(carry: RolloutState, _: Any):
             carry, records = jax.lax.scan(step_fn, carry, None, length=save_every, unroll=unroll)
-            return carry, (records, carry.window.positions[-1], carry.window.offsets[-1])
+            return carry, (records, carry.window.positions[-1], carry.window.offsets[-1],
+                           _spins_of(carry.window))
 
         def chunk(carry: RolloutState, length: int):
             return jax.lax.scan(frame, carry, None, length=length)
@@ -584,14 +610,14 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
         if rest:
             carry, ys = jax.checkpoint(functools.partial(chunk, length=rest))(carry)
             pieces.append(ys)
-        records, positions, offsets = jax.tree_util.tree_map(
+        records, positions, offsets, spins = jax.tree_util.tree_map(
             lambda *a: jnp.concatenate(a) if len(a) > 1 else a[0], *pieces)
         records = jax.tree_util.tree_map(lambda a: a.reshape((n_steps,) + a.shape[2:]), records)
         first = state.step.astype(F64)
         t_step = t0 + (first + jnp.arange(1, n_steps + 1, dtype=F64)) * spec.dt
         t_pos = t0 + (first + save_every * jnp.arange(1, n_frames + 1, dtype=F64)) * spec.dt
         return RolloutResult(t_step=t_step, steps=records, t_pos=t_pos, positions=positions,
-                             offsets=offsets, final=carry)
+                             offsets=offsets, final=carry, spins=spins)
 
     return _jit_canonical(advance, state_arg=True) if jit else advance
 
@@ -627,7 +653,8 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
         return result.replace(
             t_pos=jnp.concatenate([jnp.asarray(t0, F64)[None], result.t_pos]),
             positions=jnp.concatenate([state.window.positions[-1][None], result.positions]),
-            offsets=jnp.concatenate([state.window.offsets[-1][None], result.offsets]))
+            offsets=jnp.concatenate([state.window.offsets[-1][None], result.offsets]),
+            spins=jnp.concatenate([_spins_of(state.window)[None], result.spins]))
 
     return _jit_canonical(rollout, state_arg=False) if jit else rollout
 

@@ -56,6 +56,7 @@ from sgn_jax.surrogate.model import (
     DEFAULT_MODEL_KIND,
     DTYPE,
     MLP,
+    ModelKindError,
     masked_mean_by_segment,
     node_graph_index,
     register_model,
@@ -215,6 +216,9 @@ class SGN(nn.Module):
 
 def make_sgn(model_cfg: Any) -> SGN:
     """An :class:`SGN` from a ``[model]`` config section (the factory of kind "sgn")."""
+    if getattr(model_cfg, "spin", False):
+        raise ModelKindError("[model] spin = true: the SGN has no spin state; spin is for kind "
+                             "'contact' (set [model] kind = \"contact\" or spin = false)")
     return SGN(hidden=model_cfg.hidden, mlp_layers=model_cfg.mlp_layers,
                interaction_layers=model_cfg.interaction_layers)
 
