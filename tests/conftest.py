@@ -216,6 +216,15 @@ def session_settle_cache():
                 os.environ[key] = value
 
 
+@pytest.fixture
+def session_cache():
+    """The package's cache (settled packings, compiled programs) in the session folder for the
+    test's duration (:func:`session_settle_cache`): e.g. a CLI command given the seeds of
+    ``short_packings`` reads those packings instead of settling them again."""
+    with session_settle_cache():
+        yield os.environ[SESSION_DIR_ENV]
+
+
 @pytest.fixture(scope="session")
 def short_packings():
     """``(cfg, packings)``: the standard case with 0.02 s of settling (the docs examples'
