@@ -116,8 +116,9 @@ def step() -> dict:
     apply = make_apply(model)
     cfg = type("T", (), {"node_loss_weight": 3.0, "global_loss_weight": 1.0, "huber_delta": 2.0,
                          "noise_std": 0.0})
-    params0 = jax.tree_util.tree_map(np.array,
-                                     init_params(model, one_packer.make(np.arange(8)).graph))
+    # (jitted: one compile instead of hundreds of eager ops; the weights are random either way)
+    params0 = jax.tree_util.tree_map(
+        np.array, jax.jit(lambda g: init_params(model, g))(one_packer.make(np.arange(8)).graph))
     plan = sharded_packer.plan(np.random.default_rng(1).permutation(S))
     key = jax.random.PRNGKey(0)
     out = {"plan": [[len(i) for i in group] for group in plan]}
