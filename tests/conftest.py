@@ -216,6 +216,15 @@ def session_settle_cache():
                 os.environ[key] = value
 
 
+@pytest.fixture
+def session_cache():
+    """The package's cache (settled packings, compiled programs) in the session folder for the
+    test's duration (:func:`session_settle_cache`): e.g. a CLI command given the seeds of
+    ``short_packings`` reads those packings instead of settling them again."""
+    with session_settle_cache():
+        yield os.environ[SESSION_DIR_ENV]
+
+
 @pytest.fixture(scope="session")
 def short_packings():
     """``(cfg, packings)``: the standard case with 0.02 s of settling (the docs examples'
@@ -247,3 +256,22 @@ def standard_dem_file():
             run = run_dem(cfg, duration=0.101, progress=False)
             save_trajectory(path, run.arrays, run.meta)
     return path
+
+
+@pytest.fixture(scope="session")
+def two_device_results():
+    """The default run's two-device checks (tests/two_device_checks.py: ``ensemble`` for
+    tests/test_sharding.py, ``step`` for tests/test_train_sharded.py), run once per session in
+    one process with two host devices (one JAX start and import instead of two, issue 20); the
+    results by check name, kept in the session folder for the other xdist worker."""
+    from two_device_checks import run_in_two_device_process
+
+    path = os.path.join(os.environ[SESSION_DIR_ENV], "two_device_results.json")
+    with _session_lock("two_devices.lock"):
+        if not os.path.isfile(path):
+            results = run_in_two_device_process(["step", "ensemble"])
+            with open(path + ".tmp", "w") as fh:
+                json.dump(results, fh)
+            os.replace(path + ".tmp", path)
+    with open(path) as fh:
+        return json.load(fh)

@@ -60,8 +60,11 @@ def tiny(tmp_path_factory):
     spec = graph_spec_from_config(model_cfg)
     synthetic = synthetic_trajectory(WINDOW + 2, cfg.balls.count, seed=0)
     window0 = initial_window(synthetic, WINDOW, WINDOW)
-    graph, _ = build_graph(window0, sdf_grid_from_config(model_cfg), spec)
-    params = init_params(SGN(hidden=16), normalize_graph(graph, stats), 0)
+    # Jitted, the graph and the weights take one compile each instead of hundreds of eager
+    # ops (issue 20: ~8 s of the fixture); the weights are random either way.
+    graph, _ = jax.jit(build_graph, static_argnums=2)(window0, sdf_grid_from_config(model_cfg),
+                                                      spec)
+    params = jax.jit(lambda g: init_params(SGN(hidden=16), g, 0))(normalize_graph(graph, stats))
     run_dir = root / "run"
     save_checkpoint(run_dir / "checkpoints" / "best", 1, params=jax.device_get(params),
                     norm_stats=stats, meta={"config": config_to_dict(model_cfg), "epoch": 1})

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -75,11 +76,15 @@ def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
     ensembles.write_text('[cases.tiny]\nconfig = "tiny.toml"\nduration = 0.005\n'
                          "seeds = [0, 5, 6]\ntrain_seeds = [0]\n")
     data = tmp_path / "data"
+    # One job at a time (issue 20): the second DEM and the second rollout load the first one's
+    # compiled programs from the session's cache instead of compiling the same programs at the
+    # same time. Two parallel jobs are checked by tests/test_generate_data.py (generate_data)
+    # and by test_run_pinned_runs_jobs_side_by_side_each_with_its_log below (run_experiments).
     assert gd.main(["--ensembles", str(ensembles), "--out", str(data), "--split", "eval",
-                    "--jobs", "2", "--no-progress", "--no-pin"]) == 0
+                    "--jobs", "1", "--no-progress", "--no-pin"]) == 0
     args = ["--model", str(shipped_model_dir()), "--name", "tiny_run", "--ensembles",
             str(ensembles), "--data", str(data), "--out-root", str(tmp_path / "runs"),
-            "--jobs", "2", "--skip-runtime", "--no-pin"]
+            "--jobs", "1", "--skip-runtime", "--no-pin"]
     assert rx.main(args) == 0
     out = tmp_path / "runs" / "tiny_run"
     results = json.loads((out / "results.json").read_text())
@@ -109,3 +114,34 @@ def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
     assert rx.main(args) == 0
     printed = capsys.readouterr().out
     assert printed.count("skip  tiny_seed") == 2 and "start tiny_seed" not in printed
+
+
+def test_run_pinned_runs_jobs_side_by_side_each_with_its_log(tmp_path, monkeypatch, capsys):
+    """run_experiments' scheduler with two slots: two jobs run at the same time (the first
+    waits for a file only the second writes), a third starts when a slot frees, each job's
+    output goes to its own log after its command line, and exit statuses come back by name."""
+    monkeypatch.setattr(rx, "usable_cores", lambda: [0, 1])   # two slots on any machine
+    monkeypatch.setattr(rx, "POLL_S", 0.05)
+    flag = tmp_path / "second_started"
+    waits = ("import pathlib, sys, time\n"
+             f"flag = pathlib.Path({str(flag)!r})\n"
+             "deadline = time.time() + 60\n"
+             "while not flag.exists() and time.time() < deadline:\n"
+             "    time.sleep(0.02)\n"
+             "print('first saw the second:', flag.exists())\n"
+             "sys.exit(0 if flag.exists() else 4)\n")
+    writes = f"import pathlib; pathlib.Path({str(flag)!r}).write_text('x'); print('second')"
+    jobs = [("first", [sys.executable, "-c", waits], tmp_path / "logs" / "first.log"),
+            ("second", [sys.executable, "-c", writes], tmp_path / "logs" / "second.log"),
+            ("third", [sys.executable, "-c", "import sys; print('third'); sys.exit(3)"],
+             tmp_path / "logs" / "third.log")]
+    status = rx.run_pinned(jobs, 2, pin=False)
+    assert status == {"first": 0, "second": 0, "third": 3}
+    for name, argv, log in jobs:
+        header = "$ " + shlex.join(argv) + "\n"
+        expected = {"first": "first saw the second: True", "second": "second",
+                    "third": "third"}[name]
+        assert log.read_text() == header + expected + "\n"
+    printed = capsys.readouterr().out
+    assert "start first on core 0" in printed and "start second on core 1" in printed
+    assert "FAILED third (exit 3" in printed
