@@ -478,3 +478,32 @@ def test_the_rollout_integrates_the_spins_of_a_spin_model():
     assert "omega_model" in res.prediction_arrays()
     bare = run(params, None, window.replace(spins=None), motion, None, 0.0)
     np.testing.assert_array_equal(np.asarray(bare.spins[0]), 0.0)
+
+
+def test_a_fresh_spin_model_sticks_a_sliding_ball_into_rolling_within_the_cone():
+    """With spin, Coulomb friction with sticking is built in: a freshly initialised model
+    (share of the slip stopped per step s = 1) stops the contact point's slip of a ball that
+    slides slowly on the floor within one step, by turning it (rolling, no slip: v = -w x R n),
+    and a fast slide is limited by the cone (|du_t| = mu du_n, the slip only slowed)."""
+    r0 = R - 0.5e-6
+    slide = np.array([0.01, 0.0, 0.0, 2.0, 0.0, 0.0])        # m/s along x per ball (0, 3: test)
+    base = np.array([[0.0, r0, 0.0], [0.03, r0, 0.0], [0.06, r0, 0.0], [0.09, r0, 0.0],
+                     [0.12, r0, 0.0]])
+    steps = np.arange(-W, 1)[:, None, None] * DT
+    pos = base[None] + steps * np.stack([slide[:5], 0 * slide[:5], 0 * slide[:5]], -1)[None]
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
+                    spins=jnp.zeros((5, 3)))
+    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    net = net_with((0.0, -9.81, 0.0), spin=True)
+    params = net.init(jax.random.PRNGKey(0), graph)["params"]
+    terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+    v_end = slide[:5, None] * np.array([1.0, 0, 0]) + np.asarray(terms["dv"][:5], np.float64)
+    w_end = np.asarray(terms["dw"][:5], np.float64)
+    contact_slip = v_end + np.cross(w_end, np.array([0.0, -R, 0.0]))     # contact point at -R y
+    assert abs(contact_slip[0, 0]) < 0.05 * 0.01        # the slow ball: stuck, now rolling
+    assert w_end[0, 2] < 0 and v_end[0, 0] > 0          # turning the right way
+    # the fast ball: friction at the cone, the slip only slowed
+    du_n, du_t = np.asarray(terms["du_n"]), np.asarray(terms["du_t"])
+    assert (np.abs(du_t) <= PHYS.friction * du_n * (1 + 1e-6) + 1e-12).all()
+    assert contact_slip[3, 0] > 1.5

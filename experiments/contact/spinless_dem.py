@@ -43,13 +43,18 @@ class FrozenSpinEnsemble(sj.DEMEnsemble):
     _frozen: bool = False
 
     def _run(self, setup, state, n_samples):
-        if self._frozen:
+        if self._frozen and self.inertia_factor != 1.0:
             params = setup.params.replace(inertia=setup.params.inertia * self.inertia_factor)
             setup = dataclasses.replace(setup, params=params)
+            # balls that cannot turn: no spin (set at every chunk; with factor 1 nothing changes)
             state = state.replace(omega=0.0 * state.omega)
         return super()._run(setup, state, n_samples)
 
     def power(self, cfg, seed, duration, burn_in):
+        # Settle first with the full physics (and cache it as any DEMEnsemble does); only then
+        # freeze, so that power()'s own settled() call finds the packing in memory and only
+        # the powered run is spinless.
+        self.settled(cfg, seed)
         self._frozen = True
         try:
             return super().power(cfg, seed, duration, burn_in)

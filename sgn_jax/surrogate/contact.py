@@ -149,7 +149,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     With ``spin`` (the graph's ``nodes["spin"]``, the balls' angular velocities w at t_n) the
     tangent is that of the slip at the CONTACT POINT, v_rel - R (w_r + w_s) x n (a wall does
     not turn: its node's spin is 0), the inputs gain its speed (clipped and fine-scaled), and
-    the dict gains ``w_node`` (n_node, 3) rad/s and ``w_rel`` (E, 3), w_r - w_s (w_r for a wall).
+    the dict gains ``w_node`` (n_node, 3) rad/s, ``w_rel`` (E, 3), w_r - w_s (w_r for a wall),
+    ``arm`` (E,) m, the contact arm R - overlap / 2, and ``slip`` (E,) m/s, |v_t,c|.
     """
     feats = jnp.asarray(graph.nodes["features"], DTYPE)
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
@@ -211,7 +212,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         v_t_contact = v_t - arm[:, None] * jnp.cross(w_r + w_s, normal)  # (w x n): tangential
         slip_c = _safe_norm(v_t_contact)
         tangent = v_t_contact / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
-        extra = {"w_node": w_node, "w_rel": w_r - w_s, "arm": arm}
+        extra = {"w_node": w_node, "w_rel": w_r - w_s, "arm": arm, "slip": slip_c}
     else:
         tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]
 
@@ -362,10 +363,25 @@ class ContactNet(nn.Module):
 
     def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
         """Impulse (E, 3) N s on each contact's receiver ball from the logits (E, 2):
-        ``du_n >= 0`` (softplus: repulsive only), ``|du_t| <= mu du_n`` (Coulomb cone)."""
+        ``du_n >= 0`` (softplus: repulsive only), ``|du_t| <= mu du_n`` (Coulomb cone).
+
+        Without spin ``du_t = mu du_n tanh(out_1)``: the network learns the friction outright.
+        With spin, Coulomb friction with sticking is built in: the impulse that stops the
+        contact point's slip within the step is ``stick = |v_t,c| / k`` (k = 1 + m a^2 / I,
+        7/2 for a = R: the slip falls by k du_t, through both the balls' velocities and their
+        spins), and ``du_t = c tanh(s stick / c)`` with the cone ``c = mu du_n``: the stick
+        impulse where the cone allows it (rolling), the cone where it does not (sliding). The
+        network learns only ``s = 2 sigmoid(out_1)``, the share of the slip stopped in one step
+        (1 at initialisation: full sticking; the DEM's tangential spring lets a contact creep)."""
         phys = self.physics
         du_n = IMPULSE_SCALE * nn.softplus(logits[:, 0]) * geo["gate"]
-        du_t = phys.friction * du_n * jnp.tanh(logits[:, 1])
+        if self.spin:
+            cone = phys.friction * du_n
+            k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia
+            stick = 2.0 * jax.nn.sigmoid(logits[:, 1]) * geo["slip"] / k
+            du_t = cone * jnp.tanh(stick / (cone + 1e-12))
+        else:
+            du_t = phys.friction * du_n * jnp.tanh(logits[:, 1])
         m_star = jnp.where(geo["is_pw"], phys.ball_mass, 0.5 * phys.ball_mass)
         impulse = ((m_star * (-du_n))[:, None] * geo["normal"]
                    + (m_star * du_t)[:, None] * geo["tangent"])
