@@ -84,6 +84,13 @@ def test_a_spin_model_trains_warm_started_from_a_spinless_one(tmp_path, unbroken
     k_donor = donor.params["pp_net"]["dense_0"]["kernel"]
     assert k_spin.shape[0] == k_donor.shape[0] + 2        # |v_t| at the contact point, twice
     assert float(jnp.abs(k_spin[: k_donor.shape[0]] - k_donor).max()) < 0.05   # one small step
+    # its rollout from a record starts from the record's spins and saves them per frame
+    res = sj.run_rollout(spin_model, trajs[0], 3, 4 * cfg.dem.dt, None, save_every=1,
+                         progress=False)
+    omega = res["arrays"]["omega_model"]
+    assert omega.shape == res["arrays"]["pos"].shape
+    np.testing.assert_allclose(omega[0], trajs[0].omega[3])
+    assert np.abs(omega[-1] - omega[0]).max() > 0
     bare = [dataclasses.replace(t, omega=None) for t in trajs]
     with pytest.raises(TrainingError, match="omega"):
         train_contact(cfg, bare, tmp_path / "bare", log=lambda _: None, **TRAIN_KWARGS)

@@ -191,6 +191,9 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     arrays["t_pos"] = np.concatenate([[t0], arrays["t_pos"]])
     arrays["pos"] = np.concatenate([np.asarray(w0.positions[-1])[None], arrays["pos"]])
     arrays["offset"] = np.concatenate([np.asarray(w0.offsets[-1])[None], arrays["offset"]])
+    if "omega_model" in arrays:   # the spins of the frames, the initial one first as for pos
+        arrays["omega_model"] = np.concatenate([np.asarray(w0.spins)[None],
+                                                arrays["omega_model"]])
     summary = {
         "steps": n_steps,
         "duration_s": n_steps * dt,
