@@ -150,7 +150,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     tangent is that of the slip at the CONTACT POINT, v_rel - R (w_r + w_s) x n (a wall does
     not turn: its node's spin is 0), the inputs gain its speed (clipped and fine-scaled), and
     the dict gains ``w_node`` (n_node, 3) rad/s, ``w_rel`` (E, 3), w_r - w_s (w_r for a wall),
-    ``arm`` (E,) m, the contact arm R - overlap / 2, and ``slip`` (E,) m/s, |v_t,c|.
+    ``arm`` (E,) m, the contact arm R - overlap / 2, ``slip`` (E,) m/s, |v_t,c|, and
+    ``contacts_max`` (E,), the larger number of acting contacts of the edge's two balls (>= 1).
     """
     feats = jnp.asarray(graph.nodes["features"], DTYPE)
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
@@ -237,6 +238,15 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     gap_end = gap[-1] + u[-1] * dt
     reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin
     gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
+    if spin:
+        # Each contact's stick impulse is computed as if it were the ball's only one (a Jacobi
+        # sweep); a ball in a bed has several, whose impulses add up and would overshoot (and
+        # pump spin). Relaxed by the larger number of acting contacts of its two balls.
+        n_node = graph.nodes["features"].shape[0]
+        per_node = (jax.ops.segment_sum(gate, receivers, num_segments=n_node)
+                    + jax.ops.segment_sum(gate * is_pp, senders, num_segments=n_node))
+        extra["contacts_max"] = jnp.maximum(
+            jnp.maximum(per_node[receivers], jnp.where(is_pp, per_node[senders], 0.0)), 1.0)
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
@@ -367,9 +377,11 @@ class ContactNet(nn.Module):
 
         Without spin ``du_t = mu du_n tanh(out_1)``: the network learns the friction outright.
         With spin, Coulomb friction with sticking is built in: the impulse that stops the
-        contact point's slip within the step is ``stick = |v_t,c| / k`` (k = 1 + m a^2 / I,
-        7/2 for a = R: the slip falls by k du_t, through both the balls' velocities and their
-        spins), and ``du_t = c tanh(s stick / c)`` with the cone ``c = mu du_n``: the stick
+        contact point's slip within the step is ``|v_t,c| / k`` (k = 1 + m a^2 / I, 7/2 for
+        a = R: the slip falls by k du_t, through both the balls' velocities and their spins);
+        relaxed by the larger number n of acting contacts of the two balls (a Jacobi sweep,
+        whose impulses on a ball in a bed add up), ``stick = s |v_t,c| / (k n)``, and
+        ``du_t = c tanh(stick / c)`` with the cone ``c = mu du_n``: the stick
         impulse where the cone allows it (rolling), the cone where it does not (sliding). The
         network learns only ``s = 2 sigmoid(out_1)``, the share of the slip stopped in one step
         (1 at initialisation: full sticking; the DEM's tangential spring lets a contact creep)."""
@@ -378,7 +390,8 @@ class ContactNet(nn.Module):
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia
-            stick = 2.0 * jax.nn.sigmoid(logits[:, 1]) * geo["slip"] / k
+            stick = (2.0 * jax.nn.sigmoid(logits[:, 1]) * geo["slip"]
+                     / (k * geo["contacts_max"]))
             du_t = cone * jnp.tanh(stick / (cone + 1e-12))
         else:
             du_t = phys.friction * du_n * jnp.tanh(logits[:, 1])
