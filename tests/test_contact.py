@@ -507,3 +507,19 @@ def test_a_fresh_spin_model_sticks_a_sliding_ball_into_rolling_within_the_cone()
     du_n, du_t = np.asarray(terms["du_n"]), np.asarray(terms["du_t"])
     assert (np.abs(du_t) <= PHYS.friction * du_n * (1 + 1e-6) + 1e-12).all()
     assert contact_slip[3, 0] > 1.5
+
+
+def test_the_stick_impulse_is_relaxed_by_the_balls_number_of_contacts():
+    """A ball in a bed has several contacts, each computing its stick impulse as if it were the
+    ball's only one: each is divided by the larger number of acting contacts of its balls."""
+    window, _ = spinning_scene(0)
+    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    geo = edge_geometry(graph, PHYS, primary_only=True, spin=True)
+    gate, is_pp = np.asarray(geo["gate"]), np.asarray(geo["is_pp"])
+    recv, send = np.asarray(geo["receivers"]), np.asarray(geo["senders"])
+    count = np.zeros(graph.nodes["features"].shape[0])
+    np.add.at(count, recv, gate)
+    np.add.at(count, send, gate * is_pp)
+    expected = np.maximum(np.maximum(count[recv], np.where(is_pp, count[send], 0.0)), 1.0)
+    np.testing.assert_array_equal(np.asarray(geo["contacts_max"]), expected)
+    assert expected[gate > 0].max() >= 2     # the cluster's balls touch two others
