@@ -523,3 +523,14 @@ def test_the_stick_impulse_is_relaxed_by_the_balls_number_of_contacts():
     expected = np.maximum(np.maximum(count[recv], np.where(is_pp, count[send], 0.0)), 1.0)
     np.testing.assert_array_equal(np.asarray(geo["contacts_max"]), expected)
     assert expected[gate > 0].max() >= 2     # the cluster's balls touch two others
+
+
+def test_the_sgn_refuses_spin_before_any_work():
+    from sgn_jax.api import load_config, replace_section
+    from sgn_jax.surrogate.model import ModelKindError
+
+    cfg = replace_section(load_config("emax_300rpm"), "model", spin=True)   # kind "sgn"
+    with pytest.raises(ModelKindError, match="spin"):
+        model_factory("sgn").build_model(cfg)
+    contact = replace_section(cfg, "model", kind="contact", hidden=8, mlp_layers=2)
+    assert model_factory("contact").build_model(contact).spin
