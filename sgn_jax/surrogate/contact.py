@@ -210,12 +210,12 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         # midpoint of the centres, so the pair's angular momentum is conserved exactly.
         arm = radius - 0.5 * jnp.maximum(-gap[-1], 0.0)
         # contact point velocities: receiver v_r + w_r x (a n), partner v_s + w_s x (-a n)
-        v_t_contact = v_t - arm[:, None] * jnp.cross(w_r + w_s, normal)  # (w x n): tangential
-        slip_c = _safe_norm(v_t_contact)
-        tangent = v_t_contact / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
+        v_slip = v_t - arm[:, None] * jnp.cross(w_r + w_s, normal)  # (w x n): tangential
+        slip_c = _safe_norm(v_slip)
         extra = {"w_node": w_node, "w_rel": w_r - w_s, "arm": arm, "slip": slip_c}
     else:
-        tangent = v_t / jnp.sqrt(speed_t * speed_t + TANGENT_EPS ** 2)[:, None]
+        v_slip, slip_c = v_t, speed_t
+    tangent = v_slip / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
 
     g = jnp.asarray(phys.gravity, DTYPE)
     # Relative acceleration of the partner along n over one step (m/s): for a wall the jar's
@@ -371,6 +371,11 @@ class ContactNet(nn.Module):
             pw_net(jax.lax.dynamic_slice_in_dim(x, kept, wall_rows)), kept, axis=0)
         return jnp.where(is_pw, pw_out, pp_out)
 
+    def _reduced_mass(self, geo: dict[str, jax.Array]) -> jax.Array:
+        """(E,) kg: m* of each contact, m / 2 for a pair of equal balls, m against a wall."""
+        mass = self.physics.ball_mass
+        return jnp.where(geo["is_pw"], mass, 0.5 * mass)
+
     def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
         """Impulse (E, 3) N s on each contact's receiver ball from the logits (E, 2):
         ``du_n >= 0`` (softplus: repulsive only), ``|du_t| <= mu du_n`` (Coulomb cone).
@@ -395,7 +400,7 @@ class ContactNet(nn.Module):
             du_t = cone * jnp.tanh(stick / (cone + 1e-12))
         else:
             du_t = phys.friction * du_n * jnp.tanh(logits[:, 1])
-        m_star = jnp.where(geo["is_pw"], phys.ball_mass, 0.5 * phys.ball_mass)
+        m_star = self._reduced_mass(geo)
         impulse = ((m_star * (-du_n))[:, None] * geo["normal"]
                    + (m_star * du_t)[:, None] * geo["tangent"])
         return impulse, du_n, du_t
@@ -412,7 +417,7 @@ class ContactNet(nn.Module):
         phys = self.physics
         arm, inertia = geo["arm"], phys.inertia
         a_contact = arm[:, None] * jnp.cross(geo["normal"], impulse)
-        m_star = jnp.where(geo["is_pw"], phys.ball_mass, 0.5 * phys.ball_mass)
+        m_star = self._reduced_mass(geo)
         w_rel = geo["w_rel"]
         w_norm = _safe_norm(w_rel)
         i_eff = jnp.where(geo["is_pw"], inertia, 0.5 * inertia)

@@ -470,13 +470,6 @@ def _jit_canonical(fn: Callable[..., RolloutResult], state_arg: bool) -> Callabl
     return wrapper
 
 
-def _spins_of(window: Window) -> jax.Array:
-    """(N, 3) rad/s: the window's spins, zeros where it has none."""
-    if window.spins is None:
-        return jnp.zeros(window.positions.shape[1:], F64)
-    return window.spins
-
-
 def _as_f64(window: Window) -> Window:
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, F64), window)
 
@@ -595,7 +588,7 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
         def frame(carry: RolloutState, _: Any):
             carry, records = jax.lax.scan(step_fn, carry, None, length=save_every, unroll=unroll)
             return carry, (records, carry.window.positions[-1], carry.window.offsets[-1],
-                           _spins_of(carry.window))
+                           with_spins(carry.window).spins)
 
         def chunk(carry: RolloutState, length: int):
             return jax.lax.scan(frame, carry, None, length=length)
@@ -654,7 +647,7 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
             t_pos=jnp.concatenate([jnp.asarray(t0, F64)[None], result.t_pos]),
             positions=jnp.concatenate([state.window.positions[-1][None], result.positions]),
             offsets=jnp.concatenate([state.window.offsets[-1][None], result.offsets]),
-            spins=jnp.concatenate([_spins_of(state.window)[None], result.spins]))
+            spins=jnp.concatenate([with_spins(state.window).spins[None], result.spins]))
 
     return _jit_canonical(rollout, state_arg=False) if jit else rollout
 
