@@ -14,7 +14,6 @@ from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from sgn_jax.config import ConfigError, MotionConfig
 from sgn_jax.dem.engine import DEMParams, make_params
@@ -118,6 +117,8 @@ def load_stl(path: str | Path, units: str = "m") -> Any:
     path = Path(path)
     if not path.is_file():
         raise GeometryError(f"STL file not found: {path} (check [jar] stl_path)")
+    import trimesh  # here, not at the top: 0.35 s of every process's start, for STL jars only
+
     try:
         mesh = trimesh.load(str(path), file_type="stl", force="mesh", process=True)
     except Exception as exc:  # trimesh raises a variety of parse errors

@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import qmc
 
 from sgn_jax.config import ConfigError, MotionConfig
 
@@ -164,6 +163,10 @@ def latin_hypercube_motions(env: MotionEnvelope, n_circle: int, n_harmonic: int,
     """
     if n_circle < 0 or n_harmonic < 0:
         raise ValueError(f"motion counts must be >= 0, got {n_circle}, {n_harmonic}")
+    # scipy.stats is imported here, not at the top: it costs 0.7 s of every process's start
+    # (each CLI command, each test worker) and only the design of new motions needs it.
+    from scipy.stats import qmc
+
     motions: list[MotionConfig] = []
     if n_circle:
         u = qmc.LatinHypercube(d=2, seed=seed).random(n_circle)
