@@ -35,6 +35,7 @@ SAMPLE_STEPS = 106  # dt_dem = 1e-4 / 106
 # observe and the SDFs run jitted in these tests (issue 20): one compiled program instead of
 # dozens of op-by-op compiles; the same functions, the same numbers.
 _observe = jax.jit(observe, static_argnums=(0, 1, 4))
+_ledger_balance = jax.jit(ledger_balance, static_argnums=(0, 1))
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +92,7 @@ def test_settled_bed_is_at_rest_inside(standard):
 
 def _check_run(setup, params, settled, n_samples):
     """Run n_samples from the settled bed; check ledger closure and that no ball escapes."""
-    base = float(ledger_balance(setup.spec, setup.jar.wall_fn, params, settled))
+    base = float(_ledger_balance(setup.spec, setup.jar.wall_fn, params, settled))
     _, samples = _run_samples(setup, params, settled, n_samples)
     dissipation = samples["diss_pp"].sum(axis=1) + samples["diss_pw"].sum(axis=1)
     residual = _balance(samples)[-1] - base

@@ -182,7 +182,8 @@ def test_separate_pairs_known_answer():
     positions = jnp.array([[0.0, 0.0, 0.0], [0.009, 0.0, 0.0],  # 1 mm overlap
                            [0.0, 0.03, 0.0],  # far away
                            [0.0, 0.0, 0.05], [0.0, 0.0, 0.05]])  # coincident: no normal
-    shift, n_pairs = separate_pairs(positions, radius, limit)
+    separate = jax.jit(separate_pairs, static_argnums=(1, 2))  # one compile (issue 20)
+    shift, n_pairs = separate(positions, radius, limit)
     shift = np.asarray(shift)
     moved = positions + shift
     assert int(n_pairs) == 1
@@ -192,7 +193,7 @@ def test_separate_pairs_known_answer():
     np.testing.assert_allclose(shift[1], -shift[0], rtol=0, atol=1e-15)  # momentum-neutral
     np.testing.assert_array_equal(shift[2:], 0.0)
     # within the allowed overlap nothing moves
-    shift, n_pairs = separate_pairs(positions.at[1, 0].set(0.00996), radius, limit)
+    shift, n_pairs = separate(positions.at[1, 0].set(0.00996), radius, limit)
     assert int(n_pairs) == 0 and np.all(np.asarray(shift) == 0.0)
 
 
