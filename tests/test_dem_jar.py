@@ -258,7 +258,7 @@ def test_placement_is_seeded_non_overlapping_and_inside():
     assert not np.allclose(a, c)
     d = np.linalg.norm(a[:, None] - a[None], axis=-1) + np.eye(24)
     assert d.min() >= 0.0105 - 1e-12
-    assert float(jnp.max(sdf(jnp.asarray(a)))) < -0.0055 + 1e-12
+    assert float(jnp.max(jax.jit(sdf)(jnp.asarray(a)))) < -0.0055 + 1e-12
     with pytest.raises(PlacementError, match="could place only"):
         place_balls(sdf, jar.lower, jar.upper, 250, 0.005, seed=0, max_candidates=20_000)
 
