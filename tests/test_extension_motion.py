@@ -77,9 +77,12 @@ TIMES = np.array([0.0, 0.0123, 0.05, 0.1377, 0.9])
 def test_offset_velocity_acceleration_frequency_match_the_formula():
     motion = _ellipse()
     x, v, a = _analytic(RPM, SEMI_X, SEMI_Z, PHASE, TIMES)
-    np.testing.assert_allclose(np.asarray(offset(motion, TIMES)), x, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(np.asarray(velocity(motion, TIMES)), v, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(np.asarray(acceleration(motion, TIMES)), a, rtol=0, atol=1e-10)
+    # jitted (issue 20): one compile each instead of op-by-op; the shapes below stay eager
+    np.testing.assert_allclose(np.asarray(jax.jit(offset)(motion, TIMES)), x, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(jax.jit(velocity)(motion, TIMES)), v, rtol=0,
+                               atol=1e-13)
+    np.testing.assert_allclose(np.asarray(jax.jit(acceleration)(motion, TIMES)), a, rtol=0,
+                               atol=1e-10)
     assert float(frequency_hz(motion)) == pytest.approx(RPM / 60)
     assert offset(motion, 0.05).shape == (3,)
     assert offset(motion, TIMES.reshape(5, 1)).shape == (5, 1, 3)
@@ -102,10 +105,10 @@ def test_jit_vmap_stack_and_spline():
         stack_motions([motions[0], CircleMotion(rpm=300.0, amplitude=0.017)])
     # Any registered kind samples into a spline; the spline goes through its points.
     spline = spline_from_motion(motions[0], 16, 1.0 / float(frequency_hz(motions[0])))
-    np.testing.assert_allclose(np.asarray(offset(spline, 0.0)),
-                               np.asarray(offset(motions[0], 0.0)), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(jax.jit(offset)(spline, 0.0)),
+                               np.asarray(jax.jit(offset)(motions[0], 0.0)), atol=1e-15)
     # Differentiable in the new kind's parameters.
-    grad = jax.grad(lambda m: offset(m, 0.0123)[0])(motions[0])
+    grad = jax.jit(jax.grad(lambda m: offset(m, 0.0123)[0]))(motions[0])
     angle = 2 * np.pi * float(motions[0].rpm) / 60 * 0.0123 + float(motions[0].phase)
     assert float(grad.semi_x) == pytest.approx(np.sin(angle))
     assert float(grad.semi_z) == 0.0
@@ -200,7 +203,7 @@ def test_dem_driven_by_the_elliptical_motion(standard_setup):
     # The jar went once round the ellipse (not a circle) and the balls stayed inside it.
     assert np.abs(samples["offset"][:, 0]).max() == pytest.approx(SEMI_X, rel=1e-4)
     assert np.abs(samples["offset"][:, 2]).max() == pytest.approx(SEMI_Z, rel=1e-4)
-    phi = jax.vmap(lambda p: jar.sdf_fn(jar.geometry, p))(
+    phi = jax.jit(jax.vmap(lambda p: jar.sdf_fn(jar.geometry, p)))(
         jnp.asarray(samples["pos"] - samples["offset"][:, None, :]))
     assert float(jnp.max(phi)) < 0.0
     assert np.all(np.isfinite(samples["pos"]))

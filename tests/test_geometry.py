@@ -37,6 +37,13 @@ POST = JarParams(post_radius=0.006, has_post=True)
 BALL_RADIUS = 0.005
 
 
+# The analytic SDFs run jitted (issue 20): one compiled program per jar and point shape instead
+# of dozens of op-by-op compiles per call; the same functions, the same numbers.
+_jar_sdf = jax.jit(jar_sdf)
+_jar_patch_sdf = jax.jit(jar_patch_sdf)
+_jar_patch_sdf_and_normal = jax.jit(jar_patch_sdf_and_normal)
+
+
 def sagitta(radius: float, segments: int) -> float:
     """Largest gap between a circle and its inscribed polygon with vertices on the circle."""
     return radius * (1 - math.cos(math.pi / segments))
@@ -52,7 +59,7 @@ def random_points(rng: np.random.Generator, n: int, pad: float = 0.004) -> np.nd
 def cavity_points(params: JarParams, rng: np.random.Generator, n: int) -> np.ndarray:
     """n uniform points strictly inside the cavity (rejection sampling on jar_sdf < 0)."""
     pts = random_points(rng, 6 * n, pad=0.0)
-    inside = np.asarray(jar_sdf(params, jnp.asarray(pts))) < 0
+    inside = np.asarray(_jar_sdf(params, jnp.asarray(pts))) < 0
     assert inside.sum() >= n
     return pts[inside][:n]
 
@@ -113,12 +120,12 @@ def test_jar_mesh_is_closed_and_has_the_analytic_volume(params_name, default_mes
 
 def test_mesh_vertices_lie_on_the_analytic_surface(default_mesh, post_mesh):
     for params, mesh in [(DEFAULT, default_mesh), (POST, post_mesh)]:
-        phi = np.asarray(jar_sdf(params, jnp.asarray(mesh.vertices)))
+        phi = np.asarray(_jar_sdf(params, jnp.asarray(mesh.vertices)))
         # manifold3d rounds the cross-section coordinates at the nanometre level
         assert np.abs(phi).max() < 1e-8
         # the face normals point out of the cavity: phi grows along them
         centers = mesh.triangles_center + 1e-4 * mesh.face_normals
-        assert np.all(np.asarray(jar_sdf(params, jnp.asarray(centers))) > 0)
+        assert np.all(np.asarray(_jar_sdf(params, jnp.asarray(centers))) > 0)
 
 
 def test_jar_mesh_rejects_bad_input():
@@ -230,7 +237,7 @@ def test_jar_sdf_is_the_exact_distance(params_name):
     segments = 1024
     fine = jar_mesh(params, segments=segments)
     pts = random_points(np.random.default_rng(0), 4000)
-    phi = np.asarray(jar_sdf(params, jnp.asarray(pts)))
+    phi = np.asarray(_jar_sdf(params, jnp.asarray(pts)))
     reference = mesh_signed_distance(fine, pts)
     tolerance = sagitta(params.radius, segments) + 1e-8
     err = np.abs(phi - reference)
@@ -292,25 +299,25 @@ def test_jar_sdf_gradients_match_finite_differences():
 @pytest.mark.parametrize("params", [DEFAULT, POST], ids=["default", "post"])
 def test_patch_max_equals_jar_sdf_inside(params):
     pts = jnp.asarray(cavity_points(params, np.random.default_rng(3), 5000))
-    patches = jar_patch_sdf(params, pts)
+    patches = _jar_patch_sdf(params, pts)
     assert patches.shape == (5000, len(patch_names(params)))
-    np.testing.assert_allclose(np.asarray(patches.max(axis=-1)), np.asarray(jar_sdf(params, pts)),
+    np.testing.assert_allclose(np.asarray(patches.max(axis=-1)), np.asarray(_jar_sdf(params, pts)),
                                atol=1e-15)
 
 
 @pytest.mark.parametrize("params", [DEFAULT, POST], ids=["default", "post"])
 def test_patch_normals_are_unit_gradients(params):
     pts = jnp.asarray(random_points(np.random.default_rng(4), 500))
-    phi, normal = jar_patch_sdf_and_normal(params, pts)
+    phi, normal = _jar_patch_sdf_and_normal(params, pts)
     n_patches = len(patch_names(params))
     assert normal.shape == (500, n_patches, 3)
     np.testing.assert_allclose(np.linalg.norm(np.asarray(normal), axis=-1), 1.0, atol=1e-12)
-    jac = jax.vmap(jax.jacfwd(lambda x: jar_patch_sdf(params, x)))(pts)  # (500, P, 3)
+    jac = jax.jit(jax.vmap(jax.jacfwd(lambda x: jar_patch_sdf(params, x))))(pts)  # (500, P, 3)
     np.testing.assert_allclose(np.asarray(jac), np.asarray(normal), atol=1e-12)
     # The normal points towards the wall: moving along it by delta raises phi by delta.
     delta = 1e-4
-    moved = jnp.stack([jar_patch_sdf(params, pts + delta * normal[:, k])[:, k]
-                       for k in range(n_patches)], axis=-1)
+    moved = jax.jit(lambda x, n: jnp.stack([jar_patch_sdf(params, x + delta * n[:, k])[:, k]
+                                            for k in range(n_patches)], axis=-1))(pts, normal)
     np.testing.assert_allclose(np.asarray(moved - phi), delta, atol=1e-12)
 
 
@@ -318,16 +325,16 @@ def test_ball_in_floor_side_edge_feels_both_walls():
     # A ball (R = 5 mm) resting in the concave edge where the floor meets the straight wall:
     # its centre is 4 mm above the floor and 4 mm from the side wall (both overlapping 1 mm).
     centre = jnp.array([0.005, 0.004, 0.020 - 0.004])
-    phi = np.asarray(jar_patch_sdf(DEFAULT, centre))
+    phi = np.asarray(_jar_patch_sdf(DEFAULT, centre))
     names = patch_names(DEFAULT)
     touching = {names[k] for k in range(len(names)) if phi[k] > -BALL_RADIUS}
     assert touching == {"floor", "side"}
     np.testing.assert_allclose(phi[[0, 2]], [-0.004, -0.004], atol=1e-15)
     # the combined SDF sees only one contact distance, the patches give two
-    assert float(jar_sdf(DEFAULT, centre)) == pytest.approx(-0.004, abs=1e-15)
+    assert float(_jar_sdf(DEFAULT, centre)) == pytest.approx(-0.004, abs=1e-15)
     # the same near the post and the lid
     centre = jnp.array([0.0, 0.047 - 0.003, 0.006 + 0.002])
-    phi = dict(zip(patch_names(POST), np.asarray(jar_patch_sdf(POST, centre)), strict=True))
+    phi = dict(zip(patch_names(POST), np.asarray(_jar_patch_sdf(POST, centre)), strict=True))
     assert {k for k, v in phi.items() if v > -BALL_RADIUS} == {"lid", "post"}
 
 

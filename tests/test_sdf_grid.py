@@ -39,6 +39,25 @@ BALL_RADIUS = 0.005
 PHI_SB = -0.0049  # snap-back threshold of the surrogate (SPEC)
 
 
+# The exact SDFs and the grid queries run jitted (issue 20): one compiled program per jar and
+# point shape instead of dozens of op-by-op compiles per call (the same functions, the same
+# numbers). test_jit_and_vmap keeps the eager query as the reference of the jitted ones.
+_jar_sdf = jax.jit(jar_sdf)
+_jar_patch_sdf = jax.jit(jar_patch_sdf)
+_jar_patch_sdf_and_normal = jax.jit(jar_patch_sdf_and_normal)
+_grid_sdf = jax.jit(grid_sdf)
+_query = jax.jit(query_sdf_grid)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _jitted_accuracy_sdf():
+    """sgn_jax.geometry.accuracy (cavity points, piece labels) evaluates jar_sdf eagerly; in
+    this module it gets the jitted jar_sdf (the same function, compiled once per shape)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(accuracy, "jar_sdf", _jar_sdf)
+        yield
+
+
 def cavity_points(params: JarParams, n: int, seed: int) -> np.ndarray:
     return accuracy.cavity_points(params, n, seed)
 
@@ -89,7 +108,7 @@ def test_default_jar_grid_has_nodes_on_its_planes(grids):
     for axis, planes in [(x_axis, [0.0, 0.0175, -0.0175]), (y_axis, [0.0, 0.047]), (z_axis, [0.0])]:
         for plane in planes:
             assert np.abs(axis - plane).min() < 1e-12, plane
-    exact = np.asarray(jar_sdf(DEFAULT, jnp.asarray(nodes)))
+    exact = np.asarray(_jar_sdf(DEFAULT, jnp.asarray(nodes)))
     np.testing.assert_allclose(np.asarray(combined.values), exact, atol=1e-15)
     # The patch-stacked grid: same box and nodes, one (nx, ny, nz) block per patch; the max over
     # the patches is the exact SDF at every cavity node (outside it is a lower bound).
@@ -98,7 +117,7 @@ def test_default_jar_grid_has_nodes_on_its_planes(grids):
     assert stacked.shape == combined.shape
     np.testing.assert_allclose(np.asarray(stacked.origin), np.asarray(combined.origin), atol=0)
     np.testing.assert_allclose(np.asarray(stacked.upper), np.asarray(combined.upper), atol=0)
-    patches = np.moveaxis(np.asarray(jar_patch_sdf(DEFAULT, jnp.asarray(nodes))), -1, 0)
+    patches = np.moveaxis(np.asarray(_jar_patch_sdf(DEFAULT, jnp.asarray(nodes))), -1, 0)
     np.testing.assert_allclose(np.asarray(stacked.values), patches, atol=1e-15)
     inside = exact < 0
     np.testing.assert_allclose(np.asarray(stacked.values).max(0)[inside], exact[inside], atol=1e-15)
@@ -116,8 +135,8 @@ def test_combined_grid_interpolation_error_against_exact_distance(grids, name):
     grid = grids[(name, "f32", "combined")]
     h = grid.spacing
     pts = cavity_points(params, 20_000, seed=11)
-    exact = np.asarray(jar_sdf(params, jnp.asarray(pts)))
-    phi = np.asarray(grid_sdf(grid, jnp.asarray(pts, jnp.float32)), dtype=np.float64)
+    exact = np.asarray(_jar_sdf(params, jnp.asarray(pts)))
+    phi = np.asarray(_grid_sdf(grid, jnp.asarray(pts, jnp.float32)), dtype=np.float64)
     err = np.abs(phi - exact)
 
     corners = cell_corners(grid, pts)
@@ -196,10 +215,10 @@ def test_patch_grid_error_against_exact_distance(grids, name):
     h = grid.spacing
     assert grid.values.ndim == 4 and grid.n_patches == (4 if name == "post" else 3)
     pts = cavity_points(params, 20_000, seed=11)
-    exact = np.asarray(jar_sdf(params, jnp.asarray(pts)))
+    exact = np.asarray(_jar_sdf(params, jnp.asarray(pts)))
     pts32 = jnp.asarray(pts, jnp.float32)
-    err = np.abs(np.asarray(grid_sdf(grid, pts32), dtype=np.float64) - exact)
-    err_combined = np.abs(np.asarray(grid_sdf(combined, pts32), dtype=np.float64) - exact)
+    err = np.abs(np.asarray(_grid_sdf(grid, pts32), dtype=np.float64) - exact)
+    err_combined = np.abs(np.asarray(_grid_sdf(combined, pts32), dtype=np.float64) - exact)
 
     corners = cell_corners(grid, pts)
     labels = piece_labels(params, pts)
@@ -265,9 +284,9 @@ def test_ball_in_a_corner_reads_minus_its_radius(grids, name):
         rho = params.post_radius + BALL_RADIUS
         y = np.where(rng.uniform(size=1000) < 0.5, BALL_RADIUS, params.height - BALL_RADIUS)
         centres = np.concatenate([centres, np.stack([rho * np.cos(angle), y, rho * np.sin(angle)], 1)])
-    np.testing.assert_allclose(np.asarray(jar_sdf(params, jnp.asarray(centres))), -BALL_RADIUS,
+    np.testing.assert_allclose(np.asarray(_jar_sdf(params, jnp.asarray(centres))), -BALL_RADIUS,
                                atol=1e-15)
-    query = jax.jit(query_sdf_grid)
+    query = _query
     zero = jnp.zeros(3, jnp.float32)
     phi, normal = query(grid, jnp.asarray(centres, jnp.float32), zero)
     phi_before, _ = query(combined, jnp.asarray(centres, jnp.float32), zero)
@@ -277,7 +296,7 @@ def test_ball_in_a_corner_reads_minus_its_radius(grids, name):
     assert np.asarray(phi).max() < PHI_SB - 5e-5
     assert np.asarray(phi_before).max() > PHI_SB  # before: snapped back in the corner
     # the normal is one of the two touching walls' normals, not a blend
-    _, patch_normals = jar_patch_sdf_and_normal(params, jnp.asarray(centres))
+    _, patch_normals = _jar_patch_sdf_and_normal(params, jnp.asarray(centres))
     cosines = np.einsum("npk,nk->np", np.asarray(patch_normals), np.asarray(normal, np.float64))
     assert cosines.max(axis=1).min() > 0.999
 
@@ -289,14 +308,14 @@ def test_patch_grid_normals_in_corners_point_to_the_nearest_wall(grids, name):
     the combined grid blends them over a cell around the medial surface."""
     params = DEFAULT if name == "default" else POST_JAR
     pts = cavity_points(params, 40_000, seed=21)
-    patch_phi, patch_normal = (np.asarray(a) for a in jar_patch_sdf_and_normal(params, jnp.asarray(pts)))
+    patch_phi, patch_normal = (np.asarray(a) for a in _jar_patch_sdf_and_normal(params, jnp.asarray(pts)))
     order = np.argsort(-patch_phi, axis=1)
     rows = np.arange(len(pts))
     first, second = patch_phi[rows, order[:, 0]], patch_phi[rows, order[:, 1]]
     corner = second > -0.006
     clear = corner & (first - second > 2e-5)  # well above the interpolation error: no tie
     assert clear.sum() > 3000
-    query = jax.jit(query_sdf_grid)
+    query = _query
     results = {}
     for kind in ("stacked", "combined"):
         grid = grids[(name, "f32")] if kind == "stacked" else grids[(name, "f32", "combined")]
@@ -324,7 +343,7 @@ def test_patch_grid_is_the_max_of_its_single_patch_grids(grids):
     stacked = grids[("post", "f32")]
     pts = jnp.asarray(cavity_points(POST_JAR, 3000, seed=22), jnp.float64)
     offset = jnp.array([0.003, 0.0, -0.002])
-    query = jax.jit(query_sdf_grid)
+    query = _query
     phi, normal = query(stacked, pts + offset, offset)
     singles = [query(SDFGrid(stacked.values[p], stacked.origin, stacked.spacing), pts + offset, offset)
                for p in range(stacked.n_patches)]
@@ -341,7 +360,7 @@ def test_patch_grid_is_the_max_of_its_single_patch_grids(grids):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     axes = [np.asarray(plain.origin[a]) + plain.spacing * np.arange(n) for a, n in enumerate(plain.shape)]
     reference = RegularGridInterpolator(axes, np.asarray(plain.values), method="linear")(np.asarray(pts))
-    np.testing.assert_allclose(np.asarray(grid_sdf(plain, pts)), reference, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(_grid_sdf(plain, pts)), reference, rtol=0, atol=1e-15)
 
     with pytest.raises(GeometryError, match=r"\(P, nx, ny, nz\)"):
         grid_sdf(SDFGrid(plain.values[0], plain.origin, plain.spacing), pts)
@@ -356,10 +375,10 @@ def test_patch_grid_outside_the_cavity_has_the_right_sign(grids, name):
     grid = grids[(name, "f32")]
     rng = np.random.default_rng(23)
     pts = rng.uniform(np.asarray(grid.origin), np.asarray(grid.upper), (40_000, 3))
-    exact = np.asarray(jar_sdf(params, jnp.asarray(pts)))
+    exact = np.asarray(_jar_sdf(params, jnp.asarray(pts)))
     outside = exact > 1e-5  # beyond the interpolation error of a patch (< 6 um)
     assert outside.sum() > 5000
-    phi = np.asarray(grid_sdf(grid, jnp.asarray(pts, jnp.float32)), np.float64)
+    phi = np.asarray(_grid_sdf(grid, jnp.asarray(pts, jnp.float32)), np.float64)
     assert np.all(phi[outside] > 0)
     assert np.all(phi[outside] <= exact[outside] + 6e-6)
     on_face = outside & (piece_labels(params, pts) != CORNER)
@@ -440,7 +459,7 @@ def test_grid_from_config_emax_and_stl(tmp_path, monkeypatch):
 def test_normals_are_unit_and_point_to_the_nearest_wall(grids):
     grid = grids[("default", "f64")]
     pts = cavity_points(DEFAULT, 5000, seed=12)
-    query = jax.jit(query_sdf_grid)
+    query = _query
     phi, normal = query(grid, jnp.asarray(pts), jnp.zeros(3))
     normal = np.asarray(normal)
     np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-12)
@@ -470,7 +489,7 @@ def test_gradients_match_finite_differences(grids, kind):
     g_values, g_points, g_offset = jax.jit(jax.grad(total, argnums=(0, 1, 2)))(grid.values, lab, offset)
     # d phi / d offset = - sum of d phi / d points
     np.testing.assert_allclose(np.asarray(g_offset), -np.asarray(g_points).sum(0), atol=1e-12)
-    query = jax.jit(query_sdf_grid)
+    query = _query
     # d phi / d point is the gradient behind the returned normal
     phi, normal = query(grid, lab, offset)
     norms = np.linalg.norm(np.asarray(g_points), axis=1)
@@ -497,7 +516,7 @@ def test_offset_translates_the_field(grids):
     grid = grids[("default", "f32")]
     pts = jnp.asarray(cavity_points(DEFAULT, 100, seed=15), jnp.float32)
     offset = jnp.array([0.017, 0.0, -0.004], jnp.float32)
-    query = jax.jit(query_sdf_grid)
+    query = _query
     phi_lab, n_lab = query(grid, pts + offset, offset)
     phi_jar, n_jar = query(grid, pts, jnp.zeros(3, jnp.float32))
     np.testing.assert_allclose(np.asarray(phi_lab), np.asarray(phi_jar), atol=2e-8)
@@ -529,7 +548,7 @@ def test_points_outside_the_grid_are_finite_and_positive(grids):
     directions = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [1, 1, 1]], float)
     distances = np.array([1e-3, 1e-2, 1.0, 1e3])
     pts = (directions[:, None, :] * (upper + distances[:, None])[None]).reshape(-1, 3)
-    phi, normal = query_sdf_grid(grid, jnp.asarray(pts, jnp.float32), jnp.zeros(3, jnp.float32))
+    phi, normal = _query(grid, jnp.asarray(pts, jnp.float32), jnp.zeros(3, jnp.float32))
     phi, normal = np.asarray(phi), np.asarray(normal)
     assert np.all(np.isfinite(phi)) and np.all(np.isfinite(normal))
     assert np.all(phi > 0)
@@ -538,21 +557,21 @@ def test_points_outside_the_grid_are_finite_and_positive(grids):
     phi = phi.reshape(len(directions), len(distances))
     assert np.all(np.diff(phi, axis=1) > 0)
     # an escaped ball at 1 km still gets a gradient pointing outwards
-    grad = jax.grad(lambda p: grid_sdf(grid, p))(jnp.array([1e3, 0.01, 0.0], jnp.float32))
+    grad = jax.jit(jax.grad(lambda p: grid_sdf(grid, p)))(jnp.array([1e3, 0.01, 0.0], jnp.float32))
     assert np.all(np.isfinite(np.asarray(grad))) and float(grad[0]) > 0.99
     # the exact distance there is also positive and close (the box margin is 3 mm)
-    exact = np.asarray(jar_sdf(DEFAULT, jnp.asarray(pts)))
+    exact = np.asarray(_jar_sdf(DEFAULT, jnp.asarray(pts)))
     assert np.all(exact > 0)
 
 
 def test_dtype_follows_inputs(grids):
     g32, g64 = grids[("default", "f32")], grids[("default", "f64")]
     pts32 = jnp.asarray(cavity_points(DEFAULT, 8, seed=18), jnp.float32)
-    phi, normal = query_sdf_grid(g32, pts32, jnp.zeros(3, jnp.float32))
+    phi, normal = _query(g32, pts32, jnp.zeros(3, jnp.float32))
     assert phi.dtype == jnp.float32 and normal.dtype == jnp.float32
-    phi, normal = query_sdf_grid(g32, pts32.astype(jnp.float64), jnp.zeros(3))
+    phi, normal = _query(g32, pts32.astype(jnp.float64), jnp.zeros(3))
     assert phi.dtype == jnp.float64
-    phi, _ = query_sdf_grid(g64, pts32.astype(jnp.float64), jnp.zeros(3))
+    phi, _ = _query(g64, pts32.astype(jnp.float64), jnp.zeros(3))
     assert phi.dtype == jnp.float64
 
 
