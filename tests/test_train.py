@@ -156,11 +156,18 @@ def test_lr_schedule_is_exponential_between_the_ends():
     assert lr_at(0.5, 1e-4, 1e-6) == pytest.approx(1e-5)
 
 
-def test_tiny_model_overfits_tiny_dataset(data):
+@pytest.fixture(scope="module")
+def tiny_batch(data):
+    """One batch of 12 samples, for the two tests that train SGN(hidden=32) on it: their
+    weight-1 train steps are then the same program, compiled once (issue 20)."""
     ds = data[4]
     sub = np.arange(0, 48, 4)  # 12 samples
     packer = BatchPacker(ds, 12, batch_edge_capacity(ds.edges_per_sample, 12))
-    batch = packer.make(sub)
+    return packer.make(sub)
+
+
+def test_tiny_model_overfits_tiny_dataset(tiny_batch):
+    batch = tiny_batch
     model = SGN(hidden=32)
     apply = make_apply(model)
     tx = make_optimizer(3e-3)
@@ -182,13 +189,13 @@ def test_tiny_model_overfits_tiny_dataset(data):
     assert final < first / 10, (first, final)
 
 
-def test_no_global_loss_leaves_the_global_readout_untrained(data):
+def test_no_global_loss_leaves_the_global_readout_untrained(tiny_batch):
     """global_loss_weight = 0 (the paper's appendix ablation): the dE head gets no gradient,
-    so Adam leaves its parameters exactly as initialised, while the rest of the network moves."""
-    ds = data[4]
-    packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
-    batch = packer.make(np.arange(6))
-    model = SGN(hidden=24)
+    so Adam leaves its parameters exactly as initialised, while the rest of the network moves.
+    (The model and batch of test_tiny_model_overfits_tiny_dataset: the weight-1 step is its
+    program, not compiled again.)"""
+    batch = tiny_batch
+    model = SGN(hidden=32)
     apply = make_apply(model)
     tx = make_optimizer(1e-3)
     params = init_params(model, batch.graph, 0)
