@@ -45,8 +45,6 @@ SPEC = GraphSpec(n_particles=N, window=W, ball_radius=0.005, dt=1e-4, pp_pair_ca
 
 # The tests' normalisation of graphs as one program, instead of dozens of eager op compiles
 # (issue 20); test_normalisation_round_trip_... checks normalize_graph itself, called as is.
-# (Initialisation stays eager: jitted, each model's init is a 3-5 s compile of its random
-# number generation, eager it reuses the op programs every other init has compiled.)
 normalize = jax.jit(normalize_graph)
 
 
@@ -59,6 +57,24 @@ def windows():
 @pytest.fixture(scope="module")
 def builder(jar):
     return jax.jit(lambda w: build_graph(w, jar, SPEC, analytic_query))
+
+
+def _random_weights(model, graph, seed):
+    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
+    at 2 std, zero biases), in numpy: the tests need some weights, and the model's init run
+    eagerly is ~150 op compiles (~6 s), jitted a 3-5 s compile (issue 20)."""
+    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
+    rng = np.random.default_rng(seed)
+
+    def draw(path, leaf):
+        if jax.tree_util.keystr(path).endswith("['bias']"):
+            return np.zeros(leaf.shape, leaf.dtype)
+        z = rng.standard_normal(leaf.shape)
+        while np.any(np.abs(z) > 2.0):
+            z = np.where(np.abs(z) > 2.0, rng.standard_normal(leaf.shape), z)
+        return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
+
+    return jax.tree_util.tree_map_with_path(draw, shapes)
 
 
 def _stats(graphs):
@@ -79,7 +95,7 @@ def setup(windows, builder):
               for k in range(0, 30, 3)]
     stats = _stats(graphs)
     model = SGN(hidden=16, mlp_layers=4, interaction_layers=1)
-    params = init_params(model, normalize(graphs[0], stats), 1)
+    params = _random_weights(model, normalize(graphs[0], stats), 1)
     return graphs, stats, model, params
 
 
@@ -146,13 +162,14 @@ def test_model_matches_a_reference_implementation(setup):
 
 
 def _with_random_biases(params, seed):
-    """``params`` with N(0, 0.1) biases (init gives zeros), so every bias path is exercised."""
-    key = jax.random.PRNGKey(seed)
+    """``params`` with N(0, 0.1) biases (init gives zeros), so every bias path is exercised
+    (drawn in numpy: no eager op compiles, issue 20)."""
+    rng = np.random.default_rng(seed)
     leaves, tree = jax.tree_util.tree_flatten_with_path(params)
     return jax.tree_util.tree_unflatten(tree, [
-        0.1 * jax.random.normal(jax.random.fold_in(key, i), leaf.shape, leaf.dtype)
+        (0.1 * rng.standard_normal(leaf.shape)).astype(leaf.dtype)
         if "bias" in jax.tree_util.keystr(path) else leaf
-        for i, (path, leaf) in enumerate(leaves)])
+        for path, leaf in leaves])
 
 
 def _random_graph(graph, seed, n_real):
@@ -179,7 +196,7 @@ def test_restructured_forward_equals_the_straightforward_one(setup, fuse):
     random graphs, with the encoder's output layer fused and not (same function)."""
     graphs, stats, _, _ = setup
     model = SGN(hidden=64, mlp_layers=4, interaction_layers=2, fuse_edge_output=fuse)
-    params = _with_random_biases(init_params(model, normalize(graphs[0], stats), 5), 6)
+    params = _with_random_biases(_random_weights(model, normalize(graphs[0], stats), 5), 6)
     apply = jax.jit(model.apply)
     cases = [normalize(graphs[k], stats) for k in (1, 5)]
     cases += [_random_graph(cases[0], seed, n) for seed, n in ((1, 20), (2, 31))]
