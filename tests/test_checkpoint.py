@@ -42,6 +42,24 @@ def _sphere_query(_, points, offset):
     return r - 0.03, d / r[..., None]
 
 
+def _random_weights(model, graph, seed):
+    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
+    at 2 std, zero biases), in numpy: the tests need some weights, and the model's init run
+    eagerly is ~150 op compiles (~6 s), jitted a 3-5 s compile (issue 20)."""
+    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
+    rng = np.random.default_rng(seed)
+
+    def draw(path, leaf):
+        if jax.tree_util.keystr(path).endswith("['bias']"):
+            return np.zeros(leaf.shape, leaf.dtype)
+        z = rng.standard_normal(leaf.shape)
+        while np.any(np.abs(z) > 2.0):
+            z = np.where(np.abs(z) > 2.0, rng.standard_normal(leaf.shape), z)
+        return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
+
+    return jax.tree_util.tree_map_with_path(draw, shapes)
+
+
 @pytest.fixture(scope="module")
 def setup():
     cfg = load_config(builtin_config_path("emax_300rpm"))
@@ -57,7 +75,7 @@ def setup():
                                np.asarray(g.edges["features"])[np.asarray(g.edges["pw"])],
                                accel.reshape(-1, 3), de, velocity_encoding="differences")
     model = make_model(cfg.model)
-    params = init_params(model, g, 4)
+    params = _random_weights(model, g, 4)
     return cfg, graphs, stats, model, params
 
 
@@ -89,14 +107,16 @@ def test_save_restore_gives_bit_identical_predictions(setup, tmp_path):
 def test_optimiser_state_round_trip_and_keep(setup, tmp_path):
     params = setup[4]
     tx = make_optimizer(1e-3)
-    opt_state = tx.init(params)
+    # jitted: two programs instead of ~50 eager op compiles (issue 20)
+    init = jax.jit(tx.init)
+    opt_state = init(params)
     grads = jax.tree_util.tree_map(lambda p: 0.01 * np.ones_like(p), params)
-    _, opt_state = tx.update(grads, opt_state, params)
+    _, opt_state = jax.jit(tx.update)(grads, opt_state, params)
     for step in (1, 2, 3):
         _save(setup, tmp_path / "ck", step, opt_state=opt_state, keep=2)
     assert latest_step(tmp_path / "ck") == 3
     assert sorted(int(p.name) for p in (tmp_path / "ck").iterdir() if p.name.isdigit()) == [2, 3]
-    restored = restore_checkpoint(tmp_path / "ck", opt_state_like=tx.init(params))
+    restored = restore_checkpoint(tmp_path / "ck", opt_state_like=init(params))
     assert jax.tree_util.tree_structure(restored.opt_state) == jax.tree_util.tree_structure(
         opt_state)
     for a, b in zip(jax.tree_util.tree_leaves(restored.opt_state),
@@ -116,7 +136,8 @@ def test_missing_or_empty_checkpoint_is_a_clear_error(setup, tmp_path):
         load_trained_model(tmp_path / "nothing")
     _save(setup, tmp_path / "noopt")
     with pytest.raises(CheckpointError, match="no optimiser state"):
-        restore_checkpoint(tmp_path / "noopt", opt_state_like=make_optimizer(1e-3).init(setup[4]))
+        restore_checkpoint(tmp_path / "noopt",
+                           opt_state_like=jax.jit(make_optimizer(1e-3).init)(setup[4]))
 
 
 def _data_files(step_dir: Path, item: str):

@@ -43,6 +43,12 @@ def analytic_query(params, points, offset):
     return phi, grad / jnp.linalg.norm(grad, axis=-1, keepdims=True)
 
 
+# The tests' own evaluations of the exact SDF (the expected values), as one program per shape
+# instead of ~60 eager compiles of its ops (issue 20); the featurizer calls analytic_query
+# inside its own programs.
+reference_query = jax.jit(analytic_query)
+
+
 def _spec(n, window=3, pairs=64):
     return GraphSpec(n_particles=n, window=window, ball_radius=R, dt=DT, pp_pair_capacity=pairs)
 
@@ -90,7 +96,7 @@ def test_edges_follow_the_rules_in_both_directions(jar, seed):
     pp, pw = _edge_set(graph)
 
     # Expected by brute force from the same SDF and the rules of SPEC 5.
-    phi, normal = (np.asarray(a, np.float64) for a in analytic_query(jar, x + offset, offset))
+    phi, normal = (np.asarray(a, np.float64) for a in reference_query(jar, x + offset, offset))
     d = np.linalg.norm(x[:, None] - x[None], axis=-1)
     expected_pp = {(j, i) for i in range(n) for j in range(n)
                    if i != j and d[i, j] <= 2 * R + spec.pp_skin}
@@ -121,7 +127,8 @@ def test_pp_capacity_overflow_is_counted_and_pairs_stay_bidirectional(grid):
     # A row of 6 touching balls on the floor: 5 close pairs.
     x = np.array([[-0.025 + k * 0.0102, 0.012, 0.0] for k in range(6)])
     spec = _spec(6, pairs=2)
-    graph, counts = build_graph(_window(x), grid, spec)
+    # jitted: one program per spec instead of ~160 eager compiles (issue 20)
+    graph, counts = jax.jit(build_graph, static_argnums=2)(_window(x), grid, spec)
     assert int(counts.n_pp) == 10
     assert int(counts.pp_dropped) == 6
     pp, _ = _edge_set(graph)
@@ -130,7 +137,7 @@ def test_pp_capacity_overflow_is_counted_and_pairs_stay_bidirectional(grid):
         assert (r, s) in pp
         np.testing.assert_allclose(pp[(s, r)], -pp[(r, s)])
 
-    roomy, counts = build_graph(_window(x), grid, _spec(6, pairs=5))
+    roomy, counts = jax.jit(build_graph, static_argnums=2)(_window(x), grid, _spec(6, pairs=5))
     assert int(counts.pp_dropped) == 0 and len(_edge_set(roomy)[0]) == 10
 
 
@@ -146,7 +153,7 @@ def test_node_features_velocities_sdf_and_wall(jar):
     for slot in range(w):
         j = n_end - w + 1 + slot  # sample of this slot
         v = (traj.pos[j] - traj.pos[j - 1]) / DT
-        phi, normal = analytic_query(jar, traj.pos[j], traj.offset[j])
+        phi, normal = reference_query(jar, traj.pos[j], traj.offset[j])
         cols = slice(7 * slot, 7 * slot + 7)
         np.testing.assert_allclose(feats[:6, cols][:, :3], v, rtol=1e-6, atol=1e-7)
         np.testing.assert_allclose(feats[:6, cols][:, 3], phi, rtol=1e-6, atol=1e-9)
@@ -216,9 +223,11 @@ def test_build_graph_inside_lax_scan_matches_direct_calls(jar):
     (_, dropped), (edge_feats, n_pw) = jax.jit(
         lambda c: jax.lax.scan(body, c, (new_pos, new_off, new_vel)))((first, jnp.int32(0)))
     assert int(dropped) == 0
+    # The direct calls: build_graph on each dataset window, outside any scan (jitted on its
+    # own, one program instead of ~70 eager compiles, issue 20).
+    direct_call = jax.jit(lambda win: build_graph(win, jar, spec, analytic_query))
     for s in range(steps):
-        direct, counts = build_graph(jax.tree_util.tree_map(lambda a, s=s: a[s + 1], wins), jar,
-                                     spec, analytic_query)
+        direct, counts = direct_call(jax.tree_util.tree_map(lambda a, s=s: a[s + 1], wins))
         np.testing.assert_allclose(np.asarray(edge_feats[s]),
                                    np.asarray(direct.edges["features"]), rtol=1e-6, atol=1e-12)
         assert int(n_pw[s]) == int(counts.n_pw)

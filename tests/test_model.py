@@ -43,6 +43,10 @@ def analytic_query(params, points, offset):
 
 SPEC = GraphSpec(n_particles=N, window=W, ball_radius=0.005, dt=1e-4, pp_pair_capacity=16)
 
+# The tests' normalisation of graphs as one program, instead of dozens of eager op compiles
+# (issue 20); test_normalisation_round_trip_... checks normalize_graph itself, called as is.
+normalize = jax.jit(normalize_graph)
+
 
 @pytest.fixture(scope="module")
 def windows():
@@ -53,6 +57,24 @@ def windows():
 @pytest.fixture(scope="module")
 def builder(jar):
     return jax.jit(lambda w: build_graph(w, jar, SPEC, analytic_query))
+
+
+def _random_weights(model, graph, seed):
+    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
+    at 2 std, zero biases), in numpy: the tests need some weights, and the model's init run
+    eagerly is ~150 op compiles (~6 s), jitted a 3-5 s compile (issue 20)."""
+    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
+    rng = np.random.default_rng(seed)
+
+    def draw(path, leaf):
+        if jax.tree_util.keystr(path).endswith("['bias']"):
+            return np.zeros(leaf.shape, leaf.dtype)
+        z = rng.standard_normal(leaf.shape)
+        while np.any(np.abs(z) > 2.0):
+            z = np.where(np.abs(z) > 2.0, rng.standard_normal(leaf.shape), z)
+        return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
+
+    return jax.tree_util.tree_map_with_path(draw, shapes)
 
 
 def _stats(graphs):
@@ -73,7 +95,7 @@ def setup(windows, builder):
               for k in range(0, 30, 3)]
     stats = _stats(graphs)
     model = SGN(hidden=16, mlp_layers=4, interaction_layers=1)
-    params = init_params(model, normalize_graph(graphs[0], stats), 1)
+    params = _random_weights(model, normalize(graphs[0], stats), 1)
     return graphs, stats, model, params
 
 
@@ -128,9 +150,10 @@ def _reference_forward(params, graph):
 def test_model_matches_a_reference_implementation(setup):
     graphs, stats, model, params = setup
     checked_edges = 0
+    apply = jax.jit(model.apply)
     for graph in graphs[:4]:
-        g = normalize_graph(graph, stats)
-        accel, de = jax.jit(model.apply)({"params": params}, g)
+        g = normalize(graph, stats)
+        accel, de = apply({"params": params}, g)
         ref_accel, ref_de = _reference_forward(params, g)
         np.testing.assert_allclose(np.asarray(accel), ref_accel, rtol=2e-4, atol=2e-5)
         np.testing.assert_allclose(float(de[0]), ref_de, rtol=2e-4, atol=2e-5)
@@ -139,13 +162,14 @@ def test_model_matches_a_reference_implementation(setup):
 
 
 def _with_random_biases(params, seed):
-    """``params`` with N(0, 0.1) biases (init gives zeros), so every bias path is exercised."""
-    key = jax.random.PRNGKey(seed)
+    """``params`` with N(0, 0.1) biases (init gives zeros), so every bias path is exercised
+    (drawn in numpy: no eager op compiles, issue 20)."""
+    rng = np.random.default_rng(seed)
     leaves, tree = jax.tree_util.tree_flatten_with_path(params)
     return jax.tree_util.tree_unflatten(tree, [
-        0.1 * jax.random.normal(jax.random.fold_in(key, i), leaf.shape, leaf.dtype)
+        (0.1 * rng.standard_normal(leaf.shape)).astype(leaf.dtype)
         if "bias" in jax.tree_util.keystr(path) else leaf
-        for i, (path, leaf) in enumerate(leaves)])
+        for path, leaf in leaves])
 
 
 def _random_graph(graph, seed, n_real):
@@ -172,9 +196,9 @@ def test_restructured_forward_equals_the_straightforward_one(setup, fuse):
     random graphs, with the encoder's output layer fused and not (same function)."""
     graphs, stats, _, _ = setup
     model = SGN(hidden=64, mlp_layers=4, interaction_layers=2, fuse_edge_output=fuse)
-    params = _with_random_biases(init_params(model, normalize_graph(graphs[0], stats), 5), 6)
+    params = _with_random_biases(_random_weights(model, normalize(graphs[0], stats), 5), 6)
     apply = jax.jit(model.apply)
-    cases = [normalize_graph(graphs[k], stats) for k in (1, 5)]
+    cases = [normalize(graphs[k], stats) for k in (1, 5)]
     cases += [_random_graph(cases[0], seed, n) for seed, n in ((1, 20), (2, 31))]
     for g in cases:
         accel, de = apply({"params": params}, g)
@@ -209,9 +233,10 @@ def test_checkpoint_from_before_the_restructuring_predicts_the_same():
 
     wins, _, _ = windows_from_trajectory(trajectory(20, 6, seed=2), 3)
     predict = jax.jit(make_predict(model))
+    build = jax.jit(lambda win: build_graph(win, None, spec, sphere)[0])
     for case in expected["predictions"]:
         win = jax.tree_util.tree_map(lambda a, k=case["window"]: a[k], wins)
-        graph = build_graph(win, None, spec, sphere)[0]
+        graph = build(win)
         assert int(graph.n_edge[0]) == case["n_edge"] > 0
         accel, de = predict(restored.params, restored.norm_stats, graph)
         want = np.asarray(case["accel"])
@@ -241,8 +266,9 @@ def _empty_graph(spec):
     win = Window(positions=np.repeat(far[None], spec.window + 1, 0),
                  offsets=np.zeros((spec.window, 3)), offset_velocities=np.zeros((spec.window, 3)),
                  frequency_hz=np.array(5.0))
-    return build_graph(win, None, spec, lambda _, p, o: (jnp.full(p.shape[:-1], -0.02),
-                                                           jnp.zeros(p.shape) + 1 / 3**0.5))[0]
+    # jitted: one program instead of ~80 eager compiles (issue 20)
+    return jax.jit(lambda win: build_graph(win, None, spec, lambda _, p, o: (
+        jnp.full(p.shape[:-1], -0.02), jnp.zeros(p.shape) + 1 / 3**0.5))[0])(win)
 
 
 def test_permutation_equivariance(setup, windows, builder):
@@ -266,7 +292,7 @@ def test_permutation_equivariance(setup, windows, builder):
 def test_padding_and_batching_do_not_change_real_outputs(setup):
     graphs, stats, model, params = setup
     apply = jax.jit(model.apply)
-    g1, g2 = normalize_graph(graphs[1], stats), normalize_graph(graphs[5], stats)
+    g1, g2 = normalize(graphs[1], stats), normalize(graphs[5], stats)
     a1, e1 = apply({"params": params}, g1)
     a2, e2 = apply({"params": params}, g2)
     # Extra padding: 13 more nodes, 40 more edges, 3 more (empty) graphs, with garbage
@@ -297,17 +323,17 @@ def test_global_readout_gets_a_zero_vector_when_no_ball_has_an_edge(setup):
     graph = _empty_graph(spec)
     assert int(graph.n_edge[0]) == 0
     apply = jax.jit(model.apply)
-    _, de = apply({"params": params}, normalize_graph(graph, stats))
+    _, de = apply({"params": params}, normalize(graph, stats))
     # MLP of the zero vector, whatever the node features are.
     zero = model.hidden * [0.0]
     expected = _np_mlp(params["global_readout"], np.array(zero))[0]
     np.testing.assert_allclose(float(de[0]), expected, rtol=1e-5, atol=1e-7)
     shifted = graph._replace(nodes={**graph.nodes,
                                     "features": graph.nodes["features"] + 0.37})
-    _, de2 = apply({"params": params}, normalize_graph(shifted, stats))
+    _, de2 = apply({"params": params}, normalize(shifted, stats))
     assert float(de2[0]) == float(de[0])
     # ... while a graph with edges reads its balls out.
-    _, de3 = apply({"params": params}, normalize_graph(setup[0][2], stats))
+    _, de3 = apply({"params": params}, normalize(setup[0][2], stats))
     assert float(de3[0]) != pytest.approx(expected, rel=1e-3)
 
 

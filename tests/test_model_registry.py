@@ -130,12 +130,19 @@ def test_a_registered_kind_trains_saves_and_loads_through_the_same_path(cfg, nod
     # Its predictions (raw graph -> m/s^2, J) are the module's on the normalised graph.
     spec = graph_spec_from_config(cfg)
     wins, _, _ = windows_from_trajectory(trajs[0], spec.window)
-    graph, _ = build_graph(jax.tree_util.tree_map(lambda a: a[5], wins), grid, spec)
+    # (The graph and the module's side each one jitted program of their own, not hundreds of
+    # eager op compiles, issue 20.)
+    graph, _ = jax.jit(build_graph, static_argnums=2)(
+        jax.tree_util.tree_map(lambda a: a[5], wins), grid, spec)
     accel, de = jax.jit(trained.predict_fn())(trained.params, trained.norm_stats, graph)
-    accel_n, de_n = trained.model.apply({"params": trained.params},
-                                        normalize_graph(graph, trained.norm_stats))
-    np.testing.assert_allclose(np.asarray(accel[:N]),
-                               np.asarray(denormalize_accel(accel_n, trained.norm_stats))[:N],
+
+    @jax.jit
+    def module_on_normalised_graph(params, stats, graph):
+        accel_n, de_n = trained.model.apply({"params": params}, normalize_graph(graph, stats))
+        return denormalize_accel(accel_n, stats), de_n
+
+    accel_m, de_n = module_on_normalised_graph(trained.params, trained.norm_stats, graph)
+    np.testing.assert_allclose(np.asarray(accel[:N]), np.asarray(accel_m)[:N],
                                rtol=1e-5, atol=1e-6)
     assert np.isfinite(float(de[0])) and np.isfinite(float(de_n[0]))
 

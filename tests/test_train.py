@@ -156,15 +156,41 @@ def test_lr_schedule_is_exponential_between_the_ends():
     assert lr_at(0.5, 1e-4, 1e-6) == pytest.approx(1e-5)
 
 
-def test_tiny_model_overfits_tiny_dataset(data):
+def _random_weights(model, graph, seed):
+    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
+    at 2 std, zero biases), in numpy: the same distribution as the library's init (which train() itself
+    uses, test_train_writes_...), without its ~150 eager op compiles (~6 s) or, jitted, a
+    3-5 s compile (issue 20)."""
+    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
+    rng = np.random.default_rng(seed)
+
+    def draw(path, leaf):
+        if jax.tree_util.keystr(path).endswith("['bias']"):
+            return np.zeros(leaf.shape, leaf.dtype)
+        z = rng.standard_normal(leaf.shape)
+        while np.any(np.abs(z) > 2.0):
+            z = np.where(np.abs(z) > 2.0, rng.standard_normal(leaf.shape), z)
+        return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
+
+    return jax.tree_util.tree_map_with_path(draw, shapes)
+
+
+@pytest.fixture(scope="module")
+def tiny_batch(data):
+    """One batch of 12 samples, for the two tests that train SGN(hidden=32) on it: their
+    weight-1 train steps are then the same program, compiled once (issue 20)."""
     ds = data[4]
     sub = np.arange(0, 48, 4)  # 12 samples
     packer = BatchPacker(ds, 12, batch_edge_capacity(ds.edges_per_sample, 12))
-    batch = packer.make(sub)
+    return packer.make(sub)
+
+
+def test_tiny_model_overfits_tiny_dataset(tiny_batch):
+    batch = tiny_batch
     model = SGN(hidden=32)
     apply = make_apply(model)
     tx = make_optimizer(3e-3)
-    params = init_params(model, batch.graph, 0)
+    params = _random_weights(model, batch.graph, 0)
     state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0))
     cfg = type("T", (), {"node_loss_weight": 3.0, "global_loss_weight": 1.0, "huber_delta": 2.0,
                          "noise_std": 0.0})
@@ -178,20 +204,22 @@ def test_tiny_model_overfits_tiny_dataset(data):
     for i in range(300):
         state, sums = step(state, batch, np.float32(lr_at(i / 300, 3e-3, 3e-4)), key)
         first = float(total(sums)) if first is None else first
-    final = float(total(loss_sums(apply, state.params, batch, 2.0)))
+    # the final loss as one program, not ~100 eager op compiles of the forward pass (issue 20)
+    final = float(total(jax.jit(loss_sums, static_argnums=(0, 3))(apply, state.params, batch,
+                                                                  2.0)))
     assert final < first / 10, (first, final)
 
 
-def test_no_global_loss_leaves_the_global_readout_untrained(data):
+def test_no_global_loss_leaves_the_global_readout_untrained(tiny_batch):
     """global_loss_weight = 0 (the paper's appendix ablation): the dE head gets no gradient,
-    so Adam leaves its parameters exactly as initialised, while the rest of the network moves."""
-    ds = data[4]
-    packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
-    batch = packer.make(np.arange(6))
-    model = SGN(hidden=24)
+    so Adam leaves its parameters exactly as initialised, while the rest of the network moves.
+    (The model and batch of test_tiny_model_overfits_tiny_dataset: the weight-1 step is its
+    program, not compiled again.)"""
+    batch = tiny_batch
+    model = SGN(hidden=32)
     apply = make_apply(model)
     tx = make_optimizer(1e-3)
-    params = init_params(model, batch.graph, 0)
+    params = _random_weights(model, batch.graph, 0)
     before = jax.tree_util.tree_map(np.asarray, params)
     for weight, head_moves in ((0.0, False), (1.0, True)):
         state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0))
