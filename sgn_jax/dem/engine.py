@@ -351,6 +351,9 @@ def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray) -> PairList:
                     rebuilds=zero, max_candidates=count)
 
 
+_init_pairs_jit = jax.jit(init_pairs, static_argnums=0)
+
+
 def init_state(
     spec: DEMSpec,
     params: DEMParams,
@@ -369,9 +372,12 @@ def init_state(
         raise DEMError(f"pos must have shape ({spec.n_balls}, 3), got {pos.shape}")
     vel = jnp.zeros_like(pos) if vel is None else jnp.asarray(vel, dtype=dtype)
     omega = jnp.zeros_like(pos) if omega is None else jnp.asarray(omega, dtype=dtype)
-    pairs = init_pairs(spec, params, pos)
+    # Jitted, as one program each: op by op, the pair list and the motion's offset cost ~60
+    # small compilations (~2 s) at the start of every process that runs the DEM.
+    pairs = _init_pairs_jit(spec, params, pos)
     t = max(step, 0) * spec.dt_dem
-    offset = jnp.asarray(offset_fn(params.motion, jnp.asarray(t, jnp.float64)), jnp.float64)
+    offset = jnp.asarray(jax.jit(offset_fn)(params.motion, jnp.asarray(t, jnp.float64)),
+                         jnp.float64)
     return DEMState(
         pos=pos, vel=vel, omega=omega,
         pp_history=jnp.zeros(pp_history_shape(spec), dtype),
