@@ -46,7 +46,7 @@ def tiny(tmp_path_factory):
     from sgn_jax.surrogate.model import init_params
     from sgn_jax.surrogate.normalization import normalize_graph
     from sgn_jax.surrogate.sgn import SGN
-    from sgn_jax.testing import synthetic_trajectory
+    from sgn_jax.testing import random_weights, synthetic_trajectory
 
     root = tmp_path_factory.mktemp("demo")
     cfg = load_config(builtin_config_path("emax_300rpm"))
@@ -68,17 +68,7 @@ def tiny(tmp_path_factory):
                            sdf_grid_from_config(model_cfg))
     shapes = jax.eval_shape(lambda g: init_params(SGN(hidden=16), normalize_graph(g, stats), 0),
                             graph)
-    rng = np.random.default_rng(0)
-
-    def draw(path, leaf):
-        if jax.tree_util.keystr(path).endswith("['bias']"):
-            return np.zeros(leaf.shape, leaf.dtype)
-        z = rng.standard_normal(leaf.shape)
-        while np.any(np.abs(z) > 2.0):
-            z = np.where(np.abs(z) > 2.0, rng.standard_normal(leaf.shape), z)
-        return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
-
-    params = jax.tree_util.tree_map_with_path(draw, shapes)
+    params = random_weights(shapes, 0)
     run_dir = root / "run"
     save_checkpoint(run_dir / "checkpoints" / "best", 1, params=jax.device_get(params),
                     norm_stats=stats, meta={"config": config_to_dict(model_cfg), "epoch": 1})

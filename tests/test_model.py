@@ -24,7 +24,7 @@ from sgn_jax.surrogate.normalization import (
     stats_to_arrays,
 )
 from sgn_jax.surrogate.sgn import SGN
-from sgn_jax.testing import synthetic_trajectory
+from sgn_jax.testing import random_weights, synthetic_trajectory
 
 N, W = 8, 3
 
@@ -64,17 +64,7 @@ def _random_weights(model, graph, seed):
     at 2 std, zero biases), in numpy: the tests need some weights, and the model's init run
     eagerly is ~150 op compiles (~6 s), jitted a 3-5 s compile (issue 20)."""
     shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
-    rng = np.random.default_rng(seed)
-
-    def draw(path, leaf):
-        if jax.tree_util.keystr(path).endswith("['bias']"):
-            return np.zeros(leaf.shape, leaf.dtype)
-        z = rng.standard_normal(leaf.shape)
-        while np.any(np.abs(z) > 2.0):
-            z = np.where(np.abs(z) > 2.0, rng.standard_normal(leaf.shape), z)
-        return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
-
-    return jax.tree_util.tree_map_with_path(draw, shapes)
+    return random_weights(shapes, seed)
 
 
 def _stats(graphs):
