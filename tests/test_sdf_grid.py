@@ -49,15 +49,6 @@ _grid_sdf = jax.jit(grid_sdf)
 _query = jax.jit(query_sdf_grid)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _jitted_accuracy_sdf():
-    """sgn_jax.geometry.accuracy (cavity points, piece labels) evaluates jar_sdf eagerly; in
-    this module it gets the jitted jar_sdf (the same function, compiled once per shape)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(accuracy, "jar_sdf", _jar_sdf)
-        yield
-
-
 def cavity_points(params: JarParams, n: int, seed: int) -> np.ndarray:
     return accuracy.cavity_points(params, n, seed)
 

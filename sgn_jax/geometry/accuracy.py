@@ -13,11 +13,16 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.geometry.jar import JarParams, jar_sdf
 from sgn_jax.geometry.sdf_grid import grid_sdf
+
+# The exact SDF as one program per shape: op by op it is ~60 small compilations per call shape
+# (issue 20). The same function, so the same distances up to float rounding of the fusion.
+_jar_sdf = jax.jit(jar_sdf)
 
 FLOOR, LID, WALL_ZPLUS, WALL_ZMINUS, ARC_RIGHT, ARC_LEFT, POST, CORNER = range(8)
 PIECE_NAMES = ("floor", "lid", "wall_z+", "wall_z-", "arc_right", "arc_left", "post", "corner")
@@ -45,7 +50,7 @@ def piece_labels(params: JarParams, points: np.ndarray) -> np.ndarray:
     values, labels = np.stack(values, -1), np.stack(labels, -1)
     best = np.argmax(values, axis=-1)
     label = np.take_along_axis(labels, best[..., None], -1)[..., 0]
-    phi = np.asarray(jar_sdf(params, jnp.asarray(points)))
+    phi = np.asarray(_jar_sdf(params, jnp.asarray(points)))
     return np.where(np.abs(values.max(-1) - phi) < 1e-12, label, CORNER)
 
 
@@ -91,7 +96,7 @@ def cavity_points(params: JarParams, n: int, seed: int = 0) -> np.ndarray:
     out: list[np.ndarray] = []
     while sum(len(o) for o in out) < n:
         pts = rng.uniform(lower, upper, size=(2 * n, 3))
-        out.append(pts[np.asarray(jar_sdf(params, jnp.asarray(pts))) < 0])
+        out.append(pts[np.asarray(_jar_sdf(params, jnp.asarray(pts))) < 0])
     return np.concatenate(out)[:n]
 
 
@@ -105,7 +110,7 @@ def grid_error_report(
     wall contacts and wall edges happen) and "band_smooth".
     """
     points = cavity_points(params, n_points, seed)
-    exact = np.asarray(jar_sdf(params, jnp.asarray(points)))
+    exact = np.asarray(_jar_sdf(params, jnp.asarray(points)))
     phi = np.asarray(grid_sdf(grid, jnp.asarray(points, grid.values.dtype)), dtype=np.float64)
     err = np.abs(phi - exact)
     labels = piece_labels(params, points)
