@@ -78,11 +78,11 @@ def test_circle_radius_period_and_plane():
     np.testing.assert_allclose(shifted, xyz, atol=1e-14)
     # half a period later the jar is on the opposite side of the orbit
     np.testing.assert_allclose(np.asarray(_offset(circle, TIMES + 0.1)), -xyz, atol=1e-14)
-    # SPEC 2: _offset(0) = (0, 0, A)
+    # SPEC 2: offset(0) = (0, 0, A)
     np.testing.assert_allclose(np.asarray(_offset(circle, 0.0)), [0.0, 0.0, 0.017], atol=1e-16)
 
 
-def test_circle_speed_and_centripetal__acceleration():
+def test_circle_speed_and_centripetal_acceleration():
     circle = standard_circle()
     omega = 2 * np.pi * 5.0
     v = np.asarray(_velocity(circle, TIMES))
@@ -92,7 +92,7 @@ def test_circle_speed_and_centripetal__acceleration():
     np.testing.assert_allclose(np.linalg.norm(a, axis=1), omega**2 * 0.017, rtol=1e-12)
     # the acceleration points to the orbit centre: a = -omega^2 x
     np.testing.assert_allclose(a, -(omega**2) * x, atol=1e-12)
-    # _velocity(0) = (A omega, 0, 0): the jump the DEM sees at the start of motion
+    # velocity(0) = (A omega, 0, 0): the jump the DEM sees at the start of motion
     np.testing.assert_allclose(np.asarray(_velocity(circle, 0.0)), [omega * 0.017, 0, 0], atol=1e-14)
 
 
