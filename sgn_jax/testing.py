@@ -1,11 +1,14 @@
-"""Synthetic data for tests and examples (not physical)."""
+"""Synthetic data and random model weights for tests and examples (not physical)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
+import jax
 import numpy as np
+
+from sgn_jax.surrogate.model import init_params
 
 
 @dataclass
@@ -77,8 +80,6 @@ def random_weights(shapes: Any, seed: int) -> Any:
     zero biases) but in numpy: for tests that need some weights, without the init's op-by-op
     compilations (~150, ~6 s) or, jitted, its 3-5 s compile (issue 20). Leaves whose path ends
     in ``['bias']`` are zeros; the others ``(fan_in, ...)`` kernels."""
-    import jax
-
     rng = np.random.default_rng(seed)
 
     def draw(path, leaf):
@@ -91,3 +92,9 @@ def random_weights(shapes: Any, seed: int) -> Any:
         return (z * np.sqrt(1.0 / leaf.shape[0]) / 0.87962566103423978).astype(leaf.dtype)
 
     return jax.tree_util.tree_map_with_path(draw, shapes)
+
+
+def random_init_weights(model: Any, graph: Any, seed: int) -> Any:
+    """:func:`random_weights` of the shapes ``init_params(model, graph)`` gives (its init is
+    only traced, by ``jax.eval_shape``, not run)."""
+    return random_weights(jax.eval_shape(lambda g: init_params(model, g, 0), graph), seed)

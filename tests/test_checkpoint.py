@@ -25,10 +25,10 @@ from sgn_jax.records.checkpoint import (
     write_checkpoint_digest,
 )
 from sgn_jax.surrogate.graph import GraphSpec, build_graph
-from sgn_jax.surrogate.model import init_params, make_model, make_predict
+from sgn_jax.surrogate.model import make_model, make_predict
 from sgn_jax.surrogate.normalization import compute_norm_stats
 from sgn_jax.surrogate.train import make_optimizer
-from sgn_jax.testing import random_weights, synthetic_trajectory
+from sgn_jax.testing import random_init_weights, synthetic_trajectory
 
 N = 6
 
@@ -41,13 +41,6 @@ def _sphere_query(_, points, offset):
     r = jnp.linalg.norm(d, axis=-1)
     return r - 0.03, d / r[..., None]
 
-
-def _random_weights(model, graph, seed):
-    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
-    at 2 std, zero biases), in numpy: the tests need some weights, and the model's init run
-    eagerly is ~150 op compiles (~6 s), jitted a 3-5 s compile (issue 20)."""
-    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
-    return random_weights(shapes, seed)
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +58,7 @@ def setup():
                                np.asarray(g.edges["features"])[np.asarray(g.edges["pw"])],
                                accel.reshape(-1, 3), de, velocity_encoding="differences")
     model = make_model(cfg.model)
-    params = _random_weights(model, g, 4)
+    params = random_init_weights(model, g, 4)
     return cfg, graphs, stats, model, params
 
 

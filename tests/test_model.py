@@ -24,7 +24,7 @@ from sgn_jax.surrogate.normalization import (
     stats_to_arrays,
 )
 from sgn_jax.surrogate.sgn import SGN
-from sgn_jax.testing import random_weights, synthetic_trajectory
+from sgn_jax.testing import random_init_weights, synthetic_trajectory
 
 N, W = 8, 3
 
@@ -59,13 +59,6 @@ def builder(jar):
     return jax.jit(lambda w: build_graph(w, jar, SPEC, analytic_query))
 
 
-def _random_weights(model, graph, seed):
-    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
-    at 2 std, zero biases), in numpy: the tests need some weights, and the model's init run
-    eagerly is ~150 op compiles (~6 s), jitted a 3-5 s compile (issue 20)."""
-    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
-    return random_weights(shapes, seed)
-
 
 def _stats(graphs):
     nodes = np.concatenate([np.asarray(g.nodes["features"]) for g in graphs])
@@ -85,7 +78,7 @@ def setup(windows, builder):
               for k in range(0, 30, 3)]
     stats = _stats(graphs)
     model = SGN(hidden=16, mlp_layers=4, interaction_layers=1)
-    params = _random_weights(model, normalize(graphs[0], stats), 1)
+    params = random_init_weights(model, normalize(graphs[0], stats), 1)
     return graphs, stats, model, params
 
 
@@ -186,7 +179,7 @@ def test_restructured_forward_equals_the_straightforward_one(setup, fuse):
     random graphs, with the encoder's output layer fused and not (same function)."""
     graphs, stats, _, _ = setup
     model = SGN(hidden=64, mlp_layers=4, interaction_layers=2, fuse_edge_output=fuse)
-    params = _with_random_biases(_random_weights(model, normalize(graphs[0], stats), 5), 6)
+    params = _with_random_biases(random_init_weights(model, normalize(graphs[0], stats), 5), 6)
     apply = jax.jit(model.apply)
     cases = [normalize(graphs[k], stats) for k in (1, 5)]
     cases += [_random_graph(cases[0], seed, n) for seed, n in ((1, 20), (2, 31))]

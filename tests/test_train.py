@@ -29,7 +29,7 @@ from sgn_jax.surrogate.train import (
     norm_stats_from_dataset,
     normalize_dataset,
 )
-from sgn_jax.testing import random_weights, synthetic_trajectory
+from sgn_jax.testing import random_init_weights, synthetic_trajectory
 
 N = 8
 
@@ -156,14 +156,6 @@ def test_lr_schedule_is_exponential_between_the_ends():
     assert lr_at(0.5, 1e-4, 1e-6) == pytest.approx(1e-5)
 
 
-def _random_weights(model, graph, seed):
-    """Random weights of ``model`` drawn as its init draws them (LeCun-normal kernels truncated
-    at 2 std, zero biases), in numpy: the same distribution as the library's init (which train() itself
-    uses, test_train_writes_...), without its ~150 eager op compiles (~6 s) or, jitted, a
-    3-5 s compile (issue 20)."""
-    shapes = jax.eval_shape(lambda g: init_params(model, g, 0), graph)
-    return random_weights(shapes, seed)
-
 
 @pytest.fixture(scope="module")
 def tiny_batch(data):
@@ -180,7 +172,7 @@ def test_tiny_model_overfits_tiny_dataset(tiny_batch):
     model = SGN(hidden=32)
     apply = make_apply(model)
     tx = make_optimizer(3e-3)
-    params = _random_weights(model, batch.graph, 0)
+    params = random_init_weights(model, batch.graph, 0)
     state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0))
     cfg = type("T", (), {"node_loss_weight": 3.0, "global_loss_weight": 1.0, "huber_delta": 2.0,
                          "noise_std": 0.0})
@@ -209,7 +201,7 @@ def test_no_global_loss_leaves_the_global_readout_untrained(tiny_batch):
     model = SGN(hidden=32)
     apply = make_apply(model)
     tx = make_optimizer(1e-3)
-    params = _random_weights(model, batch.graph, 0)
+    params = random_init_weights(model, batch.graph, 0)
     before = jax.tree_util.tree_map(np.asarray, params)
     for weight, head_moves in ((0.0, False), (1.0, True)):
         state = TrainState(params=params, opt_state=tx.init(params), step=jnp.asarray(0))

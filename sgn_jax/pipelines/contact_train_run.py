@@ -175,10 +175,11 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                     offset_velocities=example.offset_velocities[0, : spec.window],
                     frequency_hz=jnp.zeros(()),
                     spins=None if example.spins is None else example.spins[0, 0])
-    # The example graph and the init as one program: op by op they are ~300 small compilations
-    # (~10 s) at the start of every run (issue 20).
-    params = jax.jit(lambda key, window, sdf: net.init(key, build_graph(window, sdf, spec, query)[0])
-                     )(jax.random.PRNGKey(seed), window, sdf)["params"]
+    @jax.jit  # one program: op by op, the graph and the init are ~300 small compilations (~15 s)
+    def init_on_example(key, window, sdf):
+        return net.init(key, build_graph(window, sdf, spec, query)[0])["params"]
+
+    params = init_on_example(jax.random.PRNGKey(seed), window, sdf)
     params = {**params, "share_logit": share_logits(shares)}
     if init_from is not None and existing is None:
         params, warm_names = _warm_start(params, restore_checkpoint(init_from).params, init_from)
