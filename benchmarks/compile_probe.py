@@ -4,7 +4,8 @@ lowerings (``jax.monitoring`` duration events), to find where the test suite's t
     PYTHONPATH=benchmarks PROBE_OUT=/tmp/probe python -m pytest -q -n 2 --dist loadfile \\
         -p compile_probe
 
-writes ``/tmp/probe_<worker>.json`` (one list of rows per xdist worker: ``test``, ``wall`` s and,
+writes ``/tmp/probe_<worker>.json`` (one list of rows per xdist worker: ``test``, ``start``
+(epoch s, for the workers' timelines), ``wall`` s and,
 per event, its seconds and ``n:<event>`` count). Subprocesses of tests are not seen.
 docs/benchmarks.md ("The test suite's wall time") has what it found (issue 20).
 """
@@ -37,7 +38,7 @@ def pytest_runtest_protocol(item, nextitem):
     seconds_before, counts_before = dict(_seconds), dict(_counts)
     t0 = time.time()
     yield
-    row = {"test": item.nodeid, "wall": time.time() - t0}
+    row = {"test": item.nodeid, "start": t0, "wall": time.time() - t0}
     for event in _seconds:
         row[event] = _seconds[event] - seconds_before.get(event, 0.0)
         row["n:" + event] = _counts[event] - counts_before.get(event, 0)

@@ -32,7 +32,41 @@ import pytest
 SESSION_DIR_ENV = "SGN_JAX_TEST_SESSION_DIR"
 
 
+# The longest test files first (issue 20): with ``-n 2 --dist loadfile`` each xdist worker takes
+# the next whole file when it runs out, so longest-first leaves only short files for the end and
+# the two workers finish within seconds of each other (in collection order a 30-50 s file could
+# start last on one worker while the other sat idle). Approximate seconds on one core of the
+# 2-core CI machine (benchmarks/compile_probe.py, 2026-11-26); the order is only a scheduling
+# hint: a wrong or stale entry costs time, never a result. Files not listed follow in
+# collection order. The ones that make the session's DEM runs (conftest's fixtures below) are
+# spread so that the two workers do not wait on the same one at the start.
+LONGEST_FILES_FIRST = (
+    "test_rollout.py",          # ~100 s; standard_dem_file
+    "test_design.py",           # ~80 s; short_packings
+    "test_train.py",            # ~60 s
+    "test_sharding.py",         # ~50 s (the two-device process)
+    "test_contact.py",          # ~48 s
+    "test_dem_jar.py",          # ~46 s
+    "test_sdf_grid.py",         # ~41 s
+    "test_contact_train.py",    # ~40 s
+    "test_experiments.py",      # ~34 s
+    "test_dem_driver.py",       # ~21 s
+    "test_motion.py",           # ~20 s
+    "test_demo.py",             # ~19 s
+    "test_geometry.py",         # ~19 s
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))   # stable: tests keep
+    # their order within a file
+
+
 def pytest_configure(config):
+    # xdist's loadfile scheduler by default sorts files by their NUMBER of tests; keep ours.
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
     if hasattr(config, "workerinput") or os.environ.get(SESSION_DIR_ENV):
         return  # an xdist worker (or a nested session): the controller's folder is inherited
     directory = tempfile.mkdtemp(prefix="sgn_jax_tests_")
@@ -260,10 +294,10 @@ def standard_dem_file():
 
 @pytest.fixture(scope="session")
 def two_device_results():
-    """The default run's two-device checks (tests/two_device_checks.py: ``ensemble`` for
-    tests/test_sharding.py, ``step`` for tests/test_train_sharded.py), run once per session in
-    one process with two host devices (one JAX start and import instead of two, issue 20); the
-    results by check name, kept in the session folder for the other xdist worker."""
+    """The default run's two-device checks (tests/two_device_checks.py: ``ensemble`` and
+    ``step``, both for tests/test_sharding.py), run once per session in one process with two
+    host devices (one JAX start and import instead of two, issue 20); the results by check
+    name, kept in the session folder (under a lock, should another worker ever ask too)."""
     from two_device_checks import run_in_two_device_process
 
     path = os.path.join(os.environ[SESSION_DIR_ENV], "two_device_results.json")

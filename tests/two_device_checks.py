@@ -1,5 +1,5 @@
-"""The two-device checks of tests/test_sharding.py and tests/test_train_sharded.py, run in a
-process of their own with two host CPU devices (``XLA_FLAGS=
+"""The two-device checks of tests/test_sharding.py (sharded ensembles, data-parallel
+training), run in a process of their own with two host CPU devices (``XLA_FLAGS=
 --xla_force_host_platform_device_count=2`` must be set before JAX starts, so the rest of the
 suite keeps one device).
 
@@ -14,7 +14,7 @@ Checks:
         (tests/test_sharding.py says what "the same" means, measured);
     ensemble_study: the same plus the design study sharded (value and gradient);
     step: the data-parallel training step and evaluation against one device on the same
-        samples, with SGD and with Adam (tests/test_train_sharded.py);
+        samples, with SGD and with Adam (tests/test_sharding.py);
     loop: the training loop with ``[train] devices = 2``: runs, checkpoints, loads.
 """
 
