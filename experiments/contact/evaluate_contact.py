@@ -94,6 +94,14 @@ def one_run(model, cfg, traj, duration, window):
             lhs = float(np.sum(w_wall[1:]) - (ke[-1] - ke[0]) - (pe[-1] - pe[1]))
             rhs = float(np.sum(d_pp[1:] + d_pw[1:]))
             row["ledger_residual"] = (lhs - rhs) / max(abs(rhs), 1e-30)
+    if "omega_model" in a and traj.omega is not None:
+        # The spin a model with spin state carries against the DEM's: mean contact-point
+        # speed of the rotation, R |w| (m/s), over the same samples (docs/contact.md: the
+        # spin models carried 1.3-2x the DEM's).
+        row["model_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
+            np.asarray(a["omega_model"]), axis=-1)))
+        row["dem_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
+            np.asarray(traj.omega[sl]), axis=-1)))
     if finite:
         row["model_speed_m_s"] = float(np.mean(sj.jar_frame_speed(t_pos, pos, off)))
         census_m = sj.contact_census(pos, off, jar, radius)
@@ -115,7 +123,8 @@ def summarize(name, runs):
     for key in ("dem_power_W", "dem_total_power_W", "model_power_W", "model_total_power_W",
                 "dem_speed_m_s", "model_speed_m_s", "dem_pp_touching_mean", "model_pp_touching_mean",
                 "dem_pw_touching_mean", "model_pw_touching_mean", "dem_pp_contact_frames_mean",
-                "model_pp_contact_frames_mean", "snapped_fraction", "ledger_residual"):
+                "model_pp_contact_frames_mean", "snapped_fraction", "ledger_residual",
+                "dem_spin_speed_m_s", "model_spin_speed_m_s"):
         m, se = mean_se([r.get(key) for r in runs])
         out[key], out[key + "_se"] = m, se
     out["deepest_pp_overlap_m"] = max((r.get("model_deepest_pp_overlap_m", float("nan")) for r in runs), default=float("nan"))
@@ -135,8 +144,8 @@ def summarize(name, runs):
 
 
 def table(summaries):
-    lines = ["| case | DEM W (SE) | model W (SE) | error | bar | total err | speed err | pp touch DEM/model | pw touch DEM/model | pp life steps DEM/model | deepest pp um | snapped % | outside | non-finite | ledger |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | DEM W (SE) | model W (SE) | error | bar | total err | speed err | pp touch DEM/model | pw touch DEM/model | pp life steps DEM/model | deepest pp um | snapped % | outside | non-finite | ledger | spin R|w| DEM/model m/s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in summaries:
         lines.append(
             f"| {s['case']} | {s['dem_power_W']:.3f} ({s['dem_power_W_se']:.3f}) | "
@@ -146,7 +155,8 @@ def table(summaries):
             f"{s['dem_pw_touching_mean']:.1f} / {s['model_pw_touching_mean']:.1f} | "
             f"{s['dem_pp_contact_frames_mean']:.0f} / {s['model_pp_contact_frames_mean']:.0f} | "
             f"{1e6 * s['deepest_pp_overlap_m']:.0f} | {100 * s['snapped_fraction']:.2f} | "
-            f"{s['outside_ball_steps']} | {s['non_finite_runs']} | {s['ledger_residual']:.1e} |")
+            f"{s['outside_ball_steps']} | {s['non_finite_runs']} | {s['ledger_residual']:.1e} | "
+            f"{s['dem_spin_speed_m_s']:.3f} / {s['model_spin_speed_m_s']:.3f} |")
     powers = [(s["dem_power_W"], s["model_power_W"]) for s in summaries]
     if len(powers) >= 3:
         from scipy.stats import spearmanr
