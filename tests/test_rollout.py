@@ -396,6 +396,22 @@ def test_capacity_tiers_give_the_same_rollout(tiny):
         make_rollout(spec, t["model"], 40, 10, pp_capacity_tiers=(8, 4))
 
 
+def test_single_rollouts_use_pair_tiers_only_where_they_repay_their_compile():
+    """run_rollout's tiers (pair_capacity_tiers): 1/4 and 1/2 of the capacity for a long
+    rollout of a kind they speed up; none for a short one (compile-bound: each tier compiles
+    the step again), none for a kind without ``capacity_tiers_help`` (the contact kind), and
+    only tiers inside (0, capacity). That tiers give the same rollout is checked above."""
+    from sgn_jax.pipelines.rollout_run import TIERS_MIN_STEPS, pair_capacity_tiers
+
+    assert pair_capacity_tiers(96, TIERS_MIN_STEPS) == (24, 48)
+    assert pair_capacity_tiers(96, 100_000) == (24, 48)
+    assert pair_capacity_tiers(96, TIERS_MIN_STEPS - 1) == ()
+    assert pair_capacity_tiers(96, 100_000, tiers_help=False) == ()
+    assert pair_capacity_tiers(2, 100_000) == (1,)
+    assert pair_capacity_tiers(1, 100_000) == ()
+    assert 1000 <= TIERS_MIN_STEPS <= 20_000    # about where 1.4 s of compile is repaid
+
+
 def test_overflow_is_counted_not_hidden(dem):
     """A capacity below the number of ball pairs: the dropped directed edges are reported each
     step (the replay's positions do not depend on the graph)."""

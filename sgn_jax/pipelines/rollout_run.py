@@ -72,6 +72,24 @@ def initial_window(traj: Any, start_index: int, window: int, freq: float = 0.0) 
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[0], wins)
 
 
+# Pair-capacity tiers trade compile time for run time: the step is compiled once per tier
+# (a lax.switch of three graphs instead of one), which for the standard SGN (hidden 256) added
+# 1.4 s of compile and saved 0.27 ms per step on one core (docs/benchmarks.md, realistic
+# states: 1.6 -> 3.0 s, 1.145 -> 0.880 ms). They pay back after ~5,000 steps; shorter rollouts
+# (a quick look, a test) run faster without them, and the numbers are the same either way.
+TIERS_MIN_STEPS = 5000
+
+
+def pair_capacity_tiers(capacity: int, n_steps: int, tiers_help: bool = True) -> tuple[int, ...]:
+    """The ball-pair capacity tiers of a single rollout of ``n_steps`` steps: 1/4 and 1/2 of the
+    graph's ``capacity`` (those in (0, capacity)) when the model kind is sped up by tiers
+    (``tiers_help``) and the rollout is long enough to repay their compile
+    (``n_steps >= TIERS_MIN_STEPS``); otherwise none."""
+    if not tiers_help or n_steps < TIERS_MIN_STEPS:
+        return ()
+    return tuple(t for t in sorted({capacity // 4, capacity // 2}) if 0 < t < capacity)
+
+
 def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: float,
                 out_path: str | Path | None = None, cfg_override: Any = None, *,
                 save_every: int | None = None, progress: bool = True,
@@ -81,7 +99,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
     Runs in jitted chunks of ``[rollout] chunk_steps`` with a progress bar, with ball-pair
     capacity tiers of 1/4 and 1/2 of the graph's capacity (:func:`make_rollout`; speed only)
     for a model kind they speed up (its ``capacity_tiers_help``, default True; the contact
-    kind runs faster without them), and the model's single-rollout form where it has one
+    kind runs faster without them) when the rollout has at least ``TIERS_MIN_STEPS`` steps
+    (:func:`pair_capacity_tiers`), and the model's single-rollout form where it has one
     (``for_single_rollout``).
 
     Args:
@@ -146,8 +165,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
                    snap_back=rcfg.snap_back, phi_sb=cfg.graph.phi_sb,
                    snap_velocity=rcfg.snap_velocity,
                    pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),
-                   pp_capacity_tiers=(tuple(t for t in sorted({cap // 4, cap // 2}) if 0 < t < cap)
-                                      if tiers else ()))
+                   pp_capacity_tiers=pair_capacity_tiers(cap, n_steps, tiers))
     predictor = model_predictor(model)
     params = jax.device_put(trained_model.params)
     stats = jax.device_put(trained_model.norm_stats)
