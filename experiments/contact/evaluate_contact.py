@@ -144,7 +144,7 @@ def summarize(name, runs):
 
 
 def table(summaries):
-    lines = ["| case | DEM W (SE) | model W (SE) | error | bar | total err | speed err | pp touch DEM/model | pw touch DEM/model | pp life steps DEM/model | deepest pp um | snapped % | outside | non-finite | ledger | spin R|w| DEM/model m/s |",
+    lines = ["| case | DEM W (SE) | model W (SE) | error | bar | total err | speed err | pp touch DEM/model | pw touch DEM/model | pp life steps DEM/model | deepest pp um | snapped % | outside | non-finite | ledger | spin R \\|w\\| DEM / model m/s |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in summaries:
         lines.append(

@@ -2,8 +2,8 @@
 
 Rolls the model out for ``--duration`` s from each record's window (sample 7) and prints the
 mean contact-point speed of the spin, R |w|, over the first, second and last parts of the
-rollout, beside the DEM record's over the same samples. docs/contact.md: the spin models
-t10-t13 carried 1.7-2x the DEM's.
+rollout, beside the DEM record's over the same samples, under the record's own jar and motion
+with the ball-ball separation off (docs/contact.md).
 
     python experiments/contact/spin_check.py --model runs/contact_t12 \
         data/envelope/heldout_c02_seed4.npz data/envelope/heldout_h00_seed4.npz
@@ -32,8 +32,13 @@ def main() -> None:
     start = int(model.config.graph.window)
     for path in args.records:
         traj = sj.load_trajectory(path)
-        res = sj.run_rollout(model, traj, start, args.duration, None, save_every=args.every,
-                             progress=False)
+        # The record's own jar and motion (its config), the ball-ball separation off: without
+        # the override the rollout ran the model's training config's motion, not the
+        # record's (fixed 2026-11-26; the spins this script reported before were of another
+        # motion than the DEM's they were compared with).
+        cfg = sj.replace_section(traj.config, "rollout", pp_separation=False)
+        res = sj.run_rollout(model, traj, start, args.duration, None, cfg,
+                             save_every=args.every, progress=False)
         spins = res["arrays"]["omega_model"]
         n = spins.shape[0]
         dem = np.asarray(traj.omega)[start: start + args.every * n: args.every][:n]
