@@ -13,7 +13,6 @@ Resumable: a (seed, rpm) already in --out is skipped. Each line: seed, rpm, powe
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -30,10 +29,7 @@ def main() -> None:
     args = ap.parse_args()
     lo, hi = (int(x) for x in args.seeds.split("-"))
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done = set()
-    if out.exists():
-        done = {(r["seed"], r["rpm"]) for r in map(json.loads, out.read_text().splitlines())}
+    done = {(r["seed"], r["rpm"]) for r in sj.read_jsonl(out)}   # a line cut by a kill: redone
     base = sj.load_config("emax_300rpm")
     ensemble = sj.DEMEnsemble()
     for seed in range(lo, hi + 1):
@@ -44,8 +40,7 @@ def main() -> None:
             t0 = time.perf_counter()
             result = ensemble.power(cfg, seed, DURATION, BURN_IN)
             result.update(seed=seed, rpm=rpm, wall_s=time.perf_counter() - t0)
-            with open(out, "a") as fh:   # one line per run: a kill loses at most that run
-                fh.write(json.dumps(result) + "\n")
+            sj.append_jsonl(out, result)   # one line per run: a kill loses at most that run
             print(f"seed {seed} rpm {rpm:g}: {result['power_W']:.4f} W "
                   f"({result['wall_s']:.0f} s)", flush=True)
 

@@ -96,8 +96,7 @@ def one_run(model, cfg, traj, duration, window):
             row["ledger_residual"] = (lhs - rhs) / max(abs(rhs), 1e-30)
     if "omega_model" in a and traj.omega is not None:
         # The spin a model with spin state carries against the DEM's: mean contact-point
-        # speed of the rotation, R |w| (m/s), over the same samples (docs/contact.md: the
-        # spin models carried 1.3-2x the DEM's).
+        # speed of the rotation, R |w| (m/s), over the same samples (docs/contact.md).
         row["model_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
             np.asarray(a["omega_model"]), axis=-1)))
         row["dem_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
