@@ -156,7 +156,6 @@ def test_lr_schedule_is_exponential_between_the_ends():
     assert lr_at(0.5, 1e-4, 1e-6) == pytest.approx(1e-5)
 
 
-
 @pytest.fixture(scope="module")
 def tiny_batch(data):
     """One batch of 12 samples, for the two tests that train SGN(hidden=32) on it: their
