@@ -82,6 +82,11 @@ from sgn_jax.pipelines.configure import (
 from sgn_jax.pipelines.configure import (
     params_from_config as dem_params_from_config,
 )
+from sgn_jax.pipelines.contact_replay import (
+    derive_contact_model,
+    floor_activity_run,
+    make_floor_replay,
+)
 from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.dem_run import (
     DEMRun,
@@ -870,6 +875,10 @@ __all__ = [
     "EnsembleError",
     "load_ensembles",
     "select_cases",
+    # the contact model's overlap limit (docs/contact.md)
+    "derive_contact_model",
+    "make_floor_replay",
+    "floor_activity_run",
     "ExperimentError",
     "case_config",
     "case_result",

@@ -401,6 +401,13 @@ class ModelConfig:
         velocity_encoding: "absolute" (the paper) or "differences" (see above).
         spin: the balls' angular velocities as rollout state (kind "contact" only; the SGN has
             no spin and refuses it).
+        overlap_limit: m, kind "contact" only; 0 = off. The rigid limit of the contact law:
+            each contact's normal impulse is at least the one that keeps its overlap at the end
+            of the step (ballistically, as if it were the balls' only contact) within this
+            depth (docs/contact.md, "Overlap limit"); the SGN refuses a non-zero value.
+        overlap_law_factor: kind "contact" only; 0 = off (needs overlap_limit > 0). The limit
+            grows with the contact's approach speed as this factor times the DEM contact law's
+            own deepest overlap at that speed (fast impacts go as deep as the DEM's, scaled).
     """
 
     kind: str = "sgn"
@@ -409,8 +416,16 @@ class ModelConfig:
     interaction_layers: int = 1
     velocity_encoding: str = "absolute"
     spin: bool = False
+    overlap_limit: float = 0.0
+    overlap_law_factor: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (self.overlap_limit >= 0 and self.overlap_law_factor >= 0):
+            raise ConfigError(f"[model] overlap_limit (m; 0 = off) and overlap_law_factor must "
+                              f"be >= 0, got {self.overlap_limit} and {self.overlap_law_factor}")
+        if self.overlap_law_factor > 0 and self.overlap_limit <= 0:
+            raise ConfigError("[model] overlap_law_factor needs overlap_limit > 0 (the limit of "
+                              "a contact at rest, m), got overlap_limit = 0")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
         # later loads.

@@ -537,3 +537,77 @@ def test_the_sgn_refuses_spin_before_any_work():
         model_factory("sgn").build_model(cfg)
     contact = replace_section(cfg, "model", kind="contact", hidden=8, mlp_layers=2)
     assert model_factory("contact").build_model(contact).spin
+
+
+@pytest.mark.parametrize("spin, law_factor", [(False, 0.0), (True, 1.5)])
+def test_the_overlap_limit_stops_fast_impacts_within_it_and_keeps_the_physics(spin, law_factor):
+    """The rigid limit of the contact law (``overlap_limit``): a ball hitting the floor at 3 m/s
+    and a head-on pair closing at 4 m/s, both 0.1 mm apart, end the step no deeper than the
+    limit; a fresh network alone (du_n = 0.3 softplus(0) = 0.21 m/s) lets them sink past it.
+    With ``overlap_law_factor`` c the limit of a fast impact is c times the DEM law's deepest
+    overlap at its approach speed, deeper than the constant part (there: 8 m/s and 10 m/s). The raised impulse is still
+    equal and opposite (the pair's momentum is conserved) and repulsive, and contacts the
+    limit does not touch keep the network's impulse."""
+    base, gap = 1e-4 if law_factor == 0 else 5e-5, 1e-4
+    centres = np.array([[0.0, R + gap, 0.0],                           # onto the floor
+                        [0.05, 0.05, 0.0], [0.05 + 2 * R + gap, 0.05, 0.0],  # head-on pair
+                        [0.10, 0.05, 0.0], [0.10 + 2 * R - 2e-6, 0.05, 0.0]])  # slow, touching
+    fall, closing = (3.0, 4.0) if law_factor == 0 else (8.0, 10.0)
+    vel = np.array([[0.0, -fall, 0.0], [closing / 2, 0.0, 0.0], [-closing / 2, 0.0, 0.0],
+                    [0.01, 0.0, 0.0], [-0.01, 0.0, 0.0]])
+    pos = centres[None] + np.arange(-W, 1)[:, None, None] * DT * vel[None]
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
+                    spins=jnp.zeros((5, 3)) if spin else None)
+    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    limits = np.array([max(base, law_factor * PHYS.overlap_peak_pw * fall ** 0.8),
+                       max(base, law_factor * PHYS.overlap_peak_pp * closing ** 0.8)])
+
+    def end_of_step(overlap_limit):
+        phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": overlap_limit,
+                                 "overlap_law_factor": law_factor if overlap_limit else 0.0})
+        net = ContactNet(physics=phys, hidden=16, mlp_layers=2, spin=spin)
+        params = net.init(jax.random.PRNGKey(0), graph)["params"]
+        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+        v_end = vel + np.asarray(terms["dv"][:5], np.float64)
+        x_end = centres + v_end * DT
+        gaps = np.array([x_end[0, 1] - R, x_end[2, 0] - x_end[1, 0] - 2 * R,
+                         x_end[4, 0] - x_end[3, 0] - 2 * R])
+        return gaps, v_end, terms
+
+    free, v_free, _ = end_of_step(0.0)
+    assert (free[:2] < -1.5 * limits).all()                        # the network alone sinks in
+    limited, v_lim, terms = end_of_step(base)
+    assert (limited[:2] >= -limits * (1 + 1e-3)).all()
+    assert (limited[:2] < 0).all()                                 # a floor, not a bounce
+    if law_factor:
+        assert (limits > 2 * base).all()                           # fast: deeper than at rest
+    # the pair: equal and opposite, so its momentum is unchanged (no gravity along x)
+    assert abs(v_lim[1, 0] + v_lim[2, 0]) < 1e-5 * abs(v_lim[1, 0] - vel[1, 0])
+    assert (np.asarray(terms["du_n"]) >= 0).all()
+    # the slow touching pair is below its floor: the network's impulse, untouched
+    np.testing.assert_allclose(v_lim[3:], v_free[3:], rtol=0, atol=1e-7)
+    assert int(np.asarray(terms["at_floor"]).sum()) == 2
+
+
+def test_the_law_scaled_limit_is_the_dem_laws_own_deepest_overlap():
+    """``head_on_peak_overlap``: the DEM law's impact is self-similar (peak ~ v^0.8), and the
+    contact model's config reads the peaks from its material; a law factor needs a limit at rest."""
+    from sgn_jax.api import load_config, replace_section
+    from sgn_jax.config import ConfigError
+    from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
+    from sgn_jax.surrogate.contact import physics_from_config
+
+    cfg = replace_section(load_config("emax_300rpm"), "model", kind="contact", hidden=8,
+                          mlp_layers=2, overlap_limit=5e-5, overlap_law_factor=1.5)
+    m = cfg.material
+    phys = physics_from_config(cfg)
+    law = make_contact_law(m.young, m.poisson, m.restitution, m.friction, m.rolling_friction,
+                           phys.ball_radius, phys.ball_mass)
+    assert phys.overlap_peak_pw == pytest.approx(head_on_peak_overlap(law), rel=1e-12)
+    assert head_on_peak_overlap(law, 4.0) == pytest.approx(4.0 ** 0.8 * phys.overlap_peak_pw,
+                                                          rel=2e-3)
+    # two equal balls: half the reduced mass and radius, a shallower peak than on a wall
+    assert 0.8 * phys.overlap_peak_pw < phys.overlap_peak_pp < phys.overlap_peak_pw
+    with pytest.raises(ConfigError, match="overlap_limit"):
+        replace_section(cfg, "model", overlap_limit=0.0)

@@ -48,6 +48,11 @@ def main() -> None:
                     help="impulse passes ([model] interaction_layers; 2: a learned Jacobi pass)")
     ap.add_argument("--spin", action="store_true",
                     help="the balls' spins as rollout state ([model] spin = true)")
+    ap.add_argument("--overlap-limit", type=float, default=None,
+                    help="m: the rigid limit of the contact law ([model] overlap_limit; 0 = off)")
+    ap.add_argument("--overlap-law-factor", type=float, default=None,
+                    help="[model] overlap_law_factor: the limit grows with the approach speed "
+                         "as this times the DEM law's deepest overlap (0 = off)")
     ap.add_argument("--spin-weight", type=float, default=1.0,
                     help="weight of the spin error (R |w - w_DEM|) beside the velocity's")
     ap.add_argument("--init", default=None,
@@ -64,6 +69,10 @@ def main() -> None:
         cfg = sj.replace_section(cfg, "model", interaction_layers=args.passes)
     if args.spin:
         cfg = sj.replace_section(cfg, "model", spin=True)
+    if args.overlap_limit is not None:
+        cfg = sj.replace_section(cfg, "model", overlap_limit=args.overlap_limit)
+    if args.overlap_law_factor is not None:
+        cfg = sj.replace_section(cfg, "model", overlap_law_factor=args.overlap_law_factor)
     files = sorted(glob.glob(os.path.join(args.data, args.pattern)))
     if not files:
         raise SystemExit(f"no {args.pattern} files in {args.data}")

@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 import jraph
 
+from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.surrogate.graph import SLOT_DIM
 from sgn_jax.surrogate.model import register_model
@@ -95,6 +96,20 @@ class ContactPhysics:
         rolling_friction: mu_r of the config's material (EDEM type A, as the DEM): with spin
             state, each contact brakes its balls' relative rotation by an angular impulse of
             at most mu_r R J_n (J_n its normal impulse), never reversing it. Unused without spin.
+        overlap_limit: m; 0 = off. The rigid limit of the contact law (``[model]
+            overlap_limit``): each acting contact's normal impulse is at least the one that
+            keeps its overlap at the end of the step within this depth, computed ballistically
+            for the contact alone (gap + (u + relative acceleration dt + du_n) dt >= -limit).
+            A learned impulse that lets a contact sink deeper is raised to that floor, equal and
+            opposite as every impulse, and its work is in the ledger like any other.
+        overlap_law_factor: c >= 0 (``[model] overlap_law_factor``; 0 = off): the limit grows
+            with the contact's approach speed v (the largest closing rate over the history
+            slots) as c times the DEM contact law's own deepest overlap at that speed,
+            ``limit = max(overlap_limit, c * peak * v^0.8)`` (m, v in m/s): fast impacts may go
+            as deep as the DEM's (scaled), slow ones no deeper than ``overlap_limit``.
+        overlap_peak_pp, overlap_peak_pw: m, the DEM law's deepest overlap of a head-on impact
+            at 1 m/s, ball-ball and ball-wall (:func:`sgn_jax.dem.contact.head_on_peak_overlap`;
+            ``physics_from_config`` sets them from the config's material).
     """
 
     ball_radius: float = 0.005
@@ -107,6 +122,10 @@ class ContactPhysics:
     gate_margin: float = 5.0e-5
     wall_patches: int | None = None
     rolling_friction: float = 0.0
+    overlap_limit: float = 0.0
+    overlap_law_factor: float = 0.0
+    overlap_peak_pp: float = 4.53e-5
+    overlap_peak_pw: float = 5.21e-5
 
     @property
     def inertia(self) -> float:
@@ -116,6 +135,13 @@ class ContactPhysics:
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
             raise ContactModelError(f"history must be in 1..window={self.window}, got {self.history}")
+        if not (self.overlap_limit >= 0 and self.overlap_law_factor >= 0):
+            raise ContactModelError(f"overlap_limit (m) and overlap_law_factor must be >= 0, got "
+                                    f"{self.overlap_limit} and {self.overlap_law_factor}")
+        if self.overlap_law_factor > 0 and self.overlap_limit <= 0:
+            raise ContactModelError(
+                "overlap_law_factor needs overlap_limit > 0: the law's overlap vanishes for a "
+                "contact at rest, and a limit of 0 there would lift every resting ball")
 
 
 def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
@@ -139,6 +165,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         inputs (E, 4 history + 3): the invariant scalars (per slot: coarse gap, fine gap, u,
             fine u; then |v_t|, fine |v_t| and the relative normal acceleration term);
         gate (E,): 1 where the edge acts (a real edge into a ball, contact possible in the step);
+        floor (E,): m/s, the smallest du_n that keeps the contact's overlap at the end of a
+            step within ``phys.overlap_limit`` (0 with the limit off, or where it is kept anyway);
         is_pp (E,), is_pw (E,): edge kinds (only edges whose receiver is a ball);
         senders, receivers (E,): the edges' node indices;
         u_wall (E, 3): the jar's velocity (m/s) for ball-wall edges, 0 otherwise;
@@ -236,6 +264,19 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     inputs = jnp.stack(cols, axis=-1)
 
     gap_end = gap[-1] + u[-1] * dt
+    if phys.overlap_limit > 0:
+        limit = phys.overlap_limit
+        if phys.overlap_law_factor > 0:
+            # the approach speed before the contact slowed it: the history's largest closing rate
+            approach = jnp.maximum(-jnp.min(u[w - h:], axis=0), 0.0)
+            peak = jnp.where(is_pw, phys.overlap_peak_pw, phys.overlap_peak_pp)
+            limit = jnp.maximum(limit, phys.overlap_law_factor * peak
+                                * jnp.power(approach + 1e-12, 0.8))
+        # The gap at the end of the step is gap + (u + acc_term + du_n) dt (semi-implicit Euler;
+        # du_n raises the gap rate by itself: m* du_n on each ball of a pair of reduced mass m*).
+        floor = jnp.maximum(-(gap[-1] + limit) / dt - u[-1] - acc_term, 0.0)
+    else:
+        floor = jnp.zeros_like(gap_end)
     reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin
     gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
     if spin:
@@ -248,7 +289,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         extra["contacts_max"] = jnp.maximum(
             jnp.maximum(per_node[receivers], jnp.where(is_pp, per_node[senders], 0.0)), 1.0)
     return {
-        "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
+        "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
@@ -389,9 +430,12 @@ class ContactNet(nn.Module):
         ``du_t = c tanh(stick / c)`` with the cone ``c = mu du_n``: the stick
         impulse where the cone allows it (rolling), the cone where it does not (sliding). The
         network learns only ``s = 2 sigmoid(out_1)``, the share of the slip stopped in one step
-        (1 at initialisation: full sticking; the DEM's tangential spring lets a contact creep)."""
+        (1 at initialisation: full sticking; the DEM's tangential spring lets a contact creep).
+
+        With ``physics.overlap_limit`` the normal impulse is at least ``geo["floor"]`` (the
+        rigid limit; see :class:`ContactPhysics`)."""
         phys = self.physics
-        du_n = IMPULSE_SCALE * nn.softplus(logits[:, 0]) * geo["gate"]
+        du_n = jnp.maximum(IMPULSE_SCALE * nn.softplus(logits[:, 0]), geo["floor"]) * geo["gate"]
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia
@@ -513,7 +557,10 @@ class ContactNet(nn.Module):
         d_pp, d_pw = seg(per_edge_pp), seg(per_edge_pw)
         terms = {"dv": dv, "diss_pp": d_pp, "diss_pw": d_pw, "work_wall": seg(work_wall_e),
                  "dE_target": share[0] * d_pp + share[1] * d_pw, "du_n": du_n, "du_t": du_t,
-                 "gate": geo["gate"]}
+                 "gate": geo["gate"],
+                 # where the rigid limit set the normal impulse (the learned one was below it)
+                 "at_floor": (geo["floor"] > IMPULSE_SCALE * nn.softplus(logits[:, 0]))
+                 * geo["gate"]}
         if self.spin:
             terms["dw"] = dw
         return terms
@@ -552,11 +599,21 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
     (``graph_spec_from_config``), so each contact kind's MLP runs on its own rows only."""
     radius = float(cfg.balls.radius)
     mass = float(cfg.balls.density) * 4.0 / 3.0 * math.pi * radius ** 3
+    factor = float(getattr(cfg.model, "overlap_law_factor", 0.0))
+    peaks = {}
+    if factor > 0:   # the DEM law's deepest overlap at 1 m/s (a ms of host numpy)
+        mat = cfg.material
+        for kind, partner in (("pp", {"radius_2": radius, "mass_2": mass}), ("pw", {})):
+            law = make_contact_law(mat.young, mat.poisson, mat.restitution, mat.friction,
+                                   mat.rolling_friction, radius, mass, **partner)
+            peaks[f"overlap_peak_{kind}"] = head_on_peak_overlap(law)
     return ContactPhysics(ball_radius=radius, ball_mass=mass, dt=float(cfg.dem.dt),
                           gravity=tuple(float(g) for g in cfg.dem.gravity),
                           friction=float(cfg.material.friction), window=int(cfg.graph.window),
                           wall_patches=int(cfg.graph.wall_patches),
-                          rolling_friction=float(cfg.material.rolling_friction))
+                          rolling_friction=float(cfg.material.rolling_friction),
+                          overlap_limit=float(getattr(cfg.model, "overlap_limit", 0.0)),
+                          overlap_law_factor=factor, **peaks)
 
 
 def make_contact_net(cfg: Any) -> ContactNet:

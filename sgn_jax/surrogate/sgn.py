@@ -219,6 +219,10 @@ def make_sgn(model_cfg: Any) -> SGN:
     if getattr(model_cfg, "spin", False):
         raise ModelKindError("[model] spin = true: the SGN has no spin state; spin is for kind "
                              "'contact' (set [model] kind = \"contact\" or spin = false)")
+    if getattr(model_cfg, "overlap_limit", 0.0) or getattr(model_cfg, "overlap_law_factor", 0.0):
+        raise ModelKindError(f"[model] overlap_limit = {model_cfg.overlap_limit}: the SGN has no "
+                             "contact law to limit; it is for kind 'contact' (set [model] kind = "
+                             "\"contact\" or overlap_limit = 0)")
     return SGN(hidden=model_cfg.hidden, mlp_layers=model_cfg.mlp_layers,
                interaction_layers=model_cfg.interaction_layers)
 
