@@ -15,6 +15,7 @@ def small_config():
     cfg = sj.load_config("emax_300rpm")
     cfg = sj.replace_section(cfg, "balls", count=6)
     cfg = sj.replace_section(cfg, "graph", window=3, wall_patches=4, pp_edges_per_particle=4)
+    cfg = sj.replace_section(cfg, "train", envelope="default")   # trained over the envelope
     return sj.replace_section(cfg, "model", kind="contact", hidden=8, mlp_layers=2)
 
 
@@ -185,3 +186,24 @@ def test_warm_start_takes_the_matching_submodules_and_refuses_a_foreign_checkpoi
     assert (kernel[:4] == 1.0).all() and (kernel[4:] == 0.0).all()
     with pytest.raises(TrainingError, match="no parameter of this model"):
         _warm_start(fresh, {"pp_net": {"dense_0": {"kernel": np.ones((5, 8))}}}, "donor")
+
+
+def test_the_checkpoint_states_its_envelope_and_a_derived_model_keeps_it(tmp_path, unbroken_run):
+    """A contact run whose [train] names the envelope records it in the checkpoint meta (so the
+    API's envelope checks use it, not the training motion alone); ``derive_contact_model``
+    saves the same parameters under a changed [model] section, with where they came from."""
+    from sgn_jax.pipelines.validation import model_envelope
+
+    _, whole_dir = unbroken_run
+    source = sj.load_trained_model(whole_dir)
+    assert model_envelope(source.config, source.meta).source == "the model's stated envelope"
+    out = sj.derive_contact_model(str(whole_dir), str(tmp_path / "limited"), overlap_limit=1e-4)
+    derived = sj.load_trained_model(out)
+    assert derived.model.physics.overlap_limit == 1e-4
+    assert derived.meta["derived_from"]["change"] == {"overlap_limit": 1e-4}
+    assert derived.meta["envelope"] == source.meta["envelope"]
+    for x, y in zip(_leaves(derived.params), _leaves(source.params), strict=True):
+        np.testing.assert_array_equal(x, y)
+    with pytest.raises(FileExistsError):
+        sj.derive_contact_model(str(whole_dir), out, overlap_limit=2e-4)
+

@@ -2,9 +2,9 @@
 
     python experiments/contact/bar_check.py contact_t21 [--dir runs/contact_eval]
 
-Reads ``DIR/NAME_heldout.json``, ``NAME_unseen.json`` and ``NAME_standard.json`` (those that
-exist) and prints, per case, the power error against its bar (held-out: the summary's
-max(10 %, 2 SE); Motion 1 and 2: 15 %; the post jar: 20 %; the standard case:
+Reads ``DIR/NAME_heldout.json``, ``NAME_unseen.json``, ``NAME_standard.json`` and
+``NAME_fresh.json`` (``experiments/contact/fresh.toml``; those that exist) and prints, per case,
+the power error against its bar (held-out and fresh motions: the summary's max(10 %, 2 SE); Motion 1 and 2: 15 %; the post jar: 20 %; the standard case:
 max(5 %, 2 SE)), the mean jar-frame speed (15 %), the touching ball-ball and ball-wall
 contacts per step (25 %), the deepest ball-ball overlap (0.5 mm), snapped ball-steps (1 %),
 balls outside and non-finite runs (0), and which of them it misses. (The held-out rule "5 of
@@ -57,7 +57,7 @@ def main() -> None:
     print("| case | power (bar) | speed | pp contacts | pw contacts | deepest pp overlap | "
           "misses |")
     print("|---|---|---|---|---|---|---|")
-    for part in ("heldout", "unseen", "standard"):
+    for part in ("heldout", "unseen", "standard", "fresh"):
         path = Path(args.dir) / f"{args.name}_{part}.json"
         if not path.exists():
             continue

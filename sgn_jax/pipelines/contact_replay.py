@@ -39,6 +39,7 @@ from sgn_jax.config import config_to_dict, replace_section
 from sgn_jax.motion import frequency_hz, offset, velocity
 from sgn_jax.pipelines import configure
 from sgn_jax.pipelines.rollout_run import _effective_config, run_rollout
+from sgn_jax.pipelines.train_run import envelope_meta
 from sgn_jax.records.checkpoint import TrainedModel, load_trained_model, save_checkpoint
 from sgn_jax.surrogate.contact import ContactNet, edge_geometry
 from sgn_jax.surrogate.graph import build_graph, windows_from_arrays
@@ -181,7 +182,8 @@ def derive_contact_model(checkpoint: str, out: str, **model_changes: Any) -> str
     """Save ``checkpoint``'s model (a run or checkpoint directory) with its ``[model]`` section
     changed by ``model_changes`` (e.g. ``overlap_limit=1e-4``) as a new run directory ``out``
     (``out/checkpoints/best``), the same parameters; its meta's ``derived_from`` names the
-    source and the change. Refuses an existing ``out`` and a model that is not a contact model.
+    source and the change, and a source without the envelope its ``[train]`` section names
+    (contact runs before 2026-11-26 did not record it) gets it. Refuses an existing ``out`` and a model that is not a contact model.
     Returns ``out``."""
     if os.path.exists(out):
         raise FileExistsError(f"{out} exists: choose a new directory")
@@ -191,6 +193,8 @@ def derive_contact_model(checkpoint: str, out: str, **model_changes: Any) -> str
     cfg = replace_section(trained.config, "model", **model_changes)
     meta = {k: v for k, v in dict(trained.meta).items()
             if not k.endswith("_digest") and k not in ("format_version", "has_opt_state")}
+    if "envelope" not in meta:   # models trained before the contact trainer recorded it
+        meta.update(envelope_meta(cfg.train))
     meta.update(config=config_to_dict(cfg),
                 derived_from={"model": os.path.abspath(checkpoint),
                               "change": {k: model_changes[k] for k in sorted(model_changes)}})

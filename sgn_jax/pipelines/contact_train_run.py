@@ -34,6 +34,7 @@ from sgn_jax.pipelines.configure import (
 from sgn_jax.pipelines.train_run import (
     at_model_step,
     check_trajectory_matches,
+    envelope_meta,
     read_metrics,
     write_metrics,
 )
@@ -236,7 +237,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
             "sgn_jax_version": sgn_jax.__version__}
     write_json(out_dir / "run_info.json", info)
     stats = identity_stats(spec.window)
-    meta_base = {"config": config_to_dict(cfg), "info": info}
+    meta_base = {"config": config_to_dict(cfg), "info": info, **envelope_meta(cfg.train)}
     val_batches = ([val_src.draw(np.random.default_rng([seed, 7, i]), batch_size)
                     for i in range(8)] if val_src is not None else [])
     best = min((r["val_loss"] if r.get("val_loss", -1) >= 0 else r["train_loss"]

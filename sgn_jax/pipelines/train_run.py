@@ -62,6 +62,16 @@ METRIC_FIELDS = ("epoch", "step", "lr", "train_loss", "train_node", "train_globa
                  "best")
 
 
+
+def envelope_meta(train_cfg: Any) -> dict[str, Any]:
+    """``{"envelope": ...}`` for a checkpoint's meta when the ``[train]`` section names the
+    motion envelope the model is trained for (``envelope`` = "default" or a TOML path), else
+    ``{}`` (the model then covers only its training motion: ``model_envelope``)."""
+    if not getattr(train_cfg, "envelope", ""):
+        return {}
+    path = ENVELOPE_PATH if train_cfg.envelope == "default" else Path(train_cfg.envelope)
+    return {"envelope": load_envelope(path).to_meta()}
+
 def write_metrics(out_dir: Path, history: list[dict[str, Any]],
                   fields: Sequence[str] = METRIC_FIELDS, loss_plot: bool = True) -> None:
     """``metrics.jsonl`` and ``metrics.csv`` (columns ``fields``; rewritten atomically) and,
@@ -325,10 +335,7 @@ def train(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *, sdf: An
     alpha, beta = tcfg.node_loss_weight, tcfg.global_loss_weight
     best = min((r["val_loss"] if r["val_loss"] is not None else r["train_loss"]
                 for r in history), default=math.inf)
-    meta_base = {"config": config_to_dict(cfg), "info": info}
-    if tcfg.envelope:
-        path = ENVELOPE_PATH if tcfg.envelope == "default" else Path(tcfg.envelope)
-        meta_base["envelope"] = load_envelope(path).to_meta()
+    meta_base = {"config": config_to_dict(cfg), "info": info, **envelope_meta(tcfg)}
 
     epoch_bar = tqdm(range(start_epoch, tcfg.epochs), desc="epochs", unit="epoch",
                      disable=not progress, initial=start_epoch, total=tcfg.epochs)
