@@ -53,12 +53,11 @@ def main() -> None:
     if getattr(trained.config.model, "kind", "sgn") != "contact":
         raise SystemExit(f"{args.model} is not a contact model")
     settings = {"pp_separation": False}               # as evaluate_contact.py
-    runs, summaries, replays = {}, [], {}
+    runs, summaries, compiled = {}, [], {}
     for case in sj.select_cases(sj.load_ensembles(args.ensembles), args.cases):
         case_cfg = sj.replace_section(sj.load_config(case.config_path), "rollout", **settings)
-        replay = sj.make_floor_replay(trained, case_cfg)
-        key = (replay["spec"], replay["query"])
-        replay = replays.setdefault(key, replay)          # one compilation for all cases
+        # one compilation for all cases of one graph; each case its own config and motion
+        replay = sj.make_floor_replay(trained, case_cfg, compiled)
         rows = []
         for seed in (s for s in case.seeds if s not in case.train_seeds):
             run = f"{case.name}_seed{seed}"

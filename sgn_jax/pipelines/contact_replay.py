@@ -153,18 +153,24 @@ def replay_run(trained, model, replay, cfg, spec, sdf, query, traj, n_steps, eve
     return row
 
 
-def make_floor_replay(trained: TrainedModel, case_cfg: Any) -> dict[str, Any]:
+def make_floor_replay(trained: TrainedModel, case_cfg: Any,
+                      compiled: dict[Any, Any] | None = None) -> dict[str, Any]:
     """Everything :func:`floor_activity_run` needs for the rollouts of one case config: the
-    effective config (the model's physics, the case's scene), its graph spec and walls, and the
-    jitted replay. Cases of one spec and walls can share it (one compilation)."""
+    effective config (the model's physics, the case's scene and motion), its graph spec and
+    walls, and the jitted replay. Pass the same ``compiled`` dict for every case: cases of one
+    graph spec and walls then share the jitted replay (one compilation), each with its own
+    config and motion."""
     model = single_rollout_model(trained.model)[0]   # the form run_rollout steps with
     if not isinstance(model, ContactNet):
         raise TypeError(f"floor activity needs a contact model, got {type(model).__name__}")
     cfg = _effective_config(trained.config, case_cfg)  # what run_rollout steps under
     spec = configure.graph_spec_from_config(cfg, n_particles=int(cfg.balls.count))
     sdf, query = configure.surrogate_walls_from_config(cfg)
+    compiled = {} if compiled is None else compiled
+    if (spec, query) not in compiled:
+        compiled[(spec, query)] = make_replay(model, spec, query)
     return {"model": model, "cfg": cfg, "spec": spec, "sdf": sdf, "query": query,
-            "replay": make_replay(model, spec, query)}
+            "replay": compiled[(spec, query)]}
 
 
 def floor_activity_run(trained: TrainedModel, replay: dict[str, Any], traj: Any,
