@@ -61,6 +61,7 @@ from sgn_jax.surrogate.rollout import (
     RolloutState,
     analytic_jar_query,
     make_rollout_advance,
+    separate_pairs,
 )
 
 F64 = jnp.float64
@@ -238,6 +239,42 @@ def anchored_window(window: Window, t_now: jax.Array, base_motion: Motion, motio
     return window, t_eff
 
 
+PACKING_FIT_TOLERANCE = 1.0e-4
+"""m: a packing's ball that sinks deeper than this into a changed jar's wall, or into another
+ball, is moved out to it by :func:`fit_packing_to_jar` (0.1 mm: twice the DEM's deepest overlaps
+in the standard case, so a packing in its own jar is left exactly as it is)."""
+PACKING_FIT_ITERATIONS = 64
+
+
+def fit_packing_to_jar(window: Window, jar: JarParams, radius: float,
+                       tolerance: float = PACKING_FIT_TOLERANCE,
+                       iterations: int = PACKING_FIT_ITERATIONS) -> Window:
+    """``window`` with its balls moved out of ``jar``'s walls and out of each other, beyond
+    ``tolerance`` (m), every slot by the same shift (velocities unchanged; stop-gradient: the
+    packing does not follow the design, as in :func:`anchored_window`).
+
+    Why: a packing is settled in the base jar; under a jar-shape parameter it lies in another
+    one. 5 mm off the standard jar's ``straight_length``, the standard packings put balls
+    2.5 mm inside the end wall, and a rollout started there is kicked out of the bed state by
+    the contact impulses that expel them (contact models with an overlap limit doubled the
+    power; docs/design.md). ``iterations`` Jacobi sweeps: wall overlaps deeper than
+    ``tolerance`` pushed back along the wall normal, then ball pairs separated to it
+    (:func:`sgn_jax.surrogate.rollout.separate_pairs`). A packing already within the
+    tolerance (any packing in its own jar) gets a shift of exactly 0."""
+    newest, offset_now = window.positions[-1], window.offsets[-1]
+
+    def sweep(_, x):
+        phi, normal = analytic_jar_query(jar, x, offset_now)
+        excess = jnp.maximum(phi + radius - tolerance, 0.0)
+        x = x - excess[:, None] * normal
+        shift, _ = separate_pairs(x, radius, tolerance)
+        return x + shift
+
+    moved = jax.lax.fori_loop(0, iterations, sweep, newest)
+    shift = jax.lax.stop_gradient(moved - newest)
+    return window.replace(positions=window.positions + shift[None])
+
+
 # --------------------------------------------------------------------------------------------
 # The ensemble-mean power and its estimated gradient
 
@@ -372,6 +409,7 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         """Power (W) of one packing and the states at the segment starts."""
         motion, jar = design(theta)
         window, t_eff = anchored_window(window0, jnp.asarray(t0, F64), base_motion, motion, dt)
+        window = fit_packing_to_jar(window, jar, spec.ball_radius)
         state = RolloutState(window=window, step=jnp.zeros((), jnp.int32),
                              energy=jnp.zeros((), F64))
         if burn is not None:
@@ -517,6 +555,7 @@ __all__ = [
     "PARAMETER_UNITS",
     "PowerEstimate",
     "anchored_window",
+    "fit_packing_to_jar",
     "apply_parameters",
     "check_parameters",
     "default_step",

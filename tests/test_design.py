@@ -170,3 +170,37 @@ def test_cli_sensitivity_refuses_bad_input(tmp_path, capsys):
     assert main(["sensitivity", "--config", "emax_300rpm", "--param", "motion.rpm",
                  "--packings", "1", "--out", str(tmp_path)]) == 2
     assert "packings must be >= 2" in capsys.readouterr().err
+
+
+def test_a_packing_is_fitted_into_a_shorter_jar_and_left_alone_in_its_own():
+    """A jar-shape parameter moves the walls under a packing settled in the base jar: 5 mm off
+    ``straight_length`` puts a ball at the end wall 2.5 mm inside it. ``fit_packing_to_jar``
+    moves it (and the ball it then presses) out to the tolerance, every slot by the same shift
+    (the velocities are kept); in its own jar the packing is left exactly as it is."""
+    import jax.numpy as jnp
+
+    from sgn_jax.design import PACKING_FIT_TOLERANCE, fit_packing_to_jar
+    from sgn_jax.surrogate.graph import Window
+
+    base = sj.jar_params_from_config(sj.load_config("emax_300rpm").jar)
+    short = base.replace(straight_length=base.straight_length - 0.005)
+    radius, y = 0.005, 0.02
+    end = base.straight_length / 2 + base.radius - radius - 1e-6        # touching the end wall
+    centres = np.array([[end, y, 0.0], [end - 2 * radius + 1e-6, y, 0.0], [0.0, y, 0.0]])
+    steps = np.arange(-3, 1)[:, None, None] * 1e-4 * np.array([0.1, 0.0, 0.05])
+    window = Window(positions=jnp.asarray(centres[None] + steps), offsets=jnp.zeros((3, 3)),
+                    offset_velocities=jnp.zeros((3, 3)), frequency_hz=jnp.asarray(5.0))
+    fit = jax.jit(fit_packing_to_jar, static_argnums=2)
+    phi_short, _ = sj.analytic_jar_query(short, jnp.asarray(centres), jnp.zeros(3))
+    assert float(phi_short[0]) + radius > 2e-3                         # 2.5 mm inside the wall
+
+    same = fit(window, base, radius)
+    np.testing.assert_array_equal(np.asarray(same.positions), np.asarray(window.positions))
+    moved = fit(window, short, radius)
+    x = np.asarray(moved.positions[-1])
+    phi, _ = sj.analytic_jar_query(short, jnp.asarray(x), jnp.zeros(3))
+    assert float(np.max(np.asarray(phi))) + radius < 1.5 * PACKING_FIT_TOLERANCE
+    assert 2 * radius - np.linalg.norm(x[0] - x[1]) < 1.5 * PACKING_FIT_TOLERANCE
+    np.testing.assert_allclose(np.diff(np.asarray(moved.positions), axis=0),
+                               np.diff(np.asarray(window.positions), axis=0), atol=1e-15)
+    np.testing.assert_array_equal(x[2], np.asarray(window.positions[-1, 2]))   # far: untouched
