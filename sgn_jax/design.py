@@ -62,6 +62,7 @@ from sgn_jax.surrogate.rollout import (
     analytic_jar_query,
     make_rollout_advance,
     separate_pairs,
+    snap_back_shift,
 )
 
 F64 = jnp.float64
@@ -265,8 +266,7 @@ def fit_packing_to_jar(window: Window, jar: JarParams, radius: float,
 
     def sweep(_, x):
         phi, normal = analytic_jar_query(jar, x, offset_now)
-        excess = jnp.maximum(phi + radius - tolerance, 0.0)
-        x = x - excess[:, None] * normal
+        x = x + snap_back_shift(phi, normal, tolerance - radius)[0]   # walls: overlap <= tol
         shift, _ = separate_pairs(x, radius, tolerance)
         return x + shift
 

@@ -43,7 +43,7 @@ from sgn_jax.pipelines.train_run import envelope_meta
 from sgn_jax.records.checkpoint import TrainedModel, load_trained_model, save_checkpoint
 from sgn_jax.surrogate.contact import ContactNet, edge_geometry
 from sgn_jax.surrogate.graph import build_graph, windows_from_arrays
-from sgn_jax.surrogate.rollout import single_rollout_model
+from sgn_jax.surrogate.rollout import single_rollout_model, snap_back_shift
 
 CHUNK = 250                    # replayed windows per jitted call (fixed: one compilation)
 EPS32 = float(np.finfo(np.float32).eps)
@@ -99,7 +99,7 @@ def replay_run(trained, model, replay, cfg, spec, sdf, query, traj, n_steps, eve
     window, dt, phys = spec.window, spec.dt, model.physics
     t_start = time.perf_counter()
     a = run_rollout(trained, traj, window, n_steps * dt, None, cfg, save_every=1,
-                       progress=False)["arrays"]
+                    progress=False)["arrays"]
     t_rollout = time.perf_counter() - t_start
     # pos index i = frame i - W: the DEM's samples before the start window, then the frames
     pos = np.concatenate([np.asarray(traj.pos[:window], np.float64), a["pos"]])
@@ -119,10 +119,8 @@ def replay_run(trained, model, replay, cfg, spec, sdf, query, traj, n_steps, eve
     shifts = {}   # pos index -> (N, 3) m; step k made pos index k + W + 1
     for k in np.flatnonzero(a["n_snapped"]):
         x = replay_at(np.array([k + window]))[1][0]
-        phi, n = (np.asarray(q, np.float64) for q in query(sdf, x, jar[0][k + window + 1]))
-        snap = (phi >= cfg.graph.phi_sb) & (np.sum(n * n, axis=-1) > 0)
-        shifts[k + window + 1] = np.where(snap[:, None], -(phi - cfg.graph.phi_sb)[:, None] * n,
-                                          0.0)
+        phi, n = (jnp.asarray(q, jnp.float64) for q in query(sdf, x, jar[0][k + window + 1]))
+        shifts[k + window + 1] = np.asarray(snap_back_shift(phi, n, cfg.graph.phi_sb)[0])
 
     steps = np.arange(0, n_steps, every)
     ends = np.concatenate([steps, np.full(-len(steps) % CHUNK, steps[-1])]) + window

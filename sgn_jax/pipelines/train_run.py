@@ -62,7 +62,6 @@ METRIC_FIELDS = ("epoch", "step", "lr", "train_loss", "train_node", "train_globa
                  "best")
 
 
-
 def envelope_meta(train_cfg: Any) -> dict[str, Any]:
     """``{"envelope": ...}`` for a checkpoint's meta when the ``[train]`` section names the
     motion envelope the model is trained for (``envelope`` = "default" or a TOML path), else
@@ -71,6 +70,7 @@ def envelope_meta(train_cfg: Any) -> dict[str, Any]:
         return {}
     path = ENVELOPE_PATH if train_cfg.envelope == "default" else Path(train_cfg.envelope)
     return {"envelope": load_envelope(path).to_meta()}
+
 
 def write_metrics(out_dir: Path, history: list[dict[str, Any]],
                   fields: Sequence[str] = METRIC_FIELDS, loss_plot: bool = True) -> None:

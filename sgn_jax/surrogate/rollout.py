@@ -310,6 +310,15 @@ class SnapBack:
     pp_max_overlap: float | None = None  # m; None: no ball-ball separation
 
 
+def snap_back_shift(phi: jax.Array, normal: jax.Array, phi_sb: float
+                    ) -> tuple[jax.Array, jax.Array]:
+    """The snap-back (module docstring): the shift (N, 3) m that moves every ball with
+    ``phi >= phi_sb`` along ``-normal`` to ``phi_sb``, and which balls it moves (N,) bool.
+    A zero normal (vanishing gradient) gives no direction: such a ball is not moved."""
+    snapped = (phi >= phi_sb) & (jnp.sum(normal * normal, axis=-1) > 0)
+    return jnp.where(snapped[:, None], -(phi - phi_sb)[:, None] * normal, 0.0), snapped
+
+
 def separate_pairs(positions: jax.Array, radius: float, max_overlap: float
                    ) -> tuple[jax.Array, jax.Array]:
     """Ball-ball analogue of the snap-back: the shift that reduces every overlap beyond
@@ -419,9 +428,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         if snap.enabled:
             phi, normal = query(sdf, x_next, jar_offset)
             phi, normal = jnp.asarray(phi, F64), jnp.asarray(normal, F64)
-            # A zero normal (vanishing gradient) gives no direction: such a ball is not moved.
-            snapped = (phi >= snap.phi_sb) & (jnp.sum(normal * normal, axis=-1) > 0)
-            shift = jnp.where(snapped[:, None], -(phi - snap.phi_sb)[:, None] * normal, 0.0)
+            shift, snapped = snap_back_shift(phi, normal, snap.phi_sb)
             if snap.keep_velocity:  # translate the whole history: velocities unchanged
                 positions = window.positions + shift[None]
             else:  # only the newest position: the FD velocity follows the move
@@ -679,4 +686,6 @@ __all__ = [
     "model_predictor",
     "single_rollout_model",
     "replay_predictor",
+    "separate_pairs",
+    "snap_back_shift",
 ]
