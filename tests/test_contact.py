@@ -11,6 +11,8 @@ and arbitrary): these properties hold by construction, whatever the parameters.
   energy from the positions, up to the integrator's telescoping term).
 """
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -90,6 +92,35 @@ def test_contact_kind_is_registered_and_builds_from_the_whole_config():
     assert isinstance(model, ContactNet)
     assert model.physics.ball_radius == cfg.balls.radius and model.physics.dt == cfg.dem.dt
     assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
+
+
+def test_its_graphs_skip_the_node_wall_columns_it_never_reads():
+    """Kind "contact" reads only the nodes' velocities (its walls are its ball-wall edges), so
+    its config's graphs leave the W nearest-wall queries out (``GraphSpec.node_walls``): the
+    same step as from a graph with them; the SGN's graphs keep them."""
+    import dataclasses
+
+    from sgn_jax.api import load_config, replace_section
+    from sgn_jax.pipelines.configure import graph_spec_from_config
+
+    cfg = load_config("emax_300rpm")
+    assert graph_spec_from_config(cfg).node_walls
+    assert not graph_spec_from_config(replace_section(cfg, "model", kind="contact")).node_walls
+    window, _ = scene(np.random.default_rng(3))
+    graphs = {walls: build_graph(window, None, dataclasses.replace(SPEC, node_walls=walls),
+                                 floor_query((0.0, 1.0, 0.0)))[0] for walls in (True, False)}
+    phi_columns = np.arange(3, 7 * W, 7)
+    assert np.abs(np.asarray(graphs[True].nodes["features"])[:5, phi_columns]).max() > 1e-3
+    # (without wall patches the ball-wall edges are built from the newest slot's query)
+    assert not np.asarray(graphs[False].nodes["features"])[:5, phi_columns[:-1]].any()
+    np.testing.assert_array_equal(graphs[True].edges["features"],
+                                  graphs[False].edges["features"])
+    net = net_with((0.0, -9.81, 0.0))
+    params = random_params(net, graphs[True])
+    dv = [net.apply({"params": params}, graphs[w], method=ContactNet.step_terms)["dv"]
+          for w in (True, False)]
+    assert np.abs(np.asarray(dv[0])).max() > 0
+    np.testing.assert_array_equal(dv[0], dv[1])
 
 
 def test_ball_ball_momentum_is_conserved_to_rounding(passes=1):
@@ -282,7 +313,9 @@ def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
     """``ContactPhysics.wall_patches`` known (from the config, as the graphs') and the model's
     single-rollout form (``rows_by_kind``): each MLP runs only on its own kind's rows, half the
     work; the impulses are those of running both MLPs on every row (``wall_patches=None``), on
-    a scene with ball-ball and ball-wall contacts."""
+    a scene with ball-ball and ball-wall contacts. So are those of each MLP on its kind's
+    acting rows only (``acting_per_ball``), in a block that holds them and in one too small
+    for them (the step falls back to the rows by kind)."""
     import dataclasses
 
     from sgn_jax.geometry import JarParams
@@ -302,20 +335,29 @@ def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
                     frequency_hz=jnp.asarray(5.0))
     spec = dataclasses.replace(SPEC, wall_patches=patches)
     graph, _ = build_graph(window, jar, spec, analytic_jar_query)
+    forms = {"rows by kind": {"acting_per_ball": 0.0}, "acting": {},
+             "acting, block too small": {"acting_per_ball": 0.2}}   # a block of 1 row
+
+    def step_terms(known, passes, **form):
+        net = ContactNet(physics=dataclasses.replace(PHYS, wall_patches=known), hidden=32,
+                         mlp_layers=3, passes=passes)
+        params = random_params(net, graph, seed=11)
+        # rows by kind where the patches are known
+        single = net.for_single_rollout().clone(**form)
+        return single.apply({"params": params}, graph, method=ContactNet.step_terms)
+
     out = {}
-    for known in (None, patches):
-        for passes in (1, 2):
-            phys = dataclasses.replace(PHYS, wall_patches=known)
-            net = ContactNet(physics=phys, hidden=32, mlp_layers=3, passes=passes)
-            params = random_params(net, graph, seed=11)
-            net = net.for_single_rollout()      # rows by kind where the patches are known
-            out[known, passes] = net.apply({"params": params}, graph,
-                                           method=ContactNet.step_terms)
     for passes in (1, 2):
-        both, own = out[None, passes], out[patches, passes]
+        out[None, passes, "both"] = step_terms(None, passes, acting_per_ball=0.0)
+        for form, change in forms.items():
+            out[patches, passes, form] = step_terms(patches, passes, **change)
+    for passes, form in itertools.product((1, 2), forms):
+        both, own = out[None, passes, "both"], out[patches, passes, form]
         gate = np.asarray(both["gate"]) > 0
         geo = edge_geometry(graph, PHYS, primary_only=True)
         assert np.asarray(geo["is_pp"])[gate].any() and np.asarray(geo["is_pw"])[gate].any()
+        # more acting contacts of a kind than the block of 1 row: the fallback runs
+        assert max(np.sum(np.asarray(geo[k])[gate]) for k in ("is_pp", "is_pw")) > 1
         if patches == 0:
             assert int(np.sum(geo["is_pp"])) + int(np.sum(geo["is_pw"])) > 5
         np.testing.assert_allclose(np.asarray(own["du_n"]), np.asarray(both["du_n"]),

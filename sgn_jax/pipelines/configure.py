@@ -33,6 +33,7 @@ from sgn_jax.scene import (
     parametric_jar,
 )
 from sgn_jax.surrogate.graph import GraphSpec
+from sgn_jax.surrogate.model import model_factory, model_kind
 
 
 def motion_from_config(cfg: MotionConfig, dtype: jnp.dtype = jnp.float64) -> Motion:
@@ -64,6 +65,8 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
     """The GraphSpec of a :class:`sgn_jax.config.Config` (balls, dem.dt and the [graph] section).
 
     The ball-ball capacity is ``graph.pp_edges_per_particle * N`` directed edges.
+    ``node_walls`` follows the ``[model] kind`` (``ModelFactory.node_walls``; a config without
+    a ``[model]`` section gets the paper's True).
     """
     n = cfg.balls.count if n_particles is None else int(n_particles)
     return GraphSpec(
@@ -76,7 +79,15 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
         pp_pair_capacity=max(1, (cfg.graph.pp_edges_per_particle * n) // 2),
         contact_features=cfg.graph.contact_features,
         wall_patches=cfg.graph.wall_patches,
+        node_walls=_kind_reads_node_walls(cfg),
     )
+
+
+def _kind_reads_node_walls(cfg: Any) -> bool:
+    model_cfg = getattr(cfg, "model", None)
+    if model_cfg is None:
+        return True
+    return model_factory(model_kind(model_cfg)).node_walls
 
 
 def jar_params_from_config(jar_cfg: Any) -> JarParams:

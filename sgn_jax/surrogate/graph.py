@@ -82,6 +82,12 @@ class GraphSpec:
             contact per ball and patch, so that a ball in the corner of floor and side wall
             feels both; P is the capacity (the jar's query may have at most P patches). The
             node features keep the nearest wall (the max over the same patches).
+        node_walls: True (the paper): every slot's nearest-wall phi and normal in the node
+            features (W SDF queries per graph). False: those columns are 0 and not computed,
+            for a model that reads only the node velocities (the contact kind: its walls are
+            its ball-wall edges); with ``wall_patches`` = 0 the newest slot is still queried,
+            since the ball-wall edges are built from it. ``graph_spec_from_config`` sets it
+            from the model kind (``ModelFactory.node_walls``).
     """
 
     n_particles: int
@@ -93,6 +99,7 @@ class GraphSpec:
     pp_pair_capacity: int = 96
     contact_features: bool = False
     wall_patches: int = 0
+    node_walls: bool = True
 
     def __post_init__(self) -> None:
         if self.n_particles < 1 or self.window < 1 or self.pp_pair_capacity < 1:
@@ -239,13 +246,23 @@ def _check_window(window: Window, spec: GraphSpec) -> None:
 
 def particle_slot_features(window: Window, sdf: Any, spec: GraphSpec,
                            query: SDFQuery | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Per-slot ball quantities in float64: velocity (W, N, 3), phi (W, N), normal (W, N, 3)."""
+    """Per-slot ball quantities in float64: velocity (W, N, 3), phi (W, N), normal (W, N, 3).
+
+    With ``spec.node_walls`` False phi and normal are 0 at every slot but the newest, which is
+    queried only when the ball-wall edges need it (``wall_patches`` = 0)."""
     query = _default_query() if query is None else query
     pos = jnp.asarray(window.positions, jnp.float64)
     vel = (pos[1:] - pos[:-1]) / spec.dt
     offsets = jnp.asarray(window.offsets, jnp.float64)
-    phi, normal = jax.vmap(lambda p, o: query(sdf, p, o))(pos[1:], offsets)
-    return vel, jnp.asarray(phi, jnp.float64), jnp.asarray(normal, jnp.float64)
+    if spec.node_walls:
+        phi, normal = jax.vmap(lambda p, o: query(sdf, p, o))(pos[1:], offsets)
+        return vel, jnp.asarray(phi, jnp.float64), jnp.asarray(normal, jnp.float64)
+    phi, normal = jnp.zeros(vel.shape[:2], jnp.float64), jnp.zeros_like(vel)
+    if not spec.wall_patches:
+        phi_new, normal_new = query(sdf, pos[-1], offsets[-1])
+        phi = phi.at[-1].set(jnp.asarray(phi_new, jnp.float64))
+        normal = normal.at[-1].set(jnp.asarray(normal_new, jnp.float64))
+    return vel, phi, normal
 
 
 def _contact_columns(gap: jax.Array) -> jax.Array:

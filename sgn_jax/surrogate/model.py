@@ -157,6 +157,10 @@ class ModelFactory:
         init: ``init(module, example_graph, seed) -> params`` (default :func:`init_params`:
             flax's own initialisation).
         description: one line for listings and error messages.
+        builds_from: "model" (``build(cfg.model)``) or "config" (``build(cfg)``).
+        node_walls: whether the kind reads the nearest-wall phi and normal of the node
+            features (``GraphSpec.node_walls``); a kind that does not saves W SDF queries per
+            graph (the contact kind: its walls are its ball-wall edges).
     """
 
     kind: str
@@ -164,6 +168,7 @@ class ModelFactory:
     init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] = init_params
     description: str = ""
     builds_from: str = "model"
+    node_walls: bool = True
 
     def build_model(self, cfg: Any) -> nn.Module:
         """The module of a whole experiment config: ``build(cfg.model)``, or ``build(cfg)``
@@ -190,13 +195,15 @@ _REGISTRY: dict[str, ModelFactory] = {}
 def register_model(kind: str, build: Callable[[Any], nn.Module], *,
                    init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] | None = None,
                    description: str = "", replace: bool = False,
-                   builds_from: str = "model") -> ModelFactory:
+                   builds_from: str = "model", node_walls: bool = True) -> ModelFactory:
     """Register a surrogate kind: ``[model] kind = "<kind>"`` then builds it with ``build``.
 
     ``build(model_cfg)`` returns a flax module honouring the contract of :class:`ModelFactory`.
     Registering a kind that exists is an error unless ``replace=True``. Registration is per
     process: a checkpoint of a kind defined outside sgn-jax loads only after the module that
-    registers it has been imported. Returns the factory.
+    registers it has been imported. ``node_walls=False``: the kind never reads the node
+    features' wall columns, so its graphs skip them (:class:`ModelFactory`). Returns the
+    factory.
     """
     if not isinstance(kind, str) or not kind:
         raise ModelKindError(f"a model kind must be a non-empty string, got {kind!r}")
@@ -206,7 +213,8 @@ def register_model(kind: str, build: Callable[[Any], nn.Module], *,
     if builds_from not in ("model", "config"):
         raise ModelKindError(f"builds_from must be 'model' or 'config', got {builds_from!r}")
     factory = ModelFactory(kind=kind, build=build, init=init or init_params,
-                           description=description, builds_from=builds_from)
+                           description=description, builds_from=builds_from,
+                           node_walls=bool(node_walls))
     _REGISTRY[kind] = factory
     return factory
 
