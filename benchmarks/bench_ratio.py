@@ -106,15 +106,18 @@ def _surrogate(model: str):
     return load_surrogate(model)
 
 
-def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int = 1) -> dict:
-    """``batch`` surrogate rollouts of ``seconds`` (vmapped over packings; ``batch`` 1 is one
-    plain rollout, with pair-capacity tiers when ``tiers``). ``devices`` > 1: the batch is
-    sharded over that many devices (``api.shard_packings``; on a CPU host devices, which the
-    driver makes with ``XLA_FLAGS=--xla_force_host_platform_device_count``)."""
+def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int = 1,
+               batching: str = "vmap") -> dict:
+    """``batch`` surrogate rollouts of ``seconds`` (vmapped over packings, or with ``batching``
+    "map" one after another in the model's single-rollout form, ``api.over_packings``;
+    ``batch`` 1 is one plain rollout, with pair-capacity tiers when ``tiers``). ``devices`` >
+    1: the batch is sharded over that many devices (``api.shard_packings``; on a CPU host
+    devices, which the driver makes with ``XLA_FLAGS=--xla_force_host_platform_device_count``;
+    with "map" each device maps over its share)."""
     import jax
     import jax.numpy as jnp
 
-    from sgn_jax.api import make_rollout, model_predictor
+    from sgn_jax.api import make_rollout, model_predictor, over_packings
     from sgn_jax.motion import offset, velocity
     from sgn_jax.pipelines.configure import (
         graph_spec_from_config,
@@ -149,7 +152,8 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
     caps = spec.pp_pair_capacity
     tier_caps = tuple(sorted({c for c in (caps // 4, caps // 2) if 0 < c < caps}))
     module = surrogate.model
-    if batch == 1:  # one rollout: the kind's single-rollout form and tiers rule (as run_rollout)
+    if batch == 1 or batching == "map":
+        # one rollout at a time: the kind's single-rollout form and tiers rule (as run_rollout)
         module, kind_tiers = single_rollout_model(module)
         tiers = tiers and kind_tiers
     rollout = make_rollout(spec, model_predictor(module), n_steps, 10,
@@ -160,7 +164,9 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
         fn = jax.jit(lambda win: rollout(*args, win, motion, sdf, t0))
         inputs = jax.tree_util.tree_map(lambda a: a[0], windows)
     else:
-        fn = jax.jit(jax.vmap(lambda win: rollout(*args, win, motion, sdf, t0)))
+        run_batch = over_packings(lambda win, shared: rollout(*shared, win, motion, sdf, t0),
+                                  batching, shard=devices > 1)
+        fn = lambda win: run_batch(win, args)  # noqa: E731
         inputs = windows
         if devices > 1:
             from sgn_jax.api import shard_packings
@@ -180,7 +186,7 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
             batch == 1 else [], "n_params": int(count_params(surrogate.params)),
             "hidden": int(surrogate.config.model.hidden),
             "mlp_layers": int(surrogate.config.model.mlp_layers), "ball_steps_outside": outside,
-            "devices": int(devices), "dt": dt,
+            "devices": int(devices), "dt": dt, "batching": batching if batch > 1 else "single",
             "energy_J": np.asarray(res.steps.energy_cum)[..., -1].ravel().tolist()}
 
 
@@ -286,6 +292,12 @@ def bench(args) -> dict:
             a, b = np.asarray(sgn["energy_J"]), np.asarray(sharded["energy_J"])
             sharded["max_rel_energy_diff_vs_unsharded"] = float(np.max(np.abs(a - b) / np.abs(a)))
             ens[model + " (2 devices)"] = sharded
+            # one packing after another on each device (batching "map": the model's
+            # single-rollout form, api.over_packings), one device per core
+            mapped = run("0,1", "sgn", model=model, batch=n, seconds=secs, tiers=False,
+                         devices=2, batching="map")
+            mapped["ratio_vs_fastest_dem"] = fastest / mapped["wall_s"]
+            ens[model + " (map, 2 devices)"] = mapped
         out["ensemble"] = ens
     return out
 
@@ -324,7 +336,9 @@ def markdown(res: dict, machine: dict, args) -> str:
                               f"({e[m + ' (2 devices)']['ratio_vs_fastest_dem']:.1f}x; energies "
                               "within "
                               f"{e[m + ' (2 devices)']['max_rel_energy_diff_vs_unsharded']:.1e}"
-                              " of the unsharded run)"
+                              " of the unsharded run), mapped one packing after another on each "
+                              f"of 2 host devices {e[m + ' (map, 2 devices)']['wall_s']:.2f} "
+                              f"({e[m + ' (map, 2 devices)']['ratio_vs_fastest_dem']:.1f}x)"
                               for m in (args.ensemble_models or args.models)) + "."]
     comp = "; ".join(f"`{m}` {s[m]['compile_s']:.1f} s" for m in args.models)
     lines += ["", f"Compile time (single rollout): DEM {s['dem']['compile_s']:.1f} s; {comp}.",

@@ -165,6 +165,7 @@ from sgn_jax.surrogate.rollout import (
     make_rollout_advance,
     make_rollout_step,
     model_predictor,
+    single_rollout_model,
 )
 
 # A second session of a design study reuses the compiled programs (sgn_jax.records.cache; off with
@@ -430,9 +431,11 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
 
 
 def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
-                      save_every: int | None) -> Callable:
+                      save_every: int | None, single: bool = False) -> Callable:
     """The unjitted rollout of ``cfg``'s ``[rollout]`` settings for ``duration`` s (shared by
-    :func:`rollout_ensemble` and :func:`rollout_sweep`)."""
+    :func:`rollout_ensemble` and :func:`rollout_sweep`). ``single``: the model kind's
+    single-rollout form (:func:`sgn_jax.surrogate.rollout.single_rollout_model`), for
+    rollouts run one after another, never vmapped."""
     check_duration(duration, "duration")
     n_steps = _steps(duration, float(cfg.dem.dt), "duration")
     every = int(cfg.rollout.save_every if save_every is None else save_every)
@@ -442,24 +445,64 @@ def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
     spec = graph_spec_from_config(dataclasses.replace(surrogate.config, balls=cfg.balls,
                                                       dem=cfg.dem), n_particles=cfg.balls.count)
     r = cfg.rollout
-    return make_rollout(spec, model_predictor(surrogate.model), n_steps, every,
+    module = single_rollout_model(surrogate.model)[0] if single else surrogate.model
+    return make_rollout(spec, model_predictor(module), n_steps, every,
                         snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
                         snap_velocity=r.snap_velocity, query=analytic_jar_query,
                         pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
                         jit=False)
 
 
+ENSEMBLE_BATCHING = ("vmap", "map")
+
+
+def over_packings(fn: Callable[[Any, Any], Any], batching: str = "vmap", shard: bool = False
+                  ) -> Callable[[Any, Any], Any]:
+    """``fn(one packing's pytree, shared) -> pytree`` as a jitted ``run(batch, shared)`` over
+    the batch's leading axis K (``shared``: the same for every packing, e.g. the parameters).
+
+    ``batching`` "vmap": all K in one batched program (what a gradient or a design study
+    needs); "map": one after another in one compiled program (``lax.map``), each as a single
+    rollout runs, so the model's single-rollout form and its ``cond`` branches stay cheap: on
+    a CPU core the faster per packing (docs/benchmarks.md). ``shard``: each device takes a
+    slice of the packings (``shard_packings`` places them); with "map" each device maps over
+    its own slice (``jax.shard_map``; K a multiple of the device count).
+    """
+    if batching not in ENSEMBLE_BATCHING:
+        raise DesignError(f"batching must be one of {ENSEMBLE_BATCHING}, got {batching!r}")
+    if batching == "vmap":
+        return jax.jit(jax.vmap(fn, in_axes=(0, None)))
+
+    def mapped(batch: Any, shared: Any) -> Any:
+        return jax.lax.map(lambda one: fn(one, shared), batch)
+
+    if not shard:
+        return jax.jit(mapped)
+    from jax.sharding import Mesh, PartitionSpec
+
+    mesh = Mesh(np.asarray(jax.devices()), ("packings",))
+    return jax.jit(jax.shard_map(mapped, mesh=mesh,
+                                 in_specs=(PartitionSpec("packings"), PartitionSpec()),
+                                 out_specs=PartitionSpec("packings"),
+                                 # the rollout's scans start from per-packing zeros: no
+                                 # cross-device values, so no varying-axis bookkeeping
+                                 check_vma=False))
+
+
 def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
                      duration: float, *, save_every: int | None = None,
-                     shard: bool = False) -> RolloutResult:
-    """Roll the surrogate out from every packing under ``cfg``'s jar and motion (vmapped).
+                     shard: bool = False, batching: str = "vmap") -> RolloutResult:
+    """Roll the surrogate out from every packing under ``cfg``'s jar and motion.
 
     The rollout uses ``cfg``'s ``[rollout]`` settings (snap-back, its velocity rule, the
     ball-ball separation), so a script gets the physics of the shipped config and of
     ``sgn-jax rollout`` (``make_rollout``'s own defaults are the paper's: no separation). The
     jar is queried through its analytic SDF, as in design studies; packings made under another
     motion are anchored to this one in the jar frame. ``shard``: split the packings over all
-    devices (:func:`shard_packings`).
+    devices (:func:`shard_packings`). ``batching``: "vmap" (default) runs them as one batch,
+    "map" one after another in the model's single-rollout form (:func:`over_packings`; the
+    faster on CPU cores for a model that has one, the contact kind); the same numbers to
+    float rounding.
 
     Returns:
         a :class:`sgn_jax.surrogate.rollout.RolloutResult` with a leading axis K (packings):
@@ -467,13 +510,16 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
         ``[rollout] save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` /
         ``n_snapped`` (K, S).
     """
-    rollout = _ensemble_rollout(surrogate, cfg, duration, save_every)
+    if batching not in ENSEMBLE_BATCHING:
+        raise DesignError(f"batching must be one of {ENSEMBLE_BATCHING}, got {batching!r}")
+    rollout = _ensemble_rollout(surrogate, cfg, duration, save_every,
+                                single=batching == "map")
     frame = _surrogate_frame(surrogate, cfg, packings)
     windows = shard_packings(frame.windows) if shard else frame.windows
-    run = jax.jit(jax.vmap(rollout, in_axes=(None, None, 0, None, None, None)))
-    return jax.device_get(run(surrogate.params, surrogate.norm_stats, windows, frame.motion,
-                              frame.jar,
-                              packings.t0))
+    run = over_packings(lambda window, shared: rollout(*shared, window, frame.motion,
+                                                       frame.jar, packings.t0),
+                        batching, shard)
+    return jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats)))
 
 
 def rollout_sweep(surrogate: TrainedModel, cfgs: Sequence[Config], packings: Packings,
@@ -777,6 +823,7 @@ __all__ = [
     "RolloutState",
     "RolloutResult",
     "rollout_ensemble",
+    "over_packings",
     "rollout_sweep",
     "shard_packings",
     "run_rollout",

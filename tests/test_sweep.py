@@ -41,3 +41,21 @@ def test_a_sweep_varies_the_motion_only(setting):
         sj.rollout_sweep(model, [cfg, other_jar], packings, duration=0.01)
     with pytest.raises(sj.DesignError, match="at least one"):
         sj.rollout_sweep(model, [], packings, duration=0.01)
+
+
+def test_an_ensemble_mapped_one_packing_after_another_equals_the_vmapped_one(short_packings):
+    """``batching="map"``: the packings one after another (``lax.map``) in the model's
+    single-rollout form (the contact kind's acting-rows MLPs): the vmapped ensemble's
+    rollouts, to the float32 rounding a batch changes (as above)."""
+    cfg, packings = short_packings
+    model = sj.load_surrogate("contact")
+    runs = {b: sj.rollout_ensemble(model, cfg, packings, duration=0.01, batching=b)
+            for b in ("vmap", "map")}
+    assert runs["map"].positions.shape == runs["vmap"].positions.shape
+    np.testing.assert_allclose(runs["map"].positions, runs["vmap"].positions, rtol=0,
+                               atol=1e-5)
+    np.testing.assert_allclose(runs["map"].steps.energy_cum, runs["vmap"].steps.energy_cum,
+                               rtol=2e-3)
+    assert np.abs(runs["map"].positions[:, -1] - runs["map"].positions[:, 0]).max() > 1e-5
+    with pytest.raises(sj.DesignError, match="batching"):
+        sj.rollout_ensemble(model, cfg, packings, duration=0.01, batching="pmap")

@@ -43,7 +43,10 @@ def ensemble(study: bool = False) -> dict:
     sharded = sj.rollout_ensemble(model, cfg, packings, 0.01, shard=True)
     p0 = p1 = float("nan")
     g0 = g1 = [float("nan")]
-    if study:  # the design study sharded too (slow tier)
+    mapped_diff = float("nan")
+    if study:  # the design study sharded too, and the mapped ensemble (slow tier)
+        mapped = sj.rollout_ensemble(model, cfg, packings, 0.01, shard=True, batching="map")
+        mapped_diff = float(np.max(np.abs(plain.positions - mapped.positions)))
         study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.02,
                                 burn_in=0.01, n_segments=1)
         study_sharded = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.02,
@@ -68,7 +71,8 @@ def ensemble(study: bool = False) -> dict:
         "max_pos_diff_alone": float(np.max(np.abs(alone - sharded.positions))),
         "energy_plain": np.asarray(plain.steps.energy_cum[:, -1]).tolist(),
         "energy_sharded": np.asarray(sharded.steps.energy_cum[:, -1]).tolist(),
-        "power": [float(p0), float(p1)], "grad": [float(g0[0]), float(g1[0])], "odd": odd}
+        "power": [float(p0), float(p1)], "grad": [float(g0[0]), float(g1[0])], "odd": odd,
+        "max_pos_diff_mapped": mapped_diff}
 
 
 def step() -> dict:

@@ -188,6 +188,10 @@ def main() -> None:
     summaries = []
     for case in cases:
         cfg = sj.replace_section(sj.load_config(case.config_path), "rollout", **settings)
+        # The model's own step (a model at 2e-4 s is compared with the DEM record coarsened to
+        # it; the record's dissipation sums over each coarse step).
+        model_dt = float(model.config.dem.dt)
+        cfg = sj.replace_section(cfg, "dem", dt=model_dt)
         seeds = [s for s in case.seeds if s not in case.train_seeds]
         if args.seeds:
             seeds = [s for s in seeds if str(s) in args.seeds.split(",")]
@@ -201,7 +205,7 @@ def main() -> None:
             if not path.exists():
                 print(f"missing {path}; skipped")
                 continue
-            traj = sj.load_trajectory(path)
+            traj = sj.load_trajectory(path).at_step(model_dt)
             window = int(model.config.graph.window)
             duration = args.duration or (len(traj.t) - 2 - window) * float(cfg.dem.dt)
             duration = round(duration / float(cfg.dem.dt)) * float(cfg.dem.dt)
