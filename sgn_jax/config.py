@@ -408,6 +408,10 @@ class ModelConfig:
         overlap_law_factor: kind "contact" only; 0 = off (needs overlap_limit > 0). The limit
             grows with the contact's approach speed as this factor times the DEM contact law's
             own deepest overlap at that speed (fast impacts go as deep as the DEM's, scaled).
+        overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
+            of the limit over all contacts together after the impulses, so that a ball's other
+            contacts cannot push it deeper than the limit into this one (a chain, a bed
+            compressed by an impact; docs/contact.md, "Overlap limit").
     """
 
     kind: str = "sgn"
@@ -418,6 +422,7 @@ class ModelConfig:
     spin: bool = False
     overlap_limit: float = 0.0
     overlap_law_factor: float = 0.0
+    overlap_sweeps: int = 0
 
     def __post_init__(self) -> None:
         if not (self.overlap_limit >= 0 and self.overlap_law_factor >= 0):
@@ -426,6 +431,10 @@ class ModelConfig:
         if self.overlap_law_factor > 0 and self.overlap_limit <= 0:
             raise ConfigError("[model] overlap_law_factor needs overlap_limit > 0 (the limit of "
                               "a contact at rest, m), got overlap_limit = 0")
+        if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
+            raise ConfigError(f"[model] overlap_sweeps must be >= 0 and needs overlap_limit > 0 "
+                              f"(m), got overlap_sweeps = {self.overlap_sweeps} and "
+                              f"overlap_limit = {self.overlap_limit}")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
         # later loads.

@@ -50,6 +50,8 @@ def main() -> None:
                     help="the balls' spins as rollout state ([model] spin = true)")
     ap.add_argument("--overlap-limit", type=float, default=None,
                     help="m: the rigid limit of the contact law ([model] overlap_limit; 0 = off)")
+    ap.add_argument("--overlap-sweeps", type=int, default=None,
+                    help="[model] overlap_sweeps: Jacobi sweeps of the limit over all contacts")
     ap.add_argument("--overlap-law-factor", type=float, default=None,
                     help="[model] overlap_law_factor: the limit grows with the approach speed "
                          "as this times the DEM law's deepest overlap (0 = off)")
@@ -71,6 +73,8 @@ def main() -> None:
         cfg = sj.replace_section(cfg, "model", spin=True)
     if args.overlap_limit is not None:
         cfg = sj.replace_section(cfg, "model", overlap_limit=args.overlap_limit)
+    if args.overlap_sweeps is not None:
+        cfg = sj.replace_section(cfg, "model", overlap_sweeps=args.overlap_sweeps)
     if args.overlap_law_factor is not None:
         cfg = sj.replace_section(cfg, "model", overlap_law_factor=args.overlap_law_factor)
     files = sorted(glob.glob(os.path.join(args.data, args.pattern)))

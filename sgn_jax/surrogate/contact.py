@@ -114,6 +114,15 @@ class ContactPhysics:
         overlap_peak_pp, overlap_peak_pw: m, the DEM law's deepest overlap of a head-on impact
             at 1 m/s, ball-ball and ball-wall (:func:`sgn_jax.dem.contact.head_on_peak_overlap`;
             ``physics_from_config`` sets them from the config's material).
+        overlap_sweeps: 0 = off (``[model] overlap_sweeps``; needs ``overlap_limit`` > 0). The
+            floor above is computed for each contact alone; in a chain (a ball struck while it
+            rests on others, a bed compressed by an impact) the impulses of a ball's other
+            contacts push it deeper into this one. After the impulses, this many Jacobi sweeps
+            over ALL contacts with every ball's end-of-step velocity: each contact whose
+            overlap would end deeper than its limit gets the normal impulse that removes the
+            excess, shared among the violated contacts of its balls (relaxed by their number,
+            as one sweep of a projected Jacobi contact solver; equal and opposite, repulsive,
+            in the ledger as every impulse).
     """
 
     ball_radius: float = 0.005
@@ -130,6 +139,7 @@ class ContactPhysics:
     overlap_law_factor: float = 0.0
     overlap_peak_pp: float = 4.53e-5
     overlap_peak_pw: float = 5.21e-5
+    overlap_sweeps: int = 0
 
     @property
     def inertia(self) -> float:
@@ -146,6 +156,9 @@ class ContactPhysics:
             raise ContactModelError(
                 "overlap_law_factor needs overlap_limit > 0: the law's overlap vanishes for a "
                 "contact at rest, and a limit of 0 there would lift every resting ball")
+        if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
+            raise ContactModelError(f"overlap_sweeps must be >= 0 and needs overlap_limit > 0, "
+                                    f"got {self.overlap_sweeps} and {self.overlap_limit}")
 
 
 def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
@@ -171,6 +184,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         gate (E,): 1 where the edge acts (a real edge into a ball, contact possible in the step);
         floor (E,): m/s, the smallest du_n that keeps the contact's overlap at the end of a
             step within ``phys.overlap_limit`` (0 with the limit off, or where it is kept anyway);
+        gap (E,): m, the surface gap at the newest slot (negative: overlap); limit (E,): m,
+            the contact's overlap limit (0 with the limit off);
         is_pp (E,), is_pw (E,): edge kinds (only edges whose receiver is a ball);
         senders, receivers (E,): the edges' node indices;
         u_wall (E, 3): the jar's velocity (m/s) for ball-wall edges, 0 otherwise;
@@ -280,6 +295,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         # du_n raises the gap rate by itself: m* du_n on each ball of a pair of reduced mass m*).
         floor = jnp.maximum(-(gap[-1] + limit) / dt - u[-1] - acc_term, 0.0)
     else:
+        limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
     reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin
     gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
@@ -295,6 +311,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
+        "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
         "v_node": vel[-1], **extra,
@@ -527,13 +544,55 @@ class ContactNet(nn.Module):
         """(n_node, 3) m/s: the impulses (a ball-ball contact gives its sender ball the
         opposite impulse, equal and opposite by construction; a wall takes its reaction itself)
         plus gravity (exact, not learned); 0 for the wall node."""
+        g = jnp.asarray(self.physics.gravity, DTYPE)
+        return (self._impulse_velocity_change(geo, impulse, n_node, is_particle)
+                + jnp.where(is_particle[:, None], g * self.physics.dt, 0.0))
+
+    def _impulse_velocity_change(self, geo: dict[str, jax.Array], impulse: jax.Array,
+                                 n_node: int, is_particle: jax.Array) -> jax.Array:
+        """(n_node, 3) m/s: the impulses alone (a pair's sender gets the opposite one)."""
         receivers, senders = geo["receivers"], geo["senders"]
         total = (jax.ops.segment_sum(impulse, receivers, num_segments=n_node)
                  - jax.ops.segment_sum(impulse * geo["is_pp"][:, None], senders,
                                        num_segments=n_node))
-        g = jnp.asarray(self.physics.gravity, DTYPE)
-        return jnp.where(is_particle[:, None], total / self.physics.ball_mass
-                         + g * self.physics.dt, 0.0)
+        return jnp.where(is_particle[:, None], total / self.physics.ball_mass, 0.0)
+
+    def _project_overlaps(self, geo: dict[str, jax.Array], impulse: jax.Array, du_n: jax.Array,
+                          dv: jax.Array, n_node: int, is_particle: jax.Array
+                          ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """``physics.overlap_sweeps`` Jacobi sweeps of the overlap limit over all contacts
+        (:class:`ContactPhysics`): ``(impulse, du_n, dv)`` with the extra normal impulses.
+
+        Each sweep: every acting contact's end-of-step gap with the balls' velocities
+        ``v_n + dv`` (a wall's at the end of the step from its last change), the closing
+        speed too many, ``need = max(0, -(gap_end + limit) / dt)``, shared by the larger
+        number of violated contacts of its two balls, added as a normal impulse
+        ``m* need / n`` (it raises that contact's gap rate by ``need / n``, m* its reduced
+        mass). A normal impulse has no torque, so the spins are unchanged."""
+        phys = self.physics
+        if phys.overlap_sweeps == 0:
+            return impulse, du_n, dv
+        receivers, senders, normal = geo["receivers"], geo["senders"], geo["normal"]
+        is_pp, gate = geo["is_pp"], geo["gate"]
+        m_star = self._reduced_mass(geo)
+        wall_end = geo["u_wall"] + geo["jar_dv"]
+        for _ in range(phys.overlap_sweeps):
+            v_end = geo["v_node"] + dv
+            partner = jnp.where(geo["is_pw"][:, None], wall_end, v_end[senders])
+            u_end = jnp.einsum("ec,ec->e", partner - v_end[receivers], normal)
+            gap_end = geo["gap"] + u_end * phys.dt
+            need = jnp.maximum(-(gap_end + geo["limit"]) / phys.dt, 0.0) * gate
+            violated = (need > 0).astype(need.dtype)
+            per_node = (jax.ops.segment_sum(violated, receivers, num_segments=n_node)
+                        + jax.ops.segment_sum(violated * is_pp, senders, num_segments=n_node))
+            share = jnp.maximum(jnp.maximum(per_node[receivers],
+                                             jnp.where(is_pp, per_node[senders], 0.0)), 1.0)
+            extra = need / share
+            extra_impulse = (m_star * (-extra))[:, None] * normal
+            impulse = impulse + extra_impulse
+            du_n = du_n + extra
+            dv = dv + self._impulse_velocity_change(geo, extra_impulse, n_node, is_particle)
+        return impulse, du_n, dv
 
     def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array,
                           dw: jax.Array | None = None) -> jax.Array:
@@ -579,6 +638,7 @@ class ContactNet(nn.Module):
             x = jnp.concatenate([geo["inputs"], self._tentative_inputs(geo, dv, dw)], axis=-1)
             logits = logits + self._per_kind(pp_refine, pw_refine, geo, x, n_node - 2)
         impulse, du_n, du_t, dv, dw, angular = kinematics(logits)
+        impulse, du_n, dv = self._project_overlaps(geo, impulse, du_n, dv, n_node, is_particle)
 
         receivers, senders = geo["receivers"], geo["senders"]
         vbar_node = geo["v_node"] + 0.5 * dv
@@ -658,7 +718,8 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
                           wall_patches=int(cfg.graph.wall_patches),
                           rolling_friction=float(cfg.material.rolling_friction),
                           overlap_limit=float(getattr(cfg.model, "overlap_limit", 0.0)),
-                          overlap_law_factor=factor, **peaks)
+                          overlap_law_factor=factor,
+                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)), **peaks)
 
 
 def make_contact_net(cfg: Any) -> ContactNet:
