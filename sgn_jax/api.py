@@ -183,6 +183,19 @@ def load_surrogate(checkpoint: str | Path | None = None, which: str = "best") ->
     return load_trained_model(resolve_checkpoint(checkpoint), which=which)
 
 
+def at_surrogate_step(cfg: Config, surrogate: TrainedModel) -> Config:
+    """``cfg`` sampled at the surrogate's own step: a model trained at a coarser step than
+    ``cfg``'s ``[dem] dt`` by an integer factor (the 2e-4 s contact model on a 1e-4 s case)
+    rolls out at its step, and its packings' windows are sampled at it (``[dem] dt`` is the
+    sampling and surrogate step; the DEM's own step is ``dt_dem_max``). Any other mismatch is
+    left for :func:`design_study` to refuse with its message."""
+    model_dt, case_dt = float(surrogate.config.dem.dt), float(cfg.dem.dt)
+    factor = round(model_dt / case_dt)
+    if factor > 1 and math.isclose(model_dt, factor * case_dt, rel_tol=1e-9):
+        return replace_section(cfg, "dem", dt=model_dt)
+    return cfg
+
+
 def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool = False
                  ) -> dict[str, np.ndarray]:
     """The DEM in memory: settle the balls of ``cfg`` (placement ``seed``) and run ``duration``
@@ -647,6 +660,7 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
         raise DesignError(f"first_seed must be >= 0, got {first_seed}")
     t_start = time.perf_counter()
     model = load_surrogate(checkpoint)
+    cfg = at_surrogate_step(cfg, model)
     seeds = range(first_seed, first_seed + packings)
     pk = make_packings(cfg, seeds, log=progress)
     t_packings = time.perf_counter() - t_start
@@ -824,6 +838,7 @@ __all__ = [
     "RolloutResult",
     "rollout_ensemble",
     "over_packings",
+    "at_surrogate_step",
     "rollout_sweep",
     "shard_packings",
     "run_rollout",

@@ -150,7 +150,7 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
     for point in POINTS:
         if point in results:
             continue
-        cfg = point_config(point)
+        cfg = sj.at_surrogate_step(point_config(point), model)   # a 2e-4 s model at its step
         names = list(POINTS[point]["steps"])
         t0 = time.perf_counter()
         packings = sj.make_packings(cfg, SEEDS)
