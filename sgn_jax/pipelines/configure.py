@@ -84,6 +84,7 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
 
 
 def _kind_reads_node_walls(cfg: Any) -> bool:
+    """Whether the config's ``[model] kind`` reads the node features' wall columns."""
     model_cfg = getattr(cfg, "model", None)
     if model_cfg is None:
         return True

@@ -369,6 +369,10 @@ class ContactNet(nn.Module):
     it), and the outputs are (n_node, 6): linear and angular accelerations. A ball that rolls
     along a wall, which a spinless model can only let slide or stick, is then representable
     (docs/contact.md).
+
+    ``rows_by_kind`` and ``acting_per_ball`` change where the MLPs run, not what they give
+    (:meth:`for_single_rollout` sets both; :meth:`_per_kind`): each MLP on its own kind's rows,
+    and only on its kind's acting contacts, a block of ceil(acting_per_ball N) rows (0 = off).
     """
 
     physics: ContactPhysics = ContactPhysics()
