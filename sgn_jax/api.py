@@ -403,6 +403,11 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         steps: difference step per parameter name (SI units), for the names it lists.
         shard: split the packings over all devices (:func:`shard_packings`); the powers and
             gradients equal the unsharded ones to float tolerance.
+
+    With the difference estimator and no sharding, a model with a single-rollout form (the
+    contact kind) runs its packings one after another in it (``make_ensemble_power``'s
+    ``batching="map"``; 1.9x faster than vmapped for contact_t21 on one core); the SGN, the
+    horizon estimator and sharded studies run the plain model vmapped.
     """
     check_study_sizes(duration, burn_in)
     frame = _surrogate_frame(surrogate, cfg, packings)
@@ -423,8 +428,16 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
                           f"({list(names)})")
     fd_steps = [float((steps or {}).get(n, default_step(n, v))) for n, v in zip(names, theta0,
                                                                                   strict=True)]
+    # The difference estimator only runs rollouts forward: a model with a single-rollout form
+    # (the contact kind) runs its packings one after another in it, about twice as fast per
+    # packing on CPU cores as vmapped; under sharding, or to differentiate (the horizon
+    # estimator), the plain model vmapped.
+    single = (estimator == "difference" and not shard
+              and getattr(surrogate.model, "for_single_rollout", None) is not None)
+    module = single_rollout_model(surrogate.model)[0] if single else surrogate.model
     ensemble = make_ensemble_power(
-        frame.spec, model_predictor(surrogate.model), names, motion, jar, packings.t0,
+        frame.spec, model_predictor(module), names, motion, jar, packings.t0,
+        batching="map" if single else "vmap",
         estimator=estimator, steps=fd_steps if estimator == "difference" else None,
         n_burn=n_burn, n_measure=n_measure, horizon=horizon, n_segments=n_segments,
         snap_back=rollout.snap_back, phi_sb=surrogate.config.graph.phi_sb,

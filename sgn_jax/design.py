@@ -308,7 +308,8 @@ class EnsemblePower:
     w.r.t. ``theta`` returns the study estimator's gradient (the mean of ``estimate``'s, from
     the same compiled program; jittable, and compiled programs when called eagerly). ``estimate(...)`` ->
     :class:`PowerEstimate` (per packing and segment, for standard errors). ``forward(...)`` ->
-    (K,) powers without any gradient work (for finite differences and curves).
+    (K,) powers without any gradient work (for finite differences and curves). ``batching``:
+    how the packings' rollouts run, "vmap" or "map" (:func:`make_ensemble_power`).
     """
 
     power: Callable[..., jax.Array]
@@ -321,6 +322,7 @@ class EnsemblePower:
     n_segments: int
     estimator: str = "difference"
     steps: tuple[float, ...] = ()
+    batching: str = "vmap"
 
 
 def _zero_cotangent(x: Any) -> Any:
@@ -336,7 +338,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
                         snap_back: bool = True, phi_sb: float = -0.0049,
                         snap_velocity: str = "keep", pp_max_overlap: float | None = None,
                         checkpoint_steps: int = 100, estimator: str = "difference",
-                        steps: Sequence[float] | None = None) -> EnsemblePower:
+                        steps: Sequence[float] | None = None,
+                        batching: str = "vmap") -> EnsemblePower:
     """Build the ensemble-mean power of a design study and its gradient estimator.
 
     Args:
@@ -361,6 +364,11 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
             ``n_segments``).
         steps: (D,) the difference steps h_i (required for ``"difference"``; see
             :func:`default_step`).
+        batching: how the packings' rollouts (the powers and the difference estimator's
+            sides) run: ``"vmap"`` (default) as one batch, ``"map"`` one after another
+            (``lax.map``), for a predictor of a model's single-rollout form, which a vmap
+            would make slower (:func:`sgn_jax.api.over_packings`). The horizon estimator's
+            gradients stay vmapped.
 
     Returns:
         an :class:`EnsemblePower`. Its functions take ``(theta (D,), params, stats, windows)``
@@ -378,6 +386,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
                           f"{n_segments} equal segments")
     if estimator not in ("difference", "horizon"):
         raise DesignError(f"estimator must be 'difference' or 'horizon', got {estimator!r}")
+    if batching not in ("vmap", "map"):
+        raise DesignError(f"batching must be 'vmap' or 'map', got {batching!r}")
     if estimator == "difference":
         if steps is None or len(steps) != len(names):
             raise DesignError(f"the difference estimator needs one step per parameter "
@@ -437,10 +447,15 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
 
     horizon_grad = jax.value_and_grad(one_horizon_energy)
 
+    def every_packing(theta, params, stats, windows):
+        """``one_forward`` of each packing: (K,) powers, (K, G) segment starts, (K,) t_eff."""
+        if batching == "vmap":
+            return jax.vmap(one_forward, in_axes=(None, None, None, 0))(
+                theta, params, stats, windows)
+        return jax.lax.map(lambda window: one_forward(theta, params, stats, window), windows)
+
     def forward(theta, params, stats, windows):
-        powers, _, _ = jax.vmap(one_forward, in_axes=(None, None, None, 0))(
-            theta, params, stats, windows)
-        return powers
+        return every_packing(theta, params, stats, windows)[0]
 
     def segment_gradients(theta, params, stats, starts, t_eff):
         """(K, G) energies and (K, G, D) power derivatives at the segment starts."""
@@ -461,8 +476,7 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
 
     def estimate(theta, params, stats, windows):
         theta = jnp.asarray(theta, F64)
-        powers, starts, t_eff = jax.vmap(one_forward, in_axes=(None, None, None, 0))(
-            theta, params, stats, windows)
+        powers, starts, t_eff = every_packing(theta, params, stats, windows)
         if estimator == "difference":
             grad, sides = difference_gradients(theta, params, stats, windows)
             energy = jnp.zeros(grad.shape[:2], F64)
@@ -496,7 +510,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     power.defvjp(power_fwd, power_bwd)
     return EnsemblePower(power=power, estimate=estimate_jit, forward=forward_jit, names=names,
                          n_burn=n_burn, n_measure=n_measure, horizon=horizon,
-                         n_segments=n_segments, estimator=estimator, steps=tuple(steps or ()))
+                         n_segments=n_segments, estimator=estimator, steps=tuple(steps or ()),
+                         batching=batching)
 
 
 def default_step(name: str, value: float) -> float:

@@ -95,6 +95,25 @@ def test_estimate_matches_value_and_grad_and_is_finite(cfg, model, packings, est
         np.testing.assert_allclose(est["side_powers_W"][0], plus, rtol=1e-6)
 
 
+@pytest.mark.slow
+def test_a_contact_models_difference_study_maps_its_packings_in_the_single_rollout_form(
+        cfg, packings):
+    """The difference estimator only runs rollouts forward, so a model with a single-rollout
+    form (the contact kind) maps its packings one after another in it (``batching="map"``);
+    sharded, the plain model runs vmapped. The same powers and gradient to the float32
+    rounding a batch changes (the chaotic rollouts part slowly: 50 + 100 steps)."""
+    model = sj.load_surrogate("contact")
+    est = {}
+    for shard in (False, True):   # one device: shard=True is the vmapped plain model
+        study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.015,
+                                burn_in=0.005, n_segments=2, shard=shard)
+        assert study.ensemble.batching == ("vmap" if shard else "map")
+        est[shard] = study.estimate()
+    assert est[False]["power_W"] == pytest.approx(est[True]["power_W"], rel=2e-3)
+    assert est[False]["gradient"]["motion.rpm"] == pytest.approx(
+        est[True]["gradient"]["motion.rpm"], rel=2e-2, abs=1e-6)
+
+
 def test_a_non_finite_gradient_is_an_error_naming_packing_segment_and_parameter():
     from sgn_jax.design import PowerEstimate
 
