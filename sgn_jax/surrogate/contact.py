@@ -50,7 +50,6 @@ scaled by fixed physical scales, so a deep overlap is a bounded input, not an ou
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import Any
 
@@ -304,10 +303,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         # sweep); a ball in a bed has several, whose impulses add up and would overshoot (and
         # pump spin). Relaxed by the larger number of acting contacts of its two balls.
         n_node = graph.nodes["features"].shape[0]
-        per_node = (jax.ops.segment_sum(gate, receivers, num_segments=n_node)
-                    + jax.ops.segment_sum(gate * is_pp, senders, num_segments=n_node))
-        extra["contacts_max"] = jnp.maximum(
-            jnp.maximum(per_node[receivers], jnp.where(is_pp, per_node[senders], 0.0)), 1.0)
+        extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
@@ -316,6 +312,17 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
         "v_node": vel[-1], **extra,
     }
+
+
+def _larger_ball_count(flags: jax.Array, receivers: jax.Array, senders: jax.Array,
+                       is_pp: jax.Array, n_node: int) -> jax.Array:
+    """(E,) the larger number of flagged contacts (``flags`` (E,) 0/1) of each edge's two balls
+    (its receiver's alone for a wall edge), at least 1: the relaxation of a Jacobi sweep, whose
+    per-contact corrections on a ball with several contacts add up."""
+    per_node = (jax.ops.segment_sum(flags, receivers, num_segments=n_node)
+                + jax.ops.segment_sum(flags * is_pp, senders, num_segments=n_node))
+    return jnp.maximum(jnp.maximum(per_node[receivers], jnp.where(is_pp, per_node[senders], 0.0)),
+                       1.0)
 
 
 def _safe_norm(v: jax.Array) -> jax.Array:
@@ -431,12 +438,11 @@ class ContactNet(nn.Module):
         """
         if self.acting_per_ball > 0:
             block = max(1, math.ceil(self.acting_per_ball * n_balls))
-            kind_rows = functools.partial(self._rows_of_kind, pp_net, pw_net, geo, x, n_balls)
             acting = geo["gate"] > 0
             fits = ((jnp.sum(acting & geo["is_pp"]) <= block)
                     & (jnp.sum(acting & geo["is_pw"]) <= block))
             return nn.cond(fits, lambda mdl: mdl._acting_only(pp_net, pw_net, geo, x, block),
-                           lambda mdl: kind_rows(), self)
+                           lambda mdl: mdl._rows_of_kind(pp_net, pw_net, geo, x, n_balls), self)
         return self._rows_of_kind(pp_net, pw_net, geo, x, n_balls)
 
     def _acting_only(self, pp_net: nn.Module, pw_net: nn.Module, geo: dict[str, jax.Array],
@@ -587,11 +593,7 @@ class ContactNet(nn.Module):
             gap_end = geo["gap"] + u_end * phys.dt
             need = jnp.maximum(-(gap_end + geo["limit"]) / phys.dt, 0.0) * gate
             violated = (need > 0).astype(need.dtype)
-            per_node = (jax.ops.segment_sum(violated, receivers, num_segments=n_node)
-                        + jax.ops.segment_sum(violated * is_pp, senders, num_segments=n_node))
-            share = jnp.maximum(jnp.maximum(per_node[receivers],
-                                             jnp.where(is_pp, per_node[senders], 0.0)), 1.0)
-            extra = need / share
+            extra = need / _larger_ball_count(violated, receivers, senders, is_pp, n_node)
             extra_impulse = (m_star * (-extra))[:, None] * normal
             impulse = impulse + extra_impulse
             du_n = du_n + extra
