@@ -62,6 +62,7 @@ from sgn_jax.design import (
     EnsemblePower,
     anchored_window,
     apply_parameters,
+    check_batching,
     check_parameters,
     default_step,
     make_ensemble_power,
@@ -479,9 +480,6 @@ def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
                         jit=False)
 
 
-ENSEMBLE_BATCHING = ("vmap", "map")
-
-
 def over_packings(fn: Callable[[Any, Any], Any], batching: str = "vmap", shard: bool = False
                   ) -> Callable[[Any, Any], Any]:
     """``fn(one packing's pytree, shared) -> pytree`` as a jitted ``run(batch, shared)`` over
@@ -494,8 +492,7 @@ def over_packings(fn: Callable[[Any, Any], Any], batching: str = "vmap", shard: 
     slice of the packings (``shard_packings`` places them); with "map" each device maps over
     its own slice (``jax.shard_map``; K a multiple of the device count).
     """
-    if batching not in ENSEMBLE_BATCHING:
-        raise DesignError(f"batching must be one of {ENSEMBLE_BATCHING}, got {batching!r}")
+    check_batching(batching)
     if batching == "vmap":
         return jax.jit(jax.vmap(fn, in_axes=(0, None)))
 
@@ -536,8 +533,7 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
         ``[rollout] save_every``), ``steps.energy_cum`` (K, S) J, ``steps.n_outside`` /
         ``n_snapped`` (K, S).
     """
-    if batching not in ENSEMBLE_BATCHING:
-        raise DesignError(f"batching must be one of {ENSEMBLE_BATCHING}, got {batching!r}")
+    check_batching(batching)   # before any work (the rollout's form depends on it)
     rollout = _ensemble_rollout(surrogate, cfg, duration, save_every,
                                 single=batching == "map")
     frame = _surrogate_frame(surrogate, cfg, packings)

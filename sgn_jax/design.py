@@ -332,6 +332,16 @@ def _zero_cotangent(x: Any) -> Any:
     return np.zeros(x.shape, dtype=jax.dtypes.float0)
 
 
+BATCHING = ("vmap", "map")
+"""How the packings of an ensemble run: as one vmapped batch, or one after another."""
+
+
+def check_batching(batching: str) -> None:
+    """:class:`DesignError` unless ``batching`` is one of :data:`BATCHING`."""
+    if batching not in BATCHING:
+        raise DesignError(f"batching must be one of {BATCHING}, got {batching!r}")
+
+
 def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[str],
                         base_motion: Motion, base_jar: JarParams, t0: float, *,
                         n_burn: int, n_measure: int, horizon: int = 100, n_segments: int = 8,
@@ -386,8 +396,7 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
                           f"{n_segments} equal segments")
     if estimator not in ("difference", "horizon"):
         raise DesignError(f"estimator must be 'difference' or 'horizon', got {estimator!r}")
-    if batching not in ("vmap", "map"):
-        raise DesignError(f"batching must be 'vmap' or 'map', got {batching!r}")
+    check_batching(batching)
     if estimator == "difference":
         if steps is None or len(steps) != len(names):
             raise DesignError(f"the difference estimator needs one step per parameter "
@@ -571,6 +580,8 @@ __all__ = [
     "PowerEstimate",
     "anchored_window",
     "fit_packing_to_jar",
+    "BATCHING",
+    "check_batching",
     "apply_parameters",
     "check_parameters",
     "default_step",
