@@ -187,8 +187,8 @@ def derive_contact_model(checkpoint: str, out: str, **model_changes: Any) -> str
     changed by ``model_changes`` (e.g. ``overlap_limit=1e-4``) as a new run directory ``out``
     (``out/checkpoints/best``), the same parameters; its meta's ``derived_from`` names the
     source and the change, and a source without the envelope its ``[train]`` section names
-    (contact runs before 2026-11-26 did not record it) gets it. Refuses an existing ``out`` and a model that is not a contact model.
-    Returns ``out``."""
+    (contact runs before 2026-11-26 did not record it) gets it. Refuses an existing ``out`` and
+    a model that is not a contact model. Returns ``out``."""
     if os.path.exists(out):
         raise FileExistsError(f"{out} exists: choose a new directory")
     trained = load_trained_model(checkpoint)
