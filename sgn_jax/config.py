@@ -412,6 +412,10 @@ class ModelConfig:
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed
             compressed by an impact; docs/contact.md, "Overlap limit").
+        friction_sweeps: kind "contact" with spin only; 0 = off. Projected Jacobi sweeps of
+            Coulomb sticking over all contacts together after the impulses, so that a packed
+            bed holds as the DEM's does instead of creeping (docs/contact.md, "Friction
+            sweeps").
     """
 
     kind: str = "sgn"
@@ -423,6 +427,7 @@ class ModelConfig:
     overlap_limit: float = 0.0
     overlap_law_factor: float = 0.0
     overlap_sweeps: int = 0
+    friction_sweeps: int = 0
 
     def __post_init__(self) -> None:
         if not (self.overlap_limit >= 0 and self.overlap_law_factor >= 0):
@@ -435,6 +440,11 @@ class ModelConfig:
             raise ConfigError(f"[model] overlap_sweeps must be >= 0 and needs overlap_limit > 0 "
                               f"(m), got overlap_sweeps = {self.overlap_sweeps} and "
                               f"overlap_limit = {self.overlap_limit}")
+        if self.friction_sweeps < 0 or (self.friction_sweeps > 0 and not self.spin):
+            raise ConfigError(f"[model] friction_sweeps must be >= 0 and needs spin = true (the "
+                              f"sweeps stop the contact point's slip, which turns the balls), "
+                              f"got friction_sweeps = {self.friction_sweeps} and spin = "
+                              f"{self.spin}")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
         # later loads.

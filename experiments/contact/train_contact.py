@@ -52,6 +52,9 @@ def main() -> None:
                     help="m: the rigid limit of the contact law ([model] overlap_limit; 0 = off)")
     ap.add_argument("--overlap-sweeps", type=int, default=None,
                     help="[model] overlap_sweeps: Jacobi sweeps of the limit over all contacts")
+    ap.add_argument("--friction-sweeps", type=int, default=None,
+                    help="[model] friction_sweeps: projected Jacobi sweeps of Coulomb sticking "
+                         "over all contacts (a model with spin)")
     ap.add_argument("--overlap-law-factor", type=float, default=None,
                     help="[model] overlap_law_factor: the limit grows with the approach speed "
                          "as this times the DEM law's deepest overlap (0 = off)")
@@ -60,6 +63,8 @@ def main() -> None:
     ap.add_argument("--init", default=None,
                     help="checkpoint directory to warm-start matching parameters from")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--checkpoint-every", type=int, default=250,
+                    help="steps between checkpoints (and the log lines)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args()
@@ -75,6 +80,8 @@ def main() -> None:
         cfg = sj.replace_section(cfg, "model", overlap_limit=args.overlap_limit)
     if args.overlap_sweeps is not None:
         cfg = sj.replace_section(cfg, "model", overlap_sweeps=args.overlap_sweeps)
+    if args.friction_sweeps is not None:
+        cfg = sj.replace_section(cfg, "model", friction_sweeps=args.friction_sweeps)
     if args.overlap_law_factor is not None:
         cfg = sj.replace_section(cfg, "model", overlap_law_factor=args.overlap_law_factor)
     files = sorted(glob.glob(os.path.join(args.data, args.pattern)))
@@ -96,6 +103,7 @@ def main() -> None:
                              spin_weight=args.spin_weight),
         lr_init=args.lr, lr_final=args.lr_final, seed=args.seed, minutes=args.minutes,
         impact_weight=args.impact_weight, n_impacts=args.impacts, init_from=args.init,
+        checkpoint_every=args.checkpoint_every,
         resume=args.resume, progress=not args.no_progress)
     print({k: summary[k] for k in ("steps_done", "best_loss", "seconds")})
 

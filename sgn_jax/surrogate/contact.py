@@ -122,6 +122,15 @@ class ContactPhysics:
             excess, shared among the violated contacts of its balls (relaxed by their number,
             as one sweep of a projected Jacobi contact solver; equal and opposite, repulsive,
             in the ledger as every impulse).
+        friction_sweeps: 0 = off (``[model] friction_sweeps``; a model with spin only). The
+            learned friction is one relaxed stick per contact from the step's start; a ball in
+            a packed bed has several contacts whose sticks fight, so the bed creeps where the
+            DEM's (whose tangential springs hold it) stays put. After the impulses (and the
+            overlap sweeps), this many projected Jacobi sweeps of Coulomb sticking over all
+            acting contacts with every ball's end-of-step velocity and spin: each contact
+            gets the tangential impulse that stops its contact point's slip, shared among the
+            acting contacts of its balls, its total tangential impulse kept inside the cone
+            ``mu du_n`` (equal and opposite, with its torque on both balls, in the ledger).
     """
 
     ball_radius: float = 0.005
@@ -139,6 +148,7 @@ class ContactPhysics:
     overlap_peak_pp: float = 4.53e-5
     overlap_peak_pw: float = 5.21e-5
     overlap_sweeps: int = 0
+    friction_sweeps: int = 0
 
     @property
     def inertia(self) -> float:
@@ -158,6 +168,8 @@ class ContactPhysics:
         if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
             raise ContactModelError(f"overlap_sweeps must be >= 0 and needs overlap_limit > 0, "
                                     f"got {self.overlap_sweeps} and {self.overlap_limit}")
+        if self.friction_sweeps < 0:
+            raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
 
 
 def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
@@ -600,6 +612,51 @@ class ContactNet(nn.Module):
             dv = dv + self._impulse_velocity_change(geo, extra_impulse, n_node, is_particle)
         return impulse, du_n, dv
 
+    def _project_friction(self, geo: dict[str, jax.Array], impulse: jax.Array, du_n: jax.Array,
+                          dv: jax.Array, dw: jax.Array, angular: tuple[jax.Array, jax.Array],
+                          n_node: int, is_particle: jax.Array):
+        """``physics.friction_sweeps`` projected Jacobi sweeps of Coulomb sticking over all
+        acting contacts (:class:`ContactPhysics`): ``(impulse, du_t, dv, dw, angular)`` with
+        the extra tangential impulses and their torques, ``du_t`` (E,) m/s the size of each
+        contact's total tangential impulse over m* (<= mu du_n).
+
+        Each sweep: every acting contact's end-of-step contact-point slip s' (with ``v_n + dv``
+        and ``w_n + dw``; a wall's velocity at the end of the step from its last change); the
+        tangential impulse that stops it, ``m* s' / k`` (k = 1 + m a^2 / I: the slip falls by
+        k du_t through the velocities and the spins), over the larger number of acting
+        contacts of its two balls; the contact's total tangential impulse (learned plus
+        sweeps) projected back into the cone ``mu m* du_n``. The torque ``a n x J`` acts on
+        both balls of a pair, so the pair's linear and angular momentum are kept."""
+        phys = self.physics
+        if phys.friction_sweeps == 0 or not self.spin:
+            return impulse, None, dv, dw, angular
+        receivers, senders, normal = geo["receivers"], geo["senders"], geo["normal"]
+        gate, arm = geo["gate"], geo["arm"]
+        m_star = self._reduced_mass(geo)
+        k = 1.0 + phys.ball_mass * arm ** 2 / phys.inertia
+        count = _larger_ball_count(gate, receivers, senders, geo["is_pp"], n_node)
+        cone = phys.friction * m_star * du_n                              # N s, per contact
+        wall_end = geo["u_wall"] + geo["jar_dv"]
+        tangential = impulse - jnp.einsum("ec,ec->e", impulse, normal)[:, None] * normal
+        a_recv, a_send = angular
+        for _ in range(phys.friction_sweeps):
+            v_end, w_end = geo["v_node"] + dv, geo["w_node"] + dw
+            partner = jnp.where(geo["is_pw"][:, None], wall_end, v_end[senders])
+            v_rel = partner - v_end[receivers]
+            v_t = v_rel - jnp.einsum("ec,ec->e", v_rel, normal)[:, None] * normal
+            slip = v_t - arm[:, None] * jnp.cross(w_end[receivers] + w_end[senders], normal)
+            wanted = tangential + (m_star * gate / (k * count))[:, None] * slip
+            size = _safe_norm(wanted)
+            scale = jnp.minimum(1.0, cone / jnp.maximum(size, 1e-30))
+            extra = wanted * scale[:, None] - tangential
+            tangential = tangential + extra
+            impulse = impulse + extra
+            dv = dv + self._impulse_velocity_change(geo, extra, n_node, is_particle)
+            torque = arm[:, None] * jnp.cross(normal, extra)
+            a_recv, a_send = a_recv + torque, a_send + torque
+            dw = dw + self._spin_change(geo, torque, torque, n_node, is_particle)
+        return impulse, _safe_norm(tangential) / m_star, dv, dw, (a_recv, a_send)
+
     def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array,
                           dw: jax.Array | None = None) -> jax.Array:
         """(E, 4) invariant scalars of each contact at the end of the step if every ball's
@@ -645,6 +702,9 @@ class ContactNet(nn.Module):
             logits = logits + self._per_kind(pp_refine, pw_refine, geo, x, n_node - 2)
         impulse, du_n, du_t, dv, dw, angular = kinematics(logits)
         impulse, du_n, dv = self._project_overlaps(geo, impulse, du_n, dv, n_node, is_particle)
+        if self.spin and self.physics.friction_sweeps > 0:
+            impulse, du_t, dv, dw, angular = self._project_friction(
+                geo, impulse, du_n, dv, dw, angular, n_node, is_particle)
 
         receivers, senders = geo["receivers"], geo["senders"]
         vbar_node = geo["v_node"] + 0.5 * dv
@@ -725,7 +785,8 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
                           rolling_friction=float(cfg.material.rolling_friction),
                           overlap_limit=float(getattr(cfg.model, "overlap_limit", 0.0)),
                           overlap_law_factor=factor,
-                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)), **peaks)
+                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
+                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)), **peaks)
 
 
 def make_contact_net(cfg: Any) -> ContactNet:
