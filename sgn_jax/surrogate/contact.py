@@ -639,22 +639,32 @@ class ContactNet(nn.Module):
         wall_end = geo["u_wall"] + geo["jar_dv"]
         tangential = impulse - jnp.einsum("ec,ec->e", impulse, normal)[:, None] * normal
         a_recv, a_send = angular
+        is_pp = geo["is_pp"][:, None]
+        mass_inertia = jnp.asarray([phys.ball_mass] * 3 + [phys.inertia] * 3, DTYPE)
         for _ in range(phys.friction_sweeps):
-            v_end, w_end = geo["v_node"] + dv, geo["w_node"] + dw
-            partner = jnp.where(geo["is_pw"][:, None], wall_end, v_end[senders])
-            v_rel = partner - v_end[receivers]
+            # one gather per end of the contacts and one scatter-add per end per sweep: the
+            # balls' velocities and spins side by side, (n_node, 6)
+            state = jnp.concatenate([geo["v_node"] + dv, geo["w_node"] + dw], axis=-1)
+            at_recv, at_send = state[receivers], state[senders]
+            partner = jnp.where(geo["is_pw"][:, None], wall_end, at_send[:, :3])
+            v_rel = partner - at_recv[:, :3]
             v_t = v_rel - jnp.einsum("ec,ec->e", v_rel, normal)[:, None] * normal
-            slip = v_t - arm[:, None] * jnp.cross(w_end[receivers] + w_end[senders], normal)
+            slip = v_t - arm[:, None] * jnp.cross(at_recv[:, 3:] + at_send[:, 3:], normal)
             wanted = tangential + (m_star * gate / (k * count))[:, None] * slip
             size = _safe_norm(wanted)
             scale = jnp.minimum(1.0, cone / jnp.maximum(size, 1e-30))
             extra = wanted * scale[:, None] - tangential
             tangential = tangential + extra
             impulse = impulse + extra
-            dv = dv + self._impulse_velocity_change(geo, extra, n_node, is_particle)
             torque = arm[:, None] * jnp.cross(normal, extra)
             a_recv, a_send = a_recv + torque, a_send + torque
-            dw = dw + self._spin_change(geo, torque, torque, n_node, is_particle)
+            # the receiver gets (J, torque), a pair's sender (-J, torque); the wall node none
+            on_recv = jax.ops.segment_sum(jnp.concatenate([extra, torque], axis=-1), receivers,
+                                          num_segments=n_node)
+            on_send = jax.ops.segment_sum(jnp.concatenate([-extra * is_pp, torque], axis=-1),
+                                          senders, num_segments=n_node)
+            change = jnp.where(is_particle[:, None], (on_recv + on_send) / mass_inertia, 0.0)
+            dv, dw = dv + change[:, :3], dw + change[:, 3:]
         return impulse, _safe_norm(tangential) / m_star, dv, dw, (a_recv, a_send)
 
     def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array,
