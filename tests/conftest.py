@@ -274,6 +274,20 @@ def short_packings():
 
 
 @pytest.fixture(scope="session")
+def contact_short_packings(short_packings):
+    """``(model, cfg, packings)``: the shipped contact model and ``short_packings``' case and
+    seeds at the model's own step (``sgn_jax.api.at_surrogate_step``: it runs at 2e-4 s), the
+    packings settled as those (the same settled states, from the session's cache)."""
+    import sgn_jax.api as sj
+
+    model = sj.load_surrogate("contact")
+    cfg = sj.at_surrogate_step(short_packings[0], model)
+    with session_settle_cache():
+        packings = sj.make_packings(cfg, seeds=list(short_packings[1].seeds))
+    return model, cfg, packings
+
+
+@pytest.fixture(scope="session")
 def standard_dem_file():
     """The path of a DEM dataset file of the standard case, seed 0: 0.05 s of settling, then
     0.101 s of motion (1011 samples). Written once per session into the session folder; read

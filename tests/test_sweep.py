@@ -43,12 +43,12 @@ def test_a_sweep_varies_the_motion_only(setting):
         sj.rollout_sweep(model, [], packings, duration=0.01)
 
 
-def test_an_ensemble_mapped_one_packing_after_another_equals_the_vmapped_one(short_packings):
+def test_an_ensemble_mapped_one_packing_after_another_equals_the_vmapped_one(
+        contact_short_packings):
     """``batching="map"``: the packings one after another (``lax.map``) in the model's
     single-rollout form (the contact kind's acting-rows MLPs): the vmapped ensemble's
     rollouts, to the float32 rounding a batch changes (as above)."""
-    cfg, packings = short_packings
-    model = sj.load_surrogate("contact")
+    model, cfg, packings = contact_short_packings
     runs = {b: sj.rollout_ensemble(model, cfg, packings, duration=0.01, batching=b)
             for b in ("vmap", "map")}
     assert runs["map"].positions.shape == runs["vmap"].positions.shape

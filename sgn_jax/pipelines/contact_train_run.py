@@ -143,6 +143,8 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     if not trajectories:
         raise TrainingError("no training trajectories")
     spec = graph_spec_from_config(cfg)
+    # the records' files, before a coarser model step replaces the records (and their path)
+    train_files = [str(getattr(t, "path", "")) for t in trajectories]
     trajectories = [at_model_step(t, spec.dt) for t in trajectories]
     val_trajectories = [at_model_step(t, spec.dt) for t in val_trajectories]
     for i, t in enumerate([*trajectories, *val_trajectories]):
@@ -222,7 +224,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
     info = {"n_train_trajectories": len(trajectories),
-            "train_files": [str(getattr(t, "path", "")) for t in trajectories],
+            "train_files": train_files,
             "n_val_trajectories": len(val_trajectories),
             "n_params": int(sum(p.size for p in jax.tree_util.tree_leaves(params))),
             "model_kind": "contact", "steps": steps, "batch_size": batch_size,
