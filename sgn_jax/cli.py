@@ -215,7 +215,9 @@ def _add_rollout(sub: argparse._SubParsersAction) -> None:
                    "trained model's")
     p.add_argument("--start-index", type=int, default=None,
                    help="dataset sample at the rollout's start (default: the first with a full "
-                   "window, [graph] window)")
+                   "window at the model's step: [graph] window, times the step ratio for a "
+                   "record sampled finer than the model, e.g. 1e-4 s data and the 2e-4 s "
+                   "shipped contact model)")
     p.add_argument("--save-every", type=int, default=None,
                    help="steps between saved frames (default: [rollout] save_every)")
     p.add_argument("--which", choices=("best", "latest"), default="best",
@@ -235,7 +237,11 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     if override is not None:
         warn_outside_envelope(override, trained.config, trained.meta)
     traj = load_trajectory(args.init)
-    start = trained.config.graph.window if args.start_index is None else args.start_index
+    start = args.start_index
+    if start is None:   # the first sample with a full window at the model's step
+        record_dt = float(traj.meta.get("dt", trained.config.dem.dt))
+        factor = max(1, round(float(trained.config.dem.dt) / record_dt))
+        start = trained.config.graph.window * factor
     summary = run_rollout(trained, traj, start, args.duration, args.out, override,
                           save_every=args.save_every, progress=not args.no_progress,
                           checkpoint_path=str(checkpoint))

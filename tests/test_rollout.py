@@ -499,6 +499,13 @@ def test_run_rollout_with_a_coarser_step_starts_from_the_coarsened_record(dem, t
     np.testing.assert_allclose(summary["arrays"]["pos"], whole.positions, rtol=0, atol=1e-12)
     with pytest.raises(RolloutError, match="cannot be coarsened"):
         run_rollout(coarse_model, traj, 41, 0.012, run_dir / "odd.npz", progress=False)
+    # a case config at the record's step runs at the model's (as api.at_surrogate_step);
+    # a step that is not a whole fraction of the model's is refused before any work
+    from sgn_jax.pipelines.rollout_run import _effective_config
+
+    assert _effective_config(coarse_cfg, trained.config).dem.dt == 2 * traj.dt
+    with pytest.raises(RolloutError, match=r"\[dem\] dt"):
+        _effective_config(coarse_cfg, replace_section(trained.config, "dem", dt=0.8 * traj.dt))
 
 
 def test_cli_rollout(dem, checkpoint, tmp_path, capsys):

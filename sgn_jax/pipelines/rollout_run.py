@@ -41,13 +41,19 @@ from sgn_jax.surrogate.rollout import (
 
 
 def _effective_config(trained_cfg: Any, override: Any) -> Any:
-    """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``."""
+    """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``.
+    A case sampled at a finer step than the model's by an integer factor (a 1e-4 s case and the
+    2e-4 s contact model) runs at the model's step, as ``sgn_jax.api.at_surrogate_step`` does
+    for design studies (the initial record is coarsened to it)."""
     if override is None:
         return trained_cfg
     for section, fields in (("balls", ("count", "radius")), ("dem", ("dt",))):
         for name in fields:
             a, b = getattr(getattr(trained_cfg, section), name), getattr(getattr(override,
                                                                                  section), name)
+            if section == "dem" and b > 0 and round(a / b) > 1 and math.isclose(
+                    a, round(a / b) * b, rel_tol=1e-9):
+                continue
             if a != b:
                 raise RolloutError(
                     f"the override config has [{section}] {name} = {b} but the model was trained "
