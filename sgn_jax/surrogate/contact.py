@@ -627,9 +627,7 @@ class ContactNet(nn.Module):
         contacts of its two balls; the contact's total tangential impulse (learned plus
         sweeps) projected back into the cone ``mu m* du_n``. The torque ``a n x J`` acts on
         both balls of a pair, so the pair's linear and angular momentum are kept."""
-        phys = self.physics
-        if phys.friction_sweeps == 0 or not self.spin:
-            return impulse, None, dv, dw, angular
+        phys = self.physics   # called with spin and friction_sweeps > 0 (step_terms)
         receivers, senders, normal = geo["receivers"], geo["senders"], geo["normal"]
         gate, arm = geo["gate"], geo["arm"]
         m_star = self._reduced_mass(geo)
