@@ -79,6 +79,7 @@ from sgn_jax.pipelines.configure import (
     jar_params_from_config,
     motion_from_config,
     sdf_grid_from_config,
+    surrogate_walls_from_config,
 )
 from sgn_jax.pipelines.configure import (
     params_from_config as dem_params_from_config,
@@ -920,6 +921,7 @@ __all__ = [
     "jar_params_from_config",
     "motion_from_config",
     "sdf_grid_from_config",
+    "surrogate_walls_from_config",
     "analytic_jar_query",
     "anchored_window",
     "apply_parameters",

@@ -27,10 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.pipelines.configure import graph_spec_from_config, surrogate_walls_from_config
-from sgn_jax.pipelines.train_run import at_model_step
-from sgn_jax.surrogate.contact import ContactNet
-from sgn_jax.surrogate.graph import Window, build_graph
+from sgn_jax.api import Window, build_graph, graph_spec_from_config, surrogate_walls_from_config
 
 CLASSES = ("neither", "wall_only", "ball_only", "wall_and_ball")
 DAMPING = ("diss_pp_normal", "diss_pp_tangential", "diss_pw_normal", "diss_pw_tangential")
@@ -49,7 +46,7 @@ def main() -> None:
         raise SystemExit(f"{args.model} is not a contact model with spin state")
     spec = graph_spec_from_config(cfg)
     sdf, query = surrogate_walls_from_config(cfg)
-    traj = at_model_step(sj.load_trajectory(args.record), spec.dt)
+    traj = sj.load_trajectory(args.record).at_step(spec.dt)
     pos, off = np.asarray(traj.pos, np.float64), np.asarray(traj.offset, np.float64)
     offv, omega = np.asarray(traj.offset_vel, np.float64), np.asarray(traj.omega, np.float64)
     w, n, dt = spec.window, spec.n_particles, spec.dt
@@ -62,7 +59,7 @@ def main() -> None:
         window = Window(positions=p, offsets=o, offset_velocities=ov,
                         frequency_hz=jnp.zeros(()), spins=spins)
         graph, _ = build_graph(window, sdf, spec, query)
-        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+        terms = net.apply({"params": params}, graph, method=type(net).step_terms)
         return terms["dv"][:n], terms["dw"][:n]
 
     samples = np.arange(w + 1, len(pos) - 2, args.stride)
