@@ -119,7 +119,7 @@ from sgn_jax.pipelines.experiments import (
     usable_cores,
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
-from sgn_jax.pipelines.rollout_run import initial_window, run_rollout
+from sgn_jax.pipelines.rollout_run import coarser_step_factor, initial_window, run_rollout
 from sgn_jax.pipelines.validation import check_dem_config, check_duration, warn_outside_envelope
 from sgn_jax.records.cache import enable_compilation_cache
 from sgn_jax.records.checkpoint import (
@@ -191,9 +191,8 @@ def at_surrogate_step(cfg: Config, surrogate: TrainedModel) -> Config:
     rolls out at its step, and its packings' windows are sampled at it (``[dem] dt`` is the
     sampling and surrogate step; the DEM's own step is ``dt_dem_max``). Any other mismatch is
     left for :func:`design_study` to refuse with its message."""
-    model_dt, case_dt = float(surrogate.config.dem.dt), float(cfg.dem.dt)
-    factor = round(model_dt / case_dt)
-    if factor > 1 and math.isclose(model_dt, factor * case_dt, rel_tol=1e-9):
+    model_dt = float(surrogate.config.dem.dt)
+    if coarser_step_factor(model_dt, float(cfg.dem.dt)) > 1:
         return replace_section(cfg, "dem", dt=model_dt)
     return cfg
 

@@ -237,12 +237,7 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     if override is not None:
         warn_outside_envelope(override, trained.config, trained.meta)
     traj = load_trajectory(args.init)
-    start = args.start_index
-    if start is None:   # the first sample with a full window at the model's step
-        record_dt = float(traj.meta.get("dt", trained.config.dem.dt))
-        factor = max(1, round(float(trained.config.dem.dt) / record_dt))
-        start = trained.config.graph.window * factor
-    summary = run_rollout(trained, traj, start, args.duration, args.out, override,
+    summary = run_rollout(trained, traj, args.start_index, args.duration, args.out, override,
                           save_every=args.save_every, progress=not args.no_progress,
                           checkpoint_path=str(checkpoint))
     summary.pop("arrays")

@@ -40,6 +40,16 @@ from sgn_jax.surrogate.rollout import (
 )
 
 
+def coarser_step_factor(model_dt: float, case_dt: float) -> int:
+    """The integer factor k > 1 with ``model_dt = k case_dt`` (a case sampled finer than the
+    model's step, e.g. a 1e-4 s case and the 2e-4 s contact model), or 1 when there is none
+    (the same step, or steps that are not whole multiples)."""
+    factor = round(model_dt / case_dt) if case_dt > 0 else 1
+    if factor > 1 and math.isclose(model_dt, factor * case_dt, rel_tol=1e-9):
+        return int(factor)
+    return 1
+
+
 def _effective_config(trained_cfg: Any, override: Any) -> Any:
     """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``.
     A case sampled at a finer step than the model's by an integer factor (a 1e-4 s case and the
@@ -51,8 +61,7 @@ def _effective_config(trained_cfg: Any, override: Any) -> Any:
         for name in fields:
             a, b = getattr(getattr(trained_cfg, section), name), getattr(getattr(override,
                                                                                  section), name)
-            if section == "dem" and b > 0 and round(a / b) > 1 and math.isclose(
-                    a, round(a / b) * b, rel_tol=1e-9):
+            if section == "dem" and coarser_step_factor(a, b) > 1:
                 continue
             if a != b:
                 raise RolloutError(
@@ -96,7 +105,7 @@ def pair_capacity_tiers(capacity: int, n_steps: int, tiers_help: bool = True) ->
     return tuple(t for t in sorted({capacity // 4, capacity // 2}) if 0 < t < capacity)
 
 
-def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: float,
+def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, duration: float,
                 out_path: str | Path | None = None, cfg_override: Any = None, *,
                 save_every: int | None = None, progress: bool = True,
                 checkpoint_path: str | None = None) -> dict[str, Any]:
@@ -113,7 +122,9 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
         trained_model: :class:`sgn_jax.records.checkpoint.TrainedModel` (model, params, stats,
             config).
         init_traj: a :class:`sgn_jax.records.trajectory.Trajectory`; the initial window ends at
-            sample ``start_index`` (W <= start_index < T), time ``t0 = traj.t[start_index]``.
+            sample ``start_index`` (W <= start_index < T), time ``t0 = traj.t[start_index]``;
+            None: the first sample with a full window at the model's step (W, times the step
+            ratio for a record sampled finer than the model).
         duration: seconds of rollout; S = round(duration / dt) steps, a multiple of save_every.
         out_path: prediction ``.npz`` (:func:`sgn_jax.records.prediction.save_prediction`), or None.
         cfg_override: a config whose [jar], [motion], [sdf] and [rollout] replace the trained
@@ -139,6 +150,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int, duration: 
         raise RolloutError(f"duration {duration:g} s = {n_steps} steps of dt = {dt:g} s must be a "
                            f"positive multiple of save_every = {k} steps")
     traj_dt = float(init_traj.meta["dt"]) if "dt" in init_traj.meta else dt
+    if start_index is None:
+        start_index = int(cfg.graph.window) * max(1, round(dt / traj_dt))
     record_index = int(start_index)   # the sample index in the given record (meta init_index)
     if not math.isclose(traj_dt, dt, rel_tol=1e-9):
         # A record sampled finer than the model's step by an integer factor gives its window
