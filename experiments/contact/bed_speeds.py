@@ -78,7 +78,8 @@ def main() -> None:
         s, w = np.concatenate(speeds), np.concatenate(walls)
         out[who] = {"mean_m_s": float(s.mean()),
                     "quantiles_m_s": dict(zip(map(str, QUANTILES),
-                                              np.quantile(s, QUANTILES).round(4).tolist())),
+                                              np.quantile(s, QUANTILES).round(4).tolist(),
+                                              strict=True)),
                     "wall_touching_share": float(w.mean()),
                     **{f"slow_{v}": float(np.mean(s < v)) for v in SLOW},
                     **{f"slow_{v}_wall": float(np.mean(s[w] < v)) for v in SLOW},
