@@ -56,8 +56,10 @@ from sgn_jax.config import (
 )
 from sgn_jax.dem.contact import head_on_normal_force
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
+from sgn_jax.dem.placement import placement_candidates
 from sgn_jax.design import (
     PARAMETER_UNITS,
+    STARTS,
     DesignError,
     EnsemblePower,
     anchored_window,
@@ -238,13 +240,14 @@ class Packings:
 
     Attributes:
         windows: :class:`sgn_jax.surrogate.graph.Window` with a leading axis K (positions
-            (K, W+1, N, 3)).
+            (K, W+1, N, 3)); None for :func:`seed_packings` (seeds only: a study with
+            ``start="settle"`` places and settles them itself).
         t0: time (s since the start of motion) of the windows' newest sample.
         seeds: the K DEM placement seeds.
         config: the config they were made with (jar, balls, motion at which they were sampled).
     """
 
-    windows: Window
+    windows: Window | None
     t0: float
     seeds: tuple[int, ...]
     config: Config
@@ -282,6 +285,27 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
     return Packings(windows=stacked, t0=w * dt, seeds=seeds, config=cfg)
 
 
+def seed_packings(cfg: Config, seeds: Iterable[int]) -> Packings:
+    """Packings that are only their seeds (no DEM run): for a design study with
+    ``start="settle"``, which places each seed's balls as the DEM does and lets the surrogate
+    settle them in every jar it evaluates."""
+    seeds = tuple(int(s) for s in seeds)
+    if not seeds or any(s < 0 for s in seeds):
+        raise DesignError(f"need at least one seed, all >= 0; got {list(seeds)}")
+    return Packings(windows=None, t0=0.0, seeds=seeds, config=cfg)
+
+
+def resolve_start(start: str, names: Sequence[str]) -> str:
+    """A design study's start (:data:`sgn_jax.design.STARTS`) for ``start``: ``"auto"`` is
+    ``"settle"`` when a jar-shape parameter is among ``names`` (a packing settled in one jar
+    is not the DEM's start in another: docs/design.md), else ``"packing"``."""
+    if start == "auto":
+        return "settle" if any(str(n).startswith("jar.") for n in names) else "packing"
+    if start not in STARTS:
+        raise DesignError(f"start must be 'auto' or one of {STARTS}, got {start!r}")
+    return start
+
+
 def check_study_sizes(duration: float, burn_in: float, packings: int | None = None) -> None:
     """Refuse a study before any work: duration > burn_in >= 0 s, and >= 2 packings (a
     standard error needs two)."""
@@ -301,7 +325,7 @@ class _SurrogateFrame:
     spec: GraphSpec
     motion: Motion
     jar: JarParams
-    windows: Window
+    windows: Window | None
 
 
 def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
@@ -316,7 +340,7 @@ def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
             raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
                               f"design config has {b}")
     warn_outside_envelope(cfg, model_cfg, surrogate.meta)
-    if packings.windows.positions.shape[-2] != cfg.balls.count:
+    if packings.windows is not None and packings.windows.positions.shape[-2] != cfg.balls.count:
         raise DesignError("the packings have a different number of balls from the config")
     # Window-level features come from the model's graph rules; the jar and motion from cfg.
     spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
@@ -326,7 +350,8 @@ def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
     if type(base_motion) is not type(motion):
         # Packings made under another motion kind are re-anchored to this motion at t0.
         base_motion = motion
-    windows = _reanchor(packings, base_motion, motion, float(cfg.dem.dt))
+    windows = (None if packings.windows is None
+               else _reanchor(packings, base_motion, motion, float(cfg.dem.dt)))
     return _SurrogateFrame(spec=spec, motion=motion, jar=jar_params_from_config(cfg.jar),
                            windows=windows)
 
@@ -382,7 +407,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
                  *, duration: float = 1.5, burn_in: float = 0.5, horizon: int = 10,
                  n_segments: int = 8, separation: bool | None = None,
                  estimator: str = "difference", steps: dict[str, float] | None = None,
-                 shard: bool = False) -> DesignStudy:
+                 shard: bool = False, start: str = "auto") -> DesignStudy:
     """Build a :class:`DesignStudy` of ``cfg``'s jar and motion over ``packings``.
 
     Args:
@@ -404,6 +429,13 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         steps: difference step per parameter name (SI units), for the names it lists.
         shard: split the packings over all devices (:func:`shard_packings`); the powers and
             gradients equal the unsharded ones to float tolerance.
+        start: where each packing's rollout starts (:func:`resolve_start`): ``"packing"``:
+            from its DEM window, fitted into a changed jar; ``"settle"``: its seed's balls
+            placed as the DEM places them in every evaluated jar and settled there by the
+            surrogate for ``[dem] settle_time``, the motion from t = 0 (the start the DEM's
+            own runs in that jar have); ``"auto"`` (default): ``"settle"`` when a jar-shape
+            parameter is studied. With ``"settle"`` only the packings' seeds are used
+            (:func:`seed_packings` skips the DEM).
 
     With the difference estimator and no sharding, a model with a single-rollout form (the
     contact kind) runs its packings one after another in it (``make_ensemble_power``'s
@@ -411,9 +443,14 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     horizon estimator and sharded studies run the plain model vmapped.
     """
     check_study_sizes(duration, burn_in)
+    start = resolve_start(start, names)
+    if start == "packing" and packings.windows is None:
+        raise DesignError("these packings are seeds only (seed_packings): a study from the "
+                          "packings needs make_packings, or start='settle'")
     frame = _surrogate_frame(surrogate, cfg, packings)
     motion, jar = frame.motion, frame.jar
     dt = float(cfg.dem.dt)
+    n_settle = _steps(float(cfg.dem.settle_time), dt, "[dem] settle_time")
     n_burn = _steps(burn_in, dt, "burn_in")
     n_measure = _steps(duration - burn_in, dt, "duration - burn_in")
     if n_measure % n_segments:
@@ -443,10 +480,12 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         n_burn=n_burn, n_measure=n_measure, horizon=horizon, n_segments=n_segments,
         snap_back=rollout.snap_back, phi_sb=surrogate.config.graph.phi_sb,
         snap_velocity=rollout.snap_velocity,
-        pp_max_overlap=rollout.pp_max_overlap if use_sep else None)
-    windows = frame.windows
+        pp_max_overlap=rollout.pp_max_overlap if use_sep else None,
+        start=start, n_settle=n_settle)
+    starts = (frame.windows if start == "packing" else
+              np.stack([placement_candidates(seed) for seed in packings.seeds]))
     args = (jax.device_put(surrogate.params), jax.device_put(surrogate.norm_stats),
-            shard_packings(windows) if shard else jax.device_put(windows))
+            shard_packings(starts) if shard else jax.device_put(starts))
     power = ensemble.power
 
     def power_of_theta(theta: Any) -> jax.Array:
@@ -653,11 +692,15 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
                 checkpoint: str | Path | None = None, estimator: str = "difference",
                 horizon: int = 10, n_segments: int = 8, curve: bool = True,
                 steps: dict[str, float] | None = None, separation: bool | None = None,
+                start: str = "auto",
                 progress: Callable[[str], None] = lambda stage: None) -> dict[str, Any]:
     """The design sensitivity of ``cfg``: ensemble-mean power, its gradient, standard errors.
 
     Packings come from DEM seeds ``first_seed .. first_seed + packings - 1`` (never used for
-    training). The gradient is :func:`design_study`'s ``estimator``. ``curve`` adds the
+    training): settled by the DEM in the config's jar (``start="packing"``), or placed as the
+    DEM places them and settled by the surrogate in every evaluated jar (``"settle"``; the
+    default ``"auto"`` picks it when a jar-shape parameter is studied, :func:`resolve_start`).
+    The gradient is :func:`design_study`'s ``estimator``. ``curve`` adds the
     surrogate's ensemble power at ``theta +- h`` per parameter (``steps`` or
     :func:`default_step`): free with the difference estimator (its own evaluations), extra
     rollouts with the horizon estimator. ``progress(stage)`` is called after every packing and
@@ -671,18 +714,20 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
     model = load_surrogate(checkpoint)
     cfg = at_surrogate_step(cfg, model)
     seeds = range(first_seed, first_seed + packings)
-    pk = make_packings(cfg, seeds, log=progress)
+    start = resolve_start(start, names)
+    pk = (make_packings(cfg, seeds, log=progress) if start == "packing"
+          else seed_packings(cfg, seeds))
     t_packings = time.perf_counter() - t_start
     study = design_study(model, cfg, names, pk, duration=duration, burn_in=burn_in,
                          horizon=horizon, n_segments=n_segments, separation=separation,
-                         estimator=estimator, steps=steps)
+                         estimator=estimator, steps=steps, start=start)
     t0 = time.perf_counter()
     result = study.estimate()
     progress("estimate")
     t_estimate = time.perf_counter() - t0
     result.update(names=list(study.names), theta0=study.theta0.tolist(),
                   units={n: parameter_unit(n) for n in study.names}, seeds=list(seeds),
-                  duration_s=duration, burn_in_s=burn_in, estimator=estimator,
+                  duration_s=duration, burn_in_s=burn_in, estimator=estimator, start=start,
                   horizon_steps=horizon, n_segments=n_segments,
                   separation=bool(cfg.rollout.pp_separation if separation is None
                                   else separation))

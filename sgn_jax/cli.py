@@ -335,7 +335,8 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
         "sensitivity",
         help="design sensitivity: ensemble-mean dissipation power and its gradient w.r.t. "
         "named design parameters (surrogate)",
-        description="Settle PACKINGS DEM packings (seeds FIRST_SEED..), roll the surrogate out "
+        description="Settle PACKINGS DEM packings (seeds FIRST_SEED..; with a jar.* parameter "
+        "the surrogate settles them in every evaluated jar, --start), roll the surrogate out "
         "for DURATION s from each under the config's jar and motion, and estimate the "
         "ensemble-mean dissipation power over (BURN_IN, DURATION] and its gradient with respect "
         "to each --param (default: the ensemble central difference with common packings, "
@@ -374,6 +375,11 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
                    help="ball-ball separation in the rollout (default: the config's)")
     p.add_argument("--no-curve", action="store_true",
                    help="skip the power evaluations at theta +- h (faster; no curve points)")
+    p.add_argument("--start", choices=("auto", "packing", "settle"), default="auto",
+                   help="where the rollouts start: packing (the DEM's packings of the config's "
+                   "jar), settle (each seed's balls placed as the DEM places them and settled "
+                   "by the surrogate in every evaluated jar); default auto: settle when a jar.* "
+                   "parameter is studied (docs/design.md)")
     p.add_argument("--out", default="runs/sensitivity", help="output directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_sensitivity)
@@ -395,7 +401,9 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
             raise UserError(f"--step {item!r}: use NAME=H, e.g. motion.rpm=30") from None
     cfg = api.load_config(args.config)
     extra_curves = args.estimator == "horizon" and not args.no_curve
-    total = args.packings + 1 + (2 * len(args.param) if extra_curves else 0)
+    start = api.resolve_start(args.start, args.param)
+    total = ((args.packings if start == "packing" else 0) + 1
+             + (2 * len(args.param) if extra_curves else 0))
     separation = {"config": None, "on": True, "off": False}[args.separation]
     with tqdm(total=total, desc="sensitivity", unit="task", disable=args.no_progress,
               dynamic_ncols=True, file=sys.stderr) as bar:
@@ -408,7 +416,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
             packings=args.packings, first_seed=args.first_seed, checkpoint=args.checkpoint,
             horizon=args.horizon, n_segments=args.segments, curve=not args.no_curve,
             estimator=args.estimator, steps=steps or None,
-            separation=separation, progress=progress)
+            separation=separation, start=start, progress=progress)
     out = Path(args.out)
     result["plot"] = str(plot_sensitivity(result, out / "sensitivity.png"))
     result["config"] = str(args.config)

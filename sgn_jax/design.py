@@ -45,9 +45,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.dem.placement import place_balls_traced
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.geometry import JarParams
+from sgn_jax.geometry.jar import jar_sdf
+from sgn_jax.geometry.sdf_grid import cavity_box
 from sgn_jax.motion import (
+    CircleMotion,
     Motion,
     frequency_hz,
     motion_kind,
@@ -275,6 +279,65 @@ def fit_packing_to_jar(window: Window, jar: JarParams, radius: float,
     return window.replace(positions=window.positions + shift[None])
 
 
+STARTS = ("packing", "settle")
+"""Where a design study's rollouts start: from the given packings (fitted into a changed jar),
+or placed from each packing's seed and settled by the surrogate in every evaluated jar."""
+
+PLACEMENT_GAP = 5.0e-4
+"""m: the clearance of a settled start's placement (the DEM's, ``dem_run.initial_state``)."""
+
+
+def rest_window(positions: jax.Array, window: int, frequency: jax.Array,
+                jar_offset: jax.Array | None = None) -> Window:
+    """A :class:`Window` of balls at rest at ``positions`` (N, 3) (jar frame) in a jar at rest
+    at ``jar_offset`` (3,) m (default the origin): ``window`` + 1 equal slots, zero jar
+    velocities and spins."""
+    positions = jnp.asarray(positions, F64)
+    jar_offset = jnp.zeros(3, F64) if jar_offset is None else jnp.asarray(jar_offset, F64)
+    return Window(positions=jnp.broadcast_to(positions + jar_offset,
+                                             (window + 1, *positions.shape)),
+                  offsets=jnp.broadcast_to(jar_offset, (window, 3)),
+                  offset_velocities=jnp.zeros((window, 3), F64),
+                  frequency_hz=jnp.asarray(frequency, F64),
+                  spins=jnp.zeros(positions.shape, F64))
+
+
+def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **options: Any
+                       ) -> Callable[..., tuple[Window, jax.Array]]:
+    """The DEM's start of a packing, made by the surrogate in any jar (traceable in the jar).
+
+    Returns ``settled_start(params, stats, candidates, motion, jar) -> (window, t)``: the
+    balls placed from ``candidates`` (C, 3) as the DEM places them in ``jar``
+    (:func:`sgn_jax.dem.placement.place_balls_traced`, clearance :data:`PLACEMENT_GAP`), at
+    rest; rolled out ``n_settle`` steps by the surrogate with the jar at rest at the origin
+    (gravity settles them); then the jar put at ``motion``'s offset at t = 0, as the DEM
+    settles at rest at ``offset(0)`` before its motion starts. The window's newest sample is
+    at ``t = 0`` (returned as a float64 zero); the whole start is stop-gradient. ``options``:
+    the rollout's settings (:func:`sgn_jax.surrogate.rollout.make_rollout_advance`).
+    """
+    settle = (make_rollout_advance(spec, predictor, n_settle, n_settle, **options)
+              if n_settle else None)
+
+    def settled_start(params, stats, candidates, motion, jar):
+        lower, upper = cavity_box(jar)
+        placed, _ = place_balls_traced(lambda x: jar_sdf(jar, x), lower, upper, candidates,
+                                       spec.n_particles, spec.ball_radius, PLACEMENT_GAP)
+        window = rest_window(placed, spec.window, frequency_hz(motion))
+        zero = jnp.zeros((), F64)
+        if settle is not None:
+            at_rest = CircleMotion(rpm=zero, amplitude=zero, phase=zero)
+            state = RolloutState(window=window, step=jnp.zeros((), jnp.int32), energy=zero)
+            window = settle(params, stats, state, at_rest, jar, zero).final.window
+        origin = offset(motion, zero)
+        window = window.replace(positions=window.positions + origin,
+                                offsets=window.offsets + origin,
+                                offset_velocities=jnp.zeros_like(window.offset_velocities),
+                                frequency_hz=jnp.asarray(frequency_hz(motion), F64))
+        return jax.lax.stop_gradient(window), zero
+
+    return settled_start
+
+
 # --------------------------------------------------------------------------------------------
 # The ensemble-mean power and its estimated gradient
 
@@ -309,7 +372,8 @@ class EnsemblePower:
     the same compiled program; jittable, and compiled programs when called eagerly). ``estimate(...)`` ->
     :class:`PowerEstimate` (per packing and segment, for standard errors). ``forward(...)`` ->
     (K,) powers without any gradient work (for finite differences and curves). ``batching``:
-    how the packings' rollouts run, "vmap" or "map" (:func:`make_ensemble_power`).
+    how the packings' rollouts run, "vmap" or "map"; ``start``, ``n_settle``: where they start
+    (:func:`make_ensemble_power`).
     """
 
     power: Callable[..., jax.Array]
@@ -323,6 +387,8 @@ class EnsemblePower:
     estimator: str = "difference"
     steps: tuple[float, ...] = ()
     batching: str = "vmap"
+    start: str = "packing"
+    n_settle: int = 0
 
 
 def _zero_cotangent(x: Any) -> Any:
@@ -349,7 +415,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
                         snap_velocity: str = "keep", pp_max_overlap: float | None = None,
                         checkpoint_steps: int = 100, estimator: str = "difference",
                         steps: Sequence[float] | None = None,
-                        batching: str = "vmap") -> EnsemblePower:
+                        batching: str = "vmap", start: str = "packing",
+                        n_settle: int = 0) -> EnsemblePower:
     """Build the ensemble-mean power of a design study and its gradient estimator.
 
     Args:
@@ -379,11 +446,26 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
             (``lax.map``), for a predictor of a model's single-rollout form, which a vmap
             would make slower (:func:`sgn_jax.api.over_packings`). The horizon estimator's
             gradients stay vmapped.
+        start: where each packing's rollout starts (:data:`STARTS`). ``"packing"`` (default):
+            from its window (anchored to ``theta``'s motion, fitted into ``theta``'s jar by
+            :func:`fit_packing_to_jar`), at ``t0``. ``"settle"``: as the DEM makes a packing,
+            in every evaluated jar: the balls placed from the packing's candidates
+            (:func:`sgn_jax.dem.placement.place_balls_traced`, the DEM's placement in
+            ``theta``'s jar), settled by the surrogate for ``n_settle`` steps with the jar at
+            rest, and the motion started at t = 0 (``t0`` is not used). For a jar-shape
+            parameter this is the start the DEM's own side runs have; a packing settled in
+            the base jar and fitted into a changed one is not (docs/design.md measures both).
+            The start is stop-gradient (as the anchoring): the horizon estimator differentiates
+            from it.
+        n_settle: steps of the surrogate's settle (``start="settle"``; the DEM's ``[dem]
+            settle_time`` / dt).
 
     Returns:
-        an :class:`EnsemblePower`. Its functions take ``(theta (D,), params, stats, windows)``
-        with ``windows`` a :class:`Window` batched over K packings (leading axis), made under
-        ``base_motion`` and ending at ``t0``.
+        an :class:`EnsemblePower`. Its functions take ``(theta (D,), params, stats, starts)``:
+        for ``start="packing"`` ``starts`` is a :class:`Window` batched over K packings
+        (leading axis), made under ``base_motion`` and ending at ``t0``; for ``"settle"`` the
+        (K, C, 3) unit-box placement candidates of the K packings
+        (:func:`sgn_jax.dem.placement.placement_candidates` of their seeds).
     """
     names = check_parameters(names, base_motion, base_jar)
     n_burn, n_measure, horizon, n_segments = int(n_burn), int(n_measure), int(horizon), int(
@@ -397,6 +479,11 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     if estimator not in ("difference", "horizon"):
         raise DesignError(f"estimator must be 'difference' or 'horizon', got {estimator!r}")
     check_batching(batching)
+    if start not in STARTS:
+        raise DesignError(f"start must be one of {STARTS}, got {start!r}")
+    n_settle = int(n_settle)
+    if n_settle < 0:
+        raise DesignError(f"n_settle must be >= 0 steps, got {n_settle}")
     if estimator == "difference":
         if steps is None or len(steps) != len(names):
             raise DesignError(f"the difference estimator needs one step per parameter "
@@ -419,16 +506,25 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     chunk = _divisor_at_most(horizon, checkpoint_steps)
     horizon_run = make_rollout_advance(spec, predictor, horizon, chunk, checkpoint_steps=chunk,
                                        **options)
+    settled_start = (make_settled_start(spec, predictor, n_settle, **options)
+                     if start == "settle" else None)
     t0 = float(t0)
 
     def design(theta):
         return apply_parameters(names, theta, base_motion, base_jar)
 
-    def one_forward(theta, params, stats, window0):
+    def start_state(theta, params, stats, packing):
+        """(window, time of its newest sample) a packing's rollout starts from at ``theta``."""
+        motion, jar = design(theta)
+        if start == "settle":
+            return settled_start(params, stats, packing, motion, jar)
+        window, t_eff = anchored_window(packing, jnp.asarray(t0, F64), base_motion, motion, dt)
+        return fit_packing_to_jar(window, jar, spec.ball_radius), t_eff
+
+    def one_forward(theta, params, stats, packing):
         """Power (W) of one packing and the states at the segment starts."""
         motion, jar = design(theta)
-        window, t_eff = anchored_window(window0, jnp.asarray(t0, F64), base_motion, motion, dt)
-        window = fit_packing_to_jar(window, jar, spec.ball_radius)
+        window, t_eff = start_state(theta, params, stats, packing)
         state = RolloutState(window=window, step=jnp.zeros((), jnp.int32),
                              energy=jnp.zeros((), F64))
         if burn is not None:
@@ -520,7 +616,7 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     return EnsemblePower(power=power, estimate=estimate_jit, forward=forward_jit, names=names,
                          n_burn=n_burn, n_measure=n_measure, horizon=horizon,
                          n_segments=n_segments, estimator=estimator, steps=tuple(steps or ()),
-                         batching=batching)
+                         batching=batching, start=start, n_settle=n_settle)
 
 
 def default_step(name: str, value: float) -> float:

@@ -225,3 +225,100 @@ def test_a_packing_is_fitted_into_a_shorter_jar_and_left_alone_in_its_own():
     np.testing.assert_allclose(np.diff(np.asarray(moved.positions), axis=0),
                                np.diff(np.asarray(window.positions), axis=0), atol=1e-15)
     np.testing.assert_array_equal(x[2], np.asarray(window.positions[-1, 2]))   # far: untouched
+
+
+def test_the_traced_placement_is_the_dems_placement_in_any_jar():
+    """``place_balls_traced`` (a design study's placement, jittable in the jar) places a seed's
+    balls where the DEM's ``place_balls`` does, in the standard jar and 5 mm longer; a jar
+    without room for them leaves the missing slots NaN and says how many it placed."""
+    from sgn_jax.dem.placement import place_balls, place_balls_traced, placement_candidates
+    from sgn_jax.geometry.jar import jar_sdf
+    from sgn_jax.geometry.sdf_grid import cavity_box, jar_bounds
+
+    cfg = sj.load_config("emax_300rpm")
+    base = sj.jar_params_from_config(cfg.jar)
+    n, radius = cfg.balls.count, cfg.balls.radius
+
+    @jax.jit
+    def traced(jar, candidates):
+        lower, upper = cavity_box(jar)
+        return place_balls_traced(lambda x: jar_sdf(jar, x), lower, upper, candidates, n,
+                                  radius)
+
+    for jar in (base, base.replace(straight_length=base.straight_length + 0.005)):
+        lower, upper = jar_bounds(jar)
+        for seed in (0, 7):
+            expected = place_balls(lambda x, j=jar: jar_sdf(j, x), lower, upper, n, radius, seed)
+            placed, count = traced(jar, placement_candidates(seed))
+            assert int(count) == n
+            np.testing.assert_allclose(np.asarray(placed), expected, rtol=0, atol=1e-15)
+    tiny = base.replace(straight_length=0.0, radius=0.008)      # room for a few balls only
+    placed, count = traced(tiny, placement_candidates(0))
+    assert 0 < int(count) < n
+    assert np.all(np.isfinite(np.asarray(placed)[:int(count)]))
+    assert np.all(np.isnan(np.asarray(placed)[int(count):]))
+
+
+def test_a_settled_start_is_a_bed_at_rest_in_each_jar_and_the_motion_starts_at_zero(
+        contact_short_packings):
+    """``make_settled_start`` (a study's ``start="settle"``): the seed's balls placed as the
+    DEM places them and settled by the shipped contact model for the DEM's 0.5 s with the jar
+    at rest, in the standard jar and one 5 mm longer: a bed at rest on the floor (mean speed
+    < 1 cm/s; the DEM's settled bed holds < 1e-7 J), every ball inside the walls and out of
+    the others to 0.1 mm, the jar at the motion's offset at t = 0 and at rest."""
+    import dataclasses
+
+    from sgn_jax.dem.placement import placement_candidates
+    from sgn_jax.design import make_settled_start
+    from sgn_jax.geometry.jar import jar_sdf
+    from sgn_jax.motion import offset
+    from sgn_jax.pipelines.configure import graph_spec_from_config, motion_from_config
+    from sgn_jax.surrogate.rollout import model_predictor, single_rollout_model
+
+    model, cfg, _ = contact_short_packings
+    dt = float(cfg.dem.dt)
+    spec = graph_spec_from_config(dataclasses.replace(model.config, balls=cfg.balls,
+                                                      dem=cfg.dem), n_particles=cfg.balls.count)
+    settle = jax.jit(make_settled_start(
+        spec, model_predictor(single_rollout_model(model.model)[0]), round(0.5 / dt),
+        snap_back=cfg.rollout.snap_back, phi_sb=model.config.graph.phi_sb,
+        snap_velocity=cfg.rollout.snap_velocity, query=sj.analytic_jar_query, jit=False))
+    motion = motion_from_config(cfg.motion)
+    origin = np.asarray(offset(motion, 0.0))
+    base = sj.jar_params_from_config(cfg.jar)
+    radius = cfg.balls.radius
+    for jar in (base, base.replace(straight_length=base.straight_length + 0.005)):
+        for seed in (0, 1):
+            window, t = settle(model.params, model.norm_stats, placement_candidates(seed),
+                               motion, jar)
+            assert float(t) == 0.0
+            np.testing.assert_allclose(np.asarray(window.offsets), np.broadcast_to(
+                origin, window.offsets.shape), atol=1e-15)
+            assert not np.any(np.asarray(window.offset_velocities))
+            x = np.asarray(window.positions[-1]) - origin
+            speeds = np.linalg.norm(np.asarray(window.positions[-1] - window.positions[-2]),
+                                    axis=-1) / dt
+            assert speeds.mean() < 0.01, (seed, speeds)
+            assert np.all(x[:, 1] < 0.03)                             # on the floor
+            assert float(np.max(np.asarray(jar_sdf(jar, x)))) < -radius + 1e-4
+            gaps = np.linalg.norm(x[:, None] - x[None], axis=-1) + np.eye(len(x))
+            assert 2 * radius - gaps.min() < 1e-4
+
+
+def test_a_jar_parameter_study_settles_in_each_jar_by_default(contact_short_packings):
+    """``start="auto"`` is ``"settle"`` exactly when a jar parameter is studied; a study from
+    seeds only (``seed_packings``) needs it, and says so otherwise."""
+    model, cfg, packings = contact_short_packings
+    assert sj.resolve_start("auto", ["motion.rpm"]) == "packing"
+    assert sj.resolve_start("auto", ["motion.rpm", "jar.straight_length"]) == "settle"
+    assert sj.resolve_start("packing", ["jar.radius"]) == "packing"
+    with pytest.raises(DesignError, match="start must be"):
+        sj.resolve_start("dem", ["motion.rpm"])
+    seeds_only = sj.seed_packings(cfg, packings.seeds)
+    with pytest.raises(DesignError, match="seeds only"):
+        sj.design_study(model, cfg, ["motion.rpm"], seeds_only, duration=0.016, burn_in=0.0,
+                        n_segments=1)
+    study = sj.design_study(model, cfg, ["jar.straight_length"], seeds_only, duration=0.016,
+                            burn_in=0.0, n_segments=1)
+    assert study.ensemble.start == "settle"
+    assert study.ensemble.n_settle == round(cfg.dem.settle_time / cfg.dem.dt)

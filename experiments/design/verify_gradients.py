@@ -152,7 +152,7 @@ def load_dem() -> dict[tuple, list[float]]:
 
 
 def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
-                  separation: bool | None = None) -> None:
+                  separation: bool | None = None, start: str = "auto") -> None:
     model = sj.load_surrogate(checkpoint)
     results = {}
     path = OUT / "surrogate.json"
@@ -164,13 +164,17 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         cfg = sj.at_surrogate_step(point_config(point), model)   # a 2e-4 s model at its step
         names = list(POINTS[point]["steps"])
         t0 = time.perf_counter()
-        packings = sj.make_packings(cfg, SEEDS)
+        # The study's start as a user's: with a jar parameter among the names ("auto") every
+        # evaluation places the seeds' balls and lets the surrogate settle them in its jar.
+        point_start = sj.resolve_start(start, names)
+        packings = (sj.make_packings(cfg, SEEDS) if point_start == "packing"
+                    else sj.seed_packings(cfg, SEEDS))
         t_pack = time.perf_counter() - t0
         # "estimate": the truncated-horizon autodiff estimator; "surrogate_fd": the default
         # difference estimator at the DEM's steps (the same packings on both sides).
         study = sj.design_study(model, cfg, names, packings, duration=DURATION,
                                 burn_in=BURN_IN, horizon=horizon, n_segments=segments,
-                                estimator="horizon", separation=separation)
+                                estimator="horizon", separation=separation, start=point_start)
         t0 = time.perf_counter()
         est = study.estimate()
         t_est = time.perf_counter() - t0
@@ -189,7 +193,8 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         results[point] = {"theta0": study.theta0.tolist(), "names": names, "estimate": est,
                           "surrogate_fd": fd, "packings_s": t_pack, "estimate_s": t_est,
                           "horizon": horizon, "segments": segments,
-                          "checkpoint": checkpoint, "separation": separation}
+                          "checkpoint": checkpoint, "separation": separation,
+                          "start": point_start}
         OUT.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(results, indent=1))
         print(json.dumps({point: {"gradient": est["gradient"],
@@ -213,7 +218,8 @@ def cmd_surrogate_paired(checkpoint: str | None, separation: bool | None = None)
                 cfg = sj.at_surrogate_step(variant_config(point, name, side), model)
                 packings = sj.make_packings(cfg, SEEDS)          # settled in this side's jar
                 study = sj.design_study(model, cfg, names, packings, duration=DURATION,
-                                        burn_in=BURN_IN, separation=separation)
+                                        burn_in=BURN_IN, separation=separation,
+                                        start="packing")
                 sides[side] = study.powers(study.theta0).tolist()
             diff = (np.asarray(sides[1]) - np.asarray(sides[-1])) / (2 * h)
             paired[name] = {"h": h, "minus_W": sides[-1], "plus_W": sides[1],
@@ -337,6 +343,9 @@ def main() -> None:
     s.add_argument("--segments", type=int, default=8)
     s.add_argument("--separation", choices=("config", "on", "off"), default="config",
                    help="the ball-ball separation (default: the point's config)")
+    s.add_argument("--start", choices=("auto", "packing", "settle"), default="auto",
+                   help="the study's start (sgn_jax.api.design_study; default auto: settled "
+                   "by the surrogate in every evaluated jar where a jar parameter is studied)")
     sp = sub.add_parser("surrogate-paired")
     sp.add_argument("--checkpoint", default=None)
     sp.add_argument("--separation", choices=("config", "on", "off"), default="config")
@@ -349,7 +358,7 @@ def main() -> None:
         cmd_dem_worker(args.index, args.of)
     elif args.cmd == "surrogate":
         cmd_surrogate(args.checkpoint, args.horizon, args.segments,
-                      {"config": None, "on": True, "off": False}[args.separation])
+                      {"config": None, "on": True, "off": False}[args.separation], args.start)
     elif args.cmd == "surrogate-paired":
         cmd_surrogate_paired(args.checkpoint,
                              {"config": None, "on": True, "off": False}[args.separation])

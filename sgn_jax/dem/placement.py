@@ -21,6 +21,52 @@ class PlacementError(SGNJaxError, ValueError):
     """The balls cannot be placed (too many, too large, or a jar without room)."""
 
 
+PLACEMENT_BATCH = 4096
+"""Candidates drawn (and SDF-evaluated) at a time by :func:`place_balls`; the first batch is
+what :func:`placement_candidates` gives :func:`place_balls_traced`."""
+
+
+def placement_candidates(seed: int, count: int = PLACEMENT_BATCH) -> np.ndarray:
+    """(count, 3) float64 uniforms in [0, 1): the first ``count`` candidates of ``seed``'s
+    stream, in the unit box (``lower + (upper - lower) * u`` places them in a jar's box), the
+    very numbers :func:`place_balls` draws first."""
+    return np.random.default_rng(int(seed)).random((int(count), 3))
+
+
+def place_balls_traced(sdf_fn: Callable[[jnp.ndarray], jnp.ndarray], lower: jax.Array,
+                       upper: jax.Array, candidates: jax.Array, n_balls: int, radius: float,
+                       gap: float = 5e-4) -> tuple[jax.Array, jax.Array]:
+    """:func:`place_balls` as a jittable function of the jar: the same random sequential
+    insertion over fixed unit-box ``candidates`` (C, 3) (:func:`placement_candidates`), so
+    that the box ``lower``, ``upper`` (3,) m and ``sdf_fn`` may depend on traced jar
+    parameters (a design study places each packing in every jar it evaluates).
+
+    Returns ``(positions (n_balls, 3) m jar frame, placed ())``: the balls in the order
+    accepted, the same as :func:`place_balls` whenever its first batch of candidates places
+    them all (the default one holds 4096); slots left empty (``placed < n_balls``: the jar
+    has no room for them among the candidates) are NaN, so that whatever runs from them is
+    visibly non-finite.
+    """
+    lower, upper = jnp.asarray(lower, jnp.float64), jnp.asarray(upper, jnp.float64)
+    points = lower + (upper - lower) * jnp.asarray(candidates, jnp.float64)
+    inside = sdf_fn(points) < -radius - gap
+    min_dist_sq = (2 * radius + gap) ** 2
+
+    def accept(carry, item):
+        placed, count = carry
+        x, ok = item
+        d = placed - x
+        filled = jnp.arange(n_balls) < count
+        clear = jnp.all(jnp.where(filled, jnp.einsum("ij,ij->i", d, d) >= min_dist_sq, True))
+        take = ok & clear & (count < n_balls)
+        placed = jnp.where(take, placed.at[jnp.minimum(count, n_balls - 1)].set(x), placed)
+        return (placed, count + take.astype(jnp.int32)), None
+
+    start = (jnp.full((n_balls, 3), jnp.nan, jnp.float64), jnp.zeros((), jnp.int32))
+    (placed, count), _ = jax.lax.scan(accept, start, (points, inside))
+    return placed, count
+
+
 def place_balls(
     sdf_fn: Callable[[jnp.ndarray], jnp.ndarray],
     lower: np.ndarray,
@@ -29,7 +75,7 @@ def place_balls(
     radius: float,
     seed: int,
     gap: float = 5e-4,
-    batch: int = 4096,
+    batch: int = PLACEMENT_BATCH,
     max_candidates: int = 2_000_000,
 ) -> np.ndarray:
     """Positions (N,3) float64, jar frame, of ``n_balls`` non-overlapping balls inside the jar.

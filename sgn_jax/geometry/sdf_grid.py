@@ -164,8 +164,18 @@ def sdf_grid_from_fn(
 
 def jar_bounds(params: JarParams) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) float64 corners of the cavity's bounding box, jar frame (m)."""
-    r, length, height = float(params.radius), float(params.straight_length), float(params.height)
-    return np.array([-(length / 2 + r), 0.0, -r]), np.array([length / 2 + r, height, r])
+    lower, upper = cavity_box(params)
+    return np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+
+
+def cavity_box(params: JarParams) -> tuple[jax.Array, jax.Array]:
+    """:func:`jar_bounds` as a traceable function of the jar parameters: (3,) float64 corners
+    (m), for a placement in a jar a design study changes."""
+    r, length, height = (jnp.asarray(v, jnp.float64) for v in
+                         (params.radius, params.straight_length, params.height))
+    zero = jnp.zeros((), jnp.float64)
+    return (jnp.stack([-(length / 2 + r), zero, -r]),
+            jnp.stack([length / 2 + r, height, r]))
 
 
 def sdf_grid_from_jar(
