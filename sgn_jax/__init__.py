@@ -3,8 +3,8 @@
 The public API (docs/api.md)::
 
     import sgn_jax as sj
-    cfg = sj.load_config("emax_300rpm")
     model = sj.load_surrogate()
+    cfg = sj.at_surrogate_step(sj.load_config("emax_300rpm"), model)
     packings = sj.make_packings(cfg, seeds=range(8))
     study = sj.design_study(model, cfg, ["motion.rpm"], packings)
 
@@ -35,12 +35,14 @@ __all__ = [
     "load_config",
     "replace_section",
     "load_surrogate",
+    "at_surrogate_step",
     # the scene both simulators share
     "Scene",
     # the DEM: in memory, to a file, packings, ensembles at design points
     "simulate_dem",
     "run_dem",
     "make_packings",
+    "seed_packings",
     "Packings",
     "DEMEnsemble",
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, files

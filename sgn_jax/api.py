@@ -3,8 +3,8 @@
 A design study in five lines (docs/design.md, README)::
 
     import jax, sgn_jax.api as sj
-    cfg = sj.load_config("emax_300rpm")
-    model = sj.load_surrogate()                       # the shipped default model
+    model = sj.load_surrogate()                       # the shipped default (contact) model
+    cfg = sj.at_surrogate_step(sj.load_config("emax_300rpm"), model)  # at the model's step
     packings = sj.make_packings(cfg, seeds=range(8))  # DEM settle + first window, per seed
     study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=1.5, burn_in=0.5)
     power, grad = jax.value_and_grad(study.power)(study.theta0)   # W, W/rpm
@@ -59,15 +59,17 @@ from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_tot
 from sgn_jax.dem.placement import placement_candidates
 from sgn_jax.design import (
     PARAMETER_UNITS,
-    STARTS,
     DesignError,
     EnsemblePower,
+    PackingStart,
     anchored_window,
     apply_parameters,
     check_batching,
     check_parameters,
     default_step,
+    make_dem_start,
     make_ensemble_power,
+    make_settled_start,
     parameter_unit,
     parameter_values,
     summarize_estimate,
@@ -121,7 +123,7 @@ from sgn_jax.pipelines.experiments import (
     usable_cores,
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
-from sgn_jax.pipelines.rollout_run import coarser_step_factor, initial_window, run_rollout
+from sgn_jax.pipelines.rollout_run import config_at_model_step, initial_window, run_rollout
 from sgn_jax.pipelines.validation import check_dem_config, check_duration, warn_outside_envelope
 from sgn_jax.records.cache import enable_compilation_cache
 from sgn_jax.records.checkpoint import (
@@ -193,10 +195,7 @@ def at_surrogate_step(cfg: Config, surrogate: TrainedModel) -> Config:
     rolls out at its step, and its packings' windows are sampled at it (``[dem] dt`` is the
     sampling and surrogate step; the DEM's own step is ``dt_dem_max``). Any other mismatch is
     left for :func:`design_study` to refuse with its message."""
-    model_dt = float(surrogate.config.dem.dt)
-    if coarser_step_factor(model_dt, float(cfg.dem.dt)) > 1:
-        return replace_section(cfg, "dem", dt=model_dt)
-    return cfg
+    return config_at_model_step(cfg, float(surrogate.config.dem.dt))
 
 
 def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool = False
@@ -241,7 +240,7 @@ class Packings:
     Attributes:
         windows: :class:`sgn_jax.surrogate.graph.Window` with a leading axis K (positions
             (K, W+1, N, 3)); None for :func:`seed_packings` (seeds only: a study with
-            ``start="settle"`` places and settles them itself).
+            ``start="dem"`` or ``"settle"`` makes them itself).
         t0: time (s since the start of motion) of the windows' newest sample.
         seeds: the K DEM placement seeds.
         config: the config they were made with (jar, balls, motion at which they were sampled).
@@ -286,21 +285,25 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
 
 
 def seed_packings(cfg: Config, seeds: Iterable[int]) -> Packings:
-    """Packings that are only their seeds (no DEM run): for a design study with
-    ``start="settle"``, which places each seed's balls as the DEM does and lets the surrogate
-    settle them in every jar it evaluates."""
+    """Packings that are only their seeds (no DEM run): for a design study that makes each
+    packing itself in every jar it evaluates (``start="dem"`` or ``"settle"``), from the
+    seed's placement as the DEM places it."""
     seeds = tuple(int(s) for s in seeds)
     if not seeds or any(s < 0 for s in seeds):
         raise DesignError(f"need at least one seed, all >= 0; got {list(seeds)}")
     return Packings(windows=None, t0=0.0, seeds=seeds, config=cfg)
 
 
+STARTS = ("packing", "dem", "settle")
+"""Where a design study's rollouts start (:func:`design_study`'s ``start``)."""
+
+
 def resolve_start(start: str, names: Sequence[str]) -> str:
-    """A design study's start (:data:`sgn_jax.design.STARTS`) for ``start``: ``"auto"`` is
-    ``"settle"`` when a jar-shape parameter is among ``names`` (a packing settled in one jar
-    is not the DEM's start in another: docs/design.md), else ``"packing"``."""
+    """A design study's start (:data:`STARTS`) for ``start``: ``"auto"`` is ``"dem"`` when a
+    jar-shape parameter is among ``names`` (a packing settled in one jar is not the DEM's start
+    in another: docs/design.md), else ``"packing"``."""
     if start == "auto":
-        return "settle" if any(str(n).startswith("jar.") for n in names) else "packing"
+        return "dem" if any(str(n).startswith("jar.") for n in names) else "packing"
     if start not in STARTS:
         raise DesignError(f"start must be 'auto' or one of {STARTS}, got {start!r}")
     return start
@@ -337,8 +340,12 @@ def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
         a = getattr(getattr(model_cfg, section), field)
         b = getattr(getattr(cfg, section), field)
         if not math.isclose(float(a), float(b), rel_tol=1e-12):
+            hint = ("; sj.at_surrogate_step(cfg, model) samples the case at the model's step "
+                    "(make the packings with that config)"
+                    if section == "dem" and config_at_model_step(cfg, float(a)) is not cfg
+                    else "")
             raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
-                              f"design config has {b}")
+                              f"design config has {b}{hint}")
     warn_outside_envelope(cfg, model_cfg, surrogate.meta)
     if packings.windows is not None and packings.windows.positions.shape[-2] != cfg.balls.count:
         raise DesignError("the packings have a different number of balls from the config")
@@ -429,13 +436,18 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         steps: difference step per parameter name (SI units), for the names it lists.
         shard: split the packings over all devices (:func:`shard_packings`); the powers and
             gradients equal the unsharded ones to float tolerance.
-        start: where each packing's rollout starts (:func:`resolve_start`): ``"packing"``:
-            from its DEM window, fitted into a changed jar; ``"settle"``: its seed's balls
-            placed as the DEM places them in every evaluated jar and settled there by the
-            surrogate for ``[dem] settle_time``, the motion from t = 0 (the start the DEM's
-            own runs in that jar have); ``"auto"`` (default): ``"settle"`` when a jar-shape
-            parameter is studied. With ``"settle"`` only the packings' seeds are used
-            (:func:`seed_packings` skips the DEM).
+        start: where each packing's rollout starts (:func:`resolve_start`). ``"packing"``:
+            from its DEM window, fitted into a changed jar
+            (:func:`sgn_jax.design.fit_packing_to_jar`). ``"dem"``: the DEM makes it in every
+            jar the study evaluates, as :func:`make_packings` makes one (the seed's placement,
+            ``[dem] settle_time`` with the jar at rest, a window of motion;
+            :func:`sgn_jax.design.make_dem_start`): the start the DEM's own runs in that jar
+            have, at ~25 s of one core per packing and jar for a 0.5-s settle; a motion
+            parameter's sides share the design point's packings. ``"settle"``: the same
+            placement settled by the surrogate instead (cheap; its jar-length gradients were
+            biased low, docs/design.md). ``"auto"`` (default): ``"dem"`` when a jar-shape
+            parameter is studied, else ``"packing"``. With ``"dem"`` and ``"settle"`` only the
+            packings' seeds are used (:func:`seed_packings` skips the DEM's packings).
 
     With the difference estimator and no sharding, a model with a single-rollout form (the
     contact kind) runs its packings one after another in it (``make_ensemble_power``'s
@@ -450,7 +462,6 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     frame = _surrogate_frame(surrogate, cfg, packings)
     motion, jar = frame.motion, frame.jar
     dt = float(cfg.dem.dt)
-    n_settle = _steps(float(cfg.dem.settle_time), dt, "[dem] settle_time")
     n_burn = _steps(burn_in, dt, "burn_in")
     n_measure = _steps(duration - burn_in, dt, "duration - burn_in")
     if n_measure % n_segments:
@@ -481,7 +492,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         snap_back=rollout.snap_back, phi_sb=surrogate.config.graph.phi_sb,
         snap_velocity=rollout.snap_velocity,
         pp_max_overlap=rollout.pp_max_overlap if use_sep else None,
-        start=start, n_settle=n_settle)
+        start=_packing_start(start, surrogate, cfg, frame.spec, module, use_sep))
     starts = (frame.windows if start == "packing" else
               np.stack([placement_candidates(seed) for seed in packings.seeds]))
     args = (jax.device_put(surrogate.params), jax.device_put(surrogate.norm_stats),
@@ -494,6 +505,25 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     return DesignStudy(names=names, theta0=theta0,
                        power=power_of_theta, ensemble=ensemble, duration=float(duration),
                        burn_in=float(burn_in), _args=args)
+
+
+def _packing_start(start: str, surrogate: TrainedModel, cfg: Config, spec: GraphSpec,
+                   module: Any, separation: bool) -> PackingStart | None:
+    """The :class:`sgn_jax.design.PackingStart` of a study's ``start`` (None: the packings)."""
+    if start == "packing":
+        return None
+    if start == "settle":
+        r = cfg.rollout
+        return make_settled_start(
+            spec, model_predictor(module),
+            _steps(float(cfg.dem.settle_time), float(cfg.dem.dt), "[dem] settle_time"),
+            snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
+            snap_velocity=r.snap_velocity, query=analytic_jar_query,
+            pp_max_overlap=r.pp_max_overlap if separation else None, jit=False)
+    setup = setup_from_config(cfg)
+    return make_dem_start(setup.spec, setup.jar.wall_fn, setup.params, float(cfg.dem.dt),
+                          setup.substeps, settle_sample_count(setup), setup.pp_capacity,
+                          spec.window)
 
 
 def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
@@ -697,9 +727,10 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
     """The design sensitivity of ``cfg``: ensemble-mean power, its gradient, standard errors.
 
     Packings come from DEM seeds ``first_seed .. first_seed + packings - 1`` (never used for
-    training): settled by the DEM in the config's jar (``start="packing"``), or placed as the
-    DEM places them and settled by the surrogate in every evaluated jar (``"settle"``; the
-    default ``"auto"`` picks it when a jar-shape parameter is studied, :func:`resolve_start`).
+    training): settled by the DEM in the config's jar (``start="packing"``), or made by the
+    DEM in every evaluated jar (``"dem"``; the default ``"auto"`` picks it when a jar-shape
+    parameter is studied, :func:`resolve_start`), or settled there by the surrogate
+    (``"settle"``).
     The gradient is :func:`design_study`'s ``estimator``. ``curve`` adds the
     surrogate's ensemble power at ``theta +- h`` per parameter (``steps`` or
     :func:`default_step`): free with the difference estimator (its own evaluations), extra
@@ -877,6 +908,7 @@ __all__ = [
     "run_dem",
     "DEMRun",
     "make_packings",
+    "seed_packings",
     "Packings",
     "DEMEnsemble",
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
@@ -905,6 +937,8 @@ __all__ = [
     "save_prediction",
     # design studies: the power function and its gradient
     "design_study",
+    "resolve_start",
+    "STARTS",
     "DesignStudy",
     "sensitivity",
     "design_config",

@@ -336,7 +336,7 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
         help="design sensitivity: ensemble-mean dissipation power and its gradient w.r.t. "
         "named design parameters (surrogate)",
         description="Settle PACKINGS DEM packings (seeds FIRST_SEED..; with a jar.* parameter "
-        "the surrogate settles them in every evaluated jar, --start), roll the surrogate out "
+        "the DEM makes them in every evaluated jar, --start), roll the surrogate out "
         "for DURATION s from each under the config's jar and motion, and estimate the "
         "ensemble-mean dissipation power over (BURN_IN, DURATION] and its gradient with respect "
         "to each --param (default: the ensemble central difference with common packings, "
@@ -375,11 +375,12 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
                    help="ball-ball separation in the rollout (default: the config's)")
     p.add_argument("--no-curve", action="store_true",
                    help="skip the power evaluations at theta +- h (faster; no curve points)")
-    p.add_argument("--start", choices=("auto", "packing", "settle"), default="auto",
+    p.add_argument("--start", choices=("auto", "packing", "dem", "settle"), default="auto",
                    help="where the rollouts start: packing (the DEM's packings of the config's "
-                   "jar), settle (each seed's balls placed as the DEM places them and settled "
-                   "by the surrogate in every evaluated jar); default auto: settle when a jar.* "
-                   "parameter is studied (docs/design.md)")
+                   "jar), dem (the DEM makes each packing in every evaluated jar: ~25 s of a "
+                   "core per packing and jar), settle (the same placement settled by the "
+                   "surrogate); default auto: dem when a jar.* parameter is studied, else "
+                   "packing (docs/design.md)")
     p.add_argument("--out", default="runs/sensitivity", help="output directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_sensitivity)

@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.dem.engine import DEMParams, DEMSpec, make_sampler, observe
+from sgn_jax.dem.engine import init_state as init_dem_state
 from sgn_jax.dem.placement import place_balls_traced
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.geometry import JarParams
@@ -279,12 +281,26 @@ def fit_packing_to_jar(window: Window, jar: JarParams, radius: float,
     return window.replace(positions=window.positions + shift[None])
 
 
-STARTS = ("packing", "settle")
-"""Where a design study's rollouts start: from the given packings (fitted into a changed jar),
-or placed from each packing's seed and settled by the surrogate in every evaluated jar."""
-
 PLACEMENT_GAP = 5.0e-4
-"""m: the clearance of a settled start's placement (the DEM's, ``dem_run.initial_state``)."""
+"""m: the clearance of a start's placement (the DEM's, ``dem_run.initial_state``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PackingStart:
+    """How a design study makes each packing's start in the jar it evaluates
+    (:func:`make_ensemble_power`'s ``start``).
+
+    Attributes:
+        name: what makes it: ``"dem"`` (:func:`make_dem_start`) or ``"settle"`` (the
+            surrogate, :func:`make_settled_start`).
+        make: ``make(params, stats, candidates (C, 3), motion, jar) -> Window`` (one packing,
+            from its unit-box placement candidates; traceable in the jar and the motion).
+        t_start: s since the start of motion of the window's newest sample.
+    """
+
+    name: str
+    make: Callable[..., Window]
+    t_start: float
 
 
 def rest_window(positions: jax.Array, window: int, frequency: jax.Array,
@@ -302,40 +318,83 @@ def rest_window(positions: jax.Array, window: int, frequency: jax.Array,
                   spins=jnp.zeros(positions.shape, F64))
 
 
-def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **options: Any
-                       ) -> Callable[..., tuple[Window, jax.Array]]:
-    """The DEM's start of a packing, made by the surrogate in any jar (traceable in the jar).
+def _placed(candidates: jax.Array, jar: JarParams, n_balls: int, radius: float) -> jax.Array:
+    """(N, 3) jar-frame positions of the DEM's placement from ``candidates`` in ``jar``."""
+    lower, upper = cavity_box(jar)
+    placed, _ = place_balls_traced(lambda x: jar_sdf(jar, x), lower, upper, candidates,
+                                   n_balls, radius, PLACEMENT_GAP)
+    return placed
 
-    Returns ``settled_start(params, stats, candidates, motion, jar) -> (window, t)``: the
-    balls placed from ``candidates`` (C, 3) as the DEM places them in ``jar``
-    (:func:`sgn_jax.dem.placement.place_balls_traced`, clearance :data:`PLACEMENT_GAP`), at
-    rest; rolled out ``n_settle`` steps by the surrogate with the jar at rest at the origin
-    (gravity settles them); then the jar put at ``motion``'s offset at t = 0, as the DEM
-    settles at rest at ``offset(0)`` before its motion starts. The window's newest sample is
-    at ``t = 0`` (returned as a float64 zero); the whole start is stop-gradient. ``options``:
-    the rollout's settings (:func:`sgn_jax.surrogate.rollout.make_rollout_advance`).
+
+def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **options: Any
+                       ) -> PackingStart:
+    """The DEM's procedure for a packing with the surrogate in the DEM's place (``"settle"``).
+
+    ``make(params, stats, candidates, motion, jar)``: the balls placed from ``candidates``
+    (C, 3) as the DEM places them in ``jar`` (:func:`sgn_jax.dem.placement.place_balls_traced`,
+    clearance :data:`PLACEMENT_GAP`), at rest; rolled out ``n_settle`` steps by the surrogate
+    with the jar at rest at the origin (gravity settles them); then the jar put at
+    ``motion``'s offset at t = 0, as the DEM settles at rest at ``offset(0)`` before its motion
+    starts. The window's newest sample is at ``t_start = 0``. ``options``: the rollout's
+    settings (:func:`sgn_jax.surrogate.rollout.make_rollout_advance`). Cheap (a surrogate
+    rollout), but the jar-length gradients from it were 1.2-1.5 SE below the DEM's at all three
+    points checked (docs/design.md); the DEM's own settle (:func:`make_dem_start`) is the
+    default for a jar-shape parameter.
     """
     settle = (make_rollout_advance(spec, predictor, n_settle, n_settle, **options)
               if n_settle else None)
 
-    def settled_start(params, stats, candidates, motion, jar):
-        lower, upper = cavity_box(jar)
-        placed, _ = place_balls_traced(lambda x: jar_sdf(jar, x), lower, upper, candidates,
-                                       spec.n_particles, spec.ball_radius, PLACEMENT_GAP)
-        window = rest_window(placed, spec.window, frequency_hz(motion))
+    def settled(params, stats, candidates, motion, jar):
+        window = rest_window(_placed(candidates, jar, spec.n_particles, spec.ball_radius),
+                             spec.window, frequency_hz(motion))
         zero = jnp.zeros((), F64)
         if settle is not None:
             at_rest = CircleMotion(rpm=zero, amplitude=zero, phase=zero)
             state = RolloutState(window=window, step=jnp.zeros((), jnp.int32), energy=zero)
             window = settle(params, stats, state, at_rest, jar, zero).final.window
         origin = offset(motion, zero)
-        window = window.replace(positions=window.positions + origin,
-                                offsets=window.offsets + origin,
-                                offset_velocities=jnp.zeros_like(window.offset_velocities),
-                                frequency_hz=jnp.asarray(frequency_hz(motion), F64))
-        return jax.lax.stop_gradient(window), zero
+        return window.replace(positions=window.positions + origin,
+                              offsets=window.offsets + origin,
+                              offset_velocities=jnp.zeros_like(window.offset_velocities),
+                              frequency_hz=jnp.asarray(frequency_hz(motion), F64))
 
-    return settled_start
+    return PackingStart(name="settle", make=settled, t_start=0.0)
+
+
+def make_dem_start(dem_spec: DEMSpec, wall_fn: Callable, dem_params: DEMParams, dt: float,
+                   substeps: int, settle_samples: int, pp_capacity: int, window: int
+                   ) -> PackingStart:
+    """A packing made by the DEM in any jar, as :func:`sgn_jax.api.make_packings` makes one
+    (``"dem"``; traceable in the jar and the motion, so that a design study makes one in every
+    jar it evaluates).
+
+    ``make(params, stats, candidates, motion, jar)``: the balls placed from ``candidates``
+    (C, 3) in ``jar`` (:func:`sgn_jax.dem.placement.place_balls_traced`, the DEM's placement),
+    settled by the DEM for ``settle_samples`` samples of ``substeps`` DEM steps with the jar at
+    rest at ``offset(0)``, then ``window`` samples of ``motion``: the window of samples
+    0..W, newest at ``t_start = W dt`` (``dt`` s: ``substeps`` DEM steps), without spins (a
+    rollout starts the balls not turning), as :func:`sgn_jax.api.make_packings`'s windows.
+    ``dem_params`` gives the balls and the material (its geometry and motion are replaced).
+    ``params`` and ``stats`` (the surrogate's) are not used. A 0.5-s settle costs ~25 s of one
+    CPU core per packing, the price of a start the DEM's own runs in that jar share.
+    """
+    run = make_sampler(dem_spec, wall_fn, substeps, pp_capacity)
+    n_balls, radius = dem_spec.n_balls, float(dem_params.radius)
+
+    def dem_packing(params, stats, candidates, motion, jar):
+        p = dem_params.replace(geometry=jar, motion=motion)
+        origin = offset(motion, jnp.zeros((), F64))
+        state = init_dem_state(dem_spec, p, _placed(candidates, jar, n_balls, radius) + origin,
+                               step=-settle_samples * substeps)
+        if settle_samples:
+            state, _ = run(p, state, settle_samples)
+        first = observe(dem_spec, wall_fn, p, state, pp_capacity)
+        _, samples = run(p, state, window)
+        return Window(positions=jnp.concatenate([first["pos"][None], samples["pos"]]),
+                      offsets=samples["offset"], offset_velocities=samples["offset_vel"],
+                      frequency_hz=jnp.asarray(frequency_hz(motion), F64))
+
+    return PackingStart(name="dem", make=dem_packing, t_start=window * float(dt))
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,8 +431,8 @@ class EnsemblePower:
     the same compiled program; jittable, and compiled programs when called eagerly). ``estimate(...)`` ->
     :class:`PowerEstimate` (per packing and segment, for standard errors). ``forward(...)`` ->
     (K,) powers without any gradient work (for finite differences and curves). ``batching``:
-    how the packings' rollouts run, "vmap" or "map"; ``start``, ``n_settle``: where they start
-    (:func:`make_ensemble_power`).
+    how the packings' rollouts run, "vmap" or "map"; ``start``: where they start, ``"packing"``
+    or the :class:`PackingStart`'s name (:func:`make_ensemble_power`).
     """
 
     power: Callable[..., jax.Array]
@@ -388,7 +447,6 @@ class EnsemblePower:
     steps: tuple[float, ...] = ()
     batching: str = "vmap"
     start: str = "packing"
-    n_settle: int = 0
 
 
 def _zero_cotangent(x: Any) -> Any:
@@ -415,8 +473,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
                         snap_velocity: str = "keep", pp_max_overlap: float | None = None,
                         checkpoint_steps: int = 100, estimator: str = "difference",
                         steps: Sequence[float] | None = None,
-                        batching: str = "vmap", start: str = "packing",
-                        n_settle: int = 0) -> EnsemblePower:
+                        batching: str = "vmap", start: PackingStart | None = None
+                        ) -> EnsemblePower:
     """Build the ensemble-mean power of a design study and its gradient estimator.
 
     Args:
@@ -446,25 +504,22 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
             (``lax.map``), for a predictor of a model's single-rollout form, which a vmap
             would make slower (:func:`sgn_jax.api.over_packings`). The horizon estimator's
             gradients stay vmapped.
-        start: where each packing's rollout starts (:data:`STARTS`). ``"packing"`` (default):
-            from its window (anchored to ``theta``'s motion, fitted into ``theta``'s jar by
-            :func:`fit_packing_to_jar`), at ``t0``. ``"settle"``: as the DEM makes a packing,
-            in every evaluated jar: the balls placed from the packing's candidates
-            (:func:`sgn_jax.dem.placement.place_balls_traced`, the DEM's placement in
-            ``theta``'s jar), settled by the surrogate for ``n_settle`` steps with the jar at
-            rest, and the motion started at t = 0 (``t0`` is not used). For a jar-shape
-            parameter this is the start the DEM's own side runs have; a packing settled in
-            the base jar and fitted into a changed one is not (docs/design.md measures both).
-            The start is stop-gradient (as the anchoring): the horizon estimator differentiates
-            from it.
-        n_settle: steps of the surrogate's settle (``start="settle"``; the DEM's ``[dem]
-            settle_time`` / dt).
+        start: where each packing's rollout starts. None (default): from its window
+            (the ``starts`` argument), made under ``base_motion`` and ending at ``t0``,
+            anchored to ``theta``'s motion and fitted into ``theta``'s jar
+            (:func:`fit_packing_to_jar`). A :class:`PackingStart` (:func:`make_dem_start`,
+            :func:`make_settled_start`): each packing made in ``theta``'s jar from its
+            placement candidates (the ``starts`` argument), under ``theta``'s motion; a
+            motion parameter's sides start from those windows (anchored to their motion), a
+            jar parameter's sides make theirs in their own jar. For a jar-shape parameter a
+            packing settled in the base jar and fitted into another is not the start the DEM's
+            runs in that jar have (docs/design.md measures both). Stop-gradient either way
+            (as the anchoring): the horizon estimator differentiates from the start.
 
     Returns:
         an :class:`EnsemblePower`. Its functions take ``(theta (D,), params, stats, starts)``:
-        for ``start="packing"`` ``starts`` is a :class:`Window` batched over K packings
-        (leading axis), made under ``base_motion`` and ending at ``t0``; for ``"settle"`` the
-        (K, C, 3) unit-box placement candidates of the K packings
+        without ``start``, ``starts`` is a :class:`Window` batched over K packings (leading
+        axis); with one, the (K, C, 3) unit-box placement candidates of the K packings
         (:func:`sgn_jax.dem.placement.placement_candidates` of their seeds).
     """
     names = check_parameters(names, base_motion, base_jar)
@@ -479,11 +534,6 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     if estimator not in ("difference", "horizon"):
         raise DesignError(f"estimator must be 'difference' or 'horizon', got {estimator!r}")
     check_batching(batching)
-    if start not in STARTS:
-        raise DesignError(f"start must be one of {STARTS}, got {start!r}")
-    n_settle = int(n_settle)
-    if n_settle < 0:
-        raise DesignError(f"n_settle must be >= 0 steps, got {n_settle}")
     if estimator == "difference":
         if steps is None or len(steps) != len(names):
             raise DesignError(f"the difference estimator needs one step per parameter "
@@ -506,25 +556,30 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     chunk = _divisor_at_most(horizon, checkpoint_steps)
     horizon_run = make_rollout_advance(spec, predictor, horizon, chunk, checkpoint_steps=chunk,
                                        **options)
-    settled_start = (make_settled_start(spec, predictor, n_settle, **options)
-                     if start == "settle" else None)
-    t0 = float(t0)
+    t0 = float(t0) if start is None else float(start.t_start)
+    jar_rows = [i for i, name in enumerate(names) if name.startswith("jar.")]
+    own_start_rows = jar_rows if start is not None else []   # sides that make their packings
 
     def design(theta):
         return apply_parameters(names, theta, base_motion, base_jar)
 
-    def start_state(theta, params, stats, packing):
-        """(window, time of its newest sample) a packing's rollout starts from at ``theta``."""
+    def packings_at(theta, params, stats, starts):
+        """(K windows at ``theta``'s jar, the motion they were made under)."""
+        if start is None:
+            return starts, base_motion
         motion, jar = design(theta)
-        if start == "settle":
-            return settled_start(params, stats, packing, motion, jar)
-        window, t_eff = anchored_window(packing, jnp.asarray(t0, F64), base_motion, motion, dt)
-        return fit_packing_to_jar(window, jar, spec.ball_radius), t_eff
 
-    def one_forward(theta, params, stats, packing):
+        def make(candidates):
+            return start.make(params, stats, candidates, motion, jar)
+
+        windows = jax.vmap(make)(starts) if batching == "vmap" else jax.lax.map(make, starts)
+        return jax.lax.stop_gradient(windows), jax.lax.stop_gradient(motion)
+
+    def one_forward(theta, params, stats, window0, made_under):
         """Power (W) of one packing and the states at the segment starts."""
         motion, jar = design(theta)
-        window, t_eff = start_state(theta, params, stats, packing)
+        window, t_eff = anchored_window(window0, jnp.asarray(t0, F64), made_under, motion, dt)
+        window = fit_packing_to_jar(window, jar, spec.ball_radius)
         state = RolloutState(window=window, step=jnp.zeros((), jnp.int32),
                              energy=jnp.zeros((), F64))
         if burn is not None:
@@ -552,15 +607,17 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
 
     horizon_grad = jax.value_and_grad(one_horizon_energy)
 
-    def every_packing(theta, params, stats, windows):
+    def every_packing(theta, params, stats, windows, made_under):
         """``one_forward`` of each packing: (K,) powers, (K, G) segment starts, (K,) t_eff."""
         if batching == "vmap":
-            return jax.vmap(one_forward, in_axes=(None, None, None, 0))(
-                theta, params, stats, windows)
-        return jax.lax.map(lambda window: one_forward(theta, params, stats, window), windows)
+            return jax.vmap(one_forward, in_axes=(None, None, None, 0, None))(
+                theta, params, stats, windows, made_under)
+        return jax.lax.map(lambda window: one_forward(theta, params, stats, window, made_under),
+                           windows)
 
-    def forward(theta, params, stats, windows):
-        return every_packing(theta, params, stats, windows)[0]
+    def forward(theta, params, stats, starts):
+        windows, made_under = packings_at(theta, params, stats, starts)
+        return every_packing(theta, params, stats, windows, made_under)[0]
 
     def segment_gradients(theta, params, stats, starts, t_eff):
         """(K, G) energies and (K, G, D) power derivatives at the segment starts."""
@@ -569,24 +626,38 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         energy, grad = per_packing(theta, params, stats, starts, t_eff)
         return energy, grad / (horizon * dt)
 
-    def difference_gradients(theta, params, stats, windows):
+    def difference_gradients(theta, params, stats, starts, windows, made_under):
         """(K, 1, D) per-packing central differences and the (2D, K) side powers."""
         h = jnp.asarray(steps, F64)
-        deltas = jnp.concatenate([jnp.diag(h), -jnp.diag(h)])              # (2D, D)
-        # One side at a time (lax.map): memory of one ensemble rollout, not 2D of them.
-        sides = jax.lax.map(lambda d: forward(theta + d, params, stats, windows), deltas)
         d = len(steps)
+        deltas = jnp.concatenate([jnp.diag(h), -jnp.diag(h)])              # (2D, D)
+        own = [r for i in own_start_rows for r in (i, d + i)]
+        shared = [r for r in range(2 * d) if r not in own]
+        # One side at a time (lax.map): memory of one ensemble rollout, not 2D of them. The
+        # sides that keep theta's jar start from theta's windows; those of a jar parameter
+        # with a start of its own make their packings in their jar.
+        sides = jnp.zeros((2 * d, jax.tree_util.tree_leaves(starts)[0].shape[0]), F64)
+        if shared:
+            sides = sides.at[np.asarray(shared)].set(jax.lax.map(
+                lambda delta: every_packing(theta + delta, params, stats, windows,
+                                            made_under)[0], deltas[np.asarray(shared)]))
+        if own:
+            sides = sides.at[np.asarray(own)].set(jax.lax.map(
+                lambda delta: forward(theta + delta, params, stats, starts),
+                deltas[np.asarray(own)]))
         grad = (sides[:d] - sides[d:]) / (2 * h[:, None])                  # (D, K)
         return grad.T[:, None, :], sides
 
-    def estimate(theta, params, stats, windows):
+    def estimate(theta, params, stats, starts):
         theta = jnp.asarray(theta, F64)
-        powers, starts, t_eff = every_packing(theta, params, stats, windows)
+        windows, made_under = packings_at(theta, params, stats, starts)
+        powers, starts_g, t_eff = every_packing(theta, params, stats, windows, made_under)
         if estimator == "difference":
-            grad, sides = difference_gradients(theta, params, stats, windows)
+            grad, sides = difference_gradients(theta, params, stats, starts, windows,
+                                               made_under)
             energy = jnp.zeros(grad.shape[:2], F64)
         else:
-            energy, grad = segment_gradients(theta, params, stats, starts, t_eff)
+            energy, grad = segment_gradients(theta, params, stats, starts_g, t_eff)
             sides = jnp.zeros((0, powers.shape[0]), F64)
         return PowerEstimate(power_W=powers, gradient=grad, horizon_energy_J=energy,
                              side_powers_W=sides)
@@ -616,7 +687,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
     return EnsemblePower(power=power, estimate=estimate_jit, forward=forward_jit, names=names,
                          n_burn=n_burn, n_measure=n_measure, horizon=horizon,
                          n_segments=n_segments, estimator=estimator, steps=tuple(steps or ()),
-                         batching=batching, start=start, n_settle=n_settle)
+                         batching=batching,
+                         start="packing" if start is None else start.name)
 
 
 def default_step(name: str, value: float) -> float:

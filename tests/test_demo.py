@@ -243,12 +243,16 @@ def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, cap
     assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "emax_300rpm" / "best"
     assert demo_module.has_checkpoint(tiny["run"])
     assert not demo_module.has_checkpoint(tmp_path / "models")
-    # With the motion-general model shipped too, the paper-setting one stays the default
-    # (docs/results.md section 11); either is found by name.
+    # The contact model is the default (issue 19) when it is shipped; the paper-setting one
+    # comes next, then the motion-general one; each is found by name.
+    assert demo_module.DEFAULT_MODEL == "contact"
     (tmp_path / "models" / "envelope").symlink_to(tiny["run"] / "checkpoints" / "best")
     assert (demo_module.resolve_checkpoint(None)
             == tmp_path / "models" / "emax_300rpm" / "best")
+    (tmp_path / "models" / "contact").symlink_to(tiny["run"] / "checkpoints" / "best")
+    assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "contact"
     assert demo_module.resolve_checkpoint("envelope") == tmp_path / "models" / "envelope"
+    (tmp_path / "models" / "contact").unlink()
     (tmp_path / "models" / "emax_300rpm").unlink()
     assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "envelope"
     with pytest.raises(demo_module.DemoError, match="shipped model's name"):
@@ -326,3 +330,35 @@ def test_gif_input_shapes_are_checked(tmp_path):
     with pytest.raises(ValueError, match=".gif"):
         write_comparison_gif(tmp_path / "a.png", [0.0, 1.0], pos, pos, np.zeros((2, 3)), jar,
                              0.005)
+
+
+def test_a_case_sampled_finer_than_the_model_runs_at_the_models_step(tiny, tmp_path,
+                                                                       monkeypatch):
+    """The demo of a model whose step is a whole multiple of the case's ``[dem] dt`` (the
+    2e-4 s contact model, the default, on the 1e-4 s built-in cases) asks the DEM to record at
+    the model's step, so that both are compared sample by sample; a step that is not a whole
+    multiple is still refused before the DEM."""
+    import sgn_jax.pipelines.demo as demo_module
+    from sgn_jax.config import save_config
+
+    class Stop(Exception):
+        pass
+
+    asked = {}
+
+    def dem_stub(cfg, **kwargs):
+        asked["dt"] = float(cfg.dem.dt)
+        raise Stop
+
+    monkeypatch.setattr(demo_module, "run_dem", dem_stub)
+    finer = tmp_path / "finer.toml"
+    save_config(replace_section(tiny["cfg"], "dem", dt=0.5e-4), finer)
+    with pytest.raises(Stop):
+        demo_module.run_demo(tmp_path / "a", checkpoint=tiny["run"], config=finer,
+                             duration=0.01, progress=False)
+    assert asked["dt"] == pytest.approx(1e-4, rel=1e-12)
+    odd = tmp_path / "odd.toml"
+    save_config(replace_section(tiny["cfg"], "dem", dt=0.3e-4), odd)
+    with pytest.raises(demo_module.DemoError, match=r"\[dem\] dt"):
+        demo_module.run_demo(tmp_path / "b", checkpoint=tiny["run"], config=odd,
+                             duration=0.01, progress=False)

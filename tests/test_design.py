@@ -28,7 +28,10 @@ def cfg(short_packings):
 
 @pytest.fixture(scope="module")
 def model():
-    return sj.load_surrogate()
+    # The paper-setting SGN (1e-4 s, the case's step): these tests check the study's machinery
+    # with the model whose big matmuls vmap; the default (contact) model's study is checked
+    # with contact_short_packings.
+    return sj.load_surrogate("emax_300rpm")
 
 
 @pytest.fixture(scope="module")
@@ -279,19 +282,20 @@ def test_a_settled_start_is_a_bed_at_rest_in_each_jar_and_the_motion_starts_at_z
     dt = float(cfg.dem.dt)
     spec = graph_spec_from_config(dataclasses.replace(model.config, balls=cfg.balls,
                                                       dem=cfg.dem), n_particles=cfg.balls.count)
-    settle = jax.jit(make_settled_start(
+    start = make_settled_start(
         spec, model_predictor(single_rollout_model(model.model)[0]), round(0.5 / dt),
         snap_back=cfg.rollout.snap_back, phi_sb=model.config.graph.phi_sb,
-        snap_velocity=cfg.rollout.snap_velocity, query=sj.analytic_jar_query, jit=False))
+        snap_velocity=cfg.rollout.snap_velocity, query=sj.analytic_jar_query, jit=False)
+    assert start.name == "settle" and start.t_start == 0.0
+    settle = jax.jit(start.make)
     motion = motion_from_config(cfg.motion)
     origin = np.asarray(offset(motion, 0.0))
     base = sj.jar_params_from_config(cfg.jar)
     radius = cfg.balls.radius
     for jar in (base, base.replace(straight_length=base.straight_length + 0.005)):
         for seed in (0, 1):
-            window, t = settle(model.params, model.norm_stats, placement_candidates(seed),
-                               motion, jar)
-            assert float(t) == 0.0
+            window = settle(model.params, model.norm_stats, placement_candidates(seed),
+                            motion, jar)
             np.testing.assert_allclose(np.asarray(window.offsets), np.broadcast_to(
                 origin, window.offsets.shape), atol=1e-15)
             assert not np.any(np.asarray(window.offset_velocities))
@@ -305,20 +309,45 @@ def test_a_settled_start_is_a_bed_at_rest_in_each_jar_and_the_motion_starts_at_z
             assert 2 * radius - gaps.min() < 1e-4
 
 
-def test_a_jar_parameter_study_settles_in_each_jar_by_default(contact_short_packings):
-    """``start="auto"`` is ``"settle"`` exactly when a jar parameter is studied; a study from
-    seeds only (``seed_packings``) needs it, and says so otherwise."""
+def test_a_jar_parameter_study_makes_its_packings_in_each_jar_by_default(
+        contact_short_packings, session_cache):
+    """``start="auto"`` is ``"dem"`` exactly when a jar parameter is studied; a study from
+    seeds only (``seed_packings``) needs a start that makes its packings, and says so
+    otherwise. The DEM's start in the design point's jar is the packing ``make_packings``
+    makes (the same placement, settle and window), and in a jar 5 mm longer it is the packing
+    ``make_packings`` makes for that jar."""
+    from sgn_jax.dem.placement import placement_candidates
+
     model, cfg, packings = contact_short_packings
     assert sj.resolve_start("auto", ["motion.rpm"]) == "packing"
-    assert sj.resolve_start("auto", ["motion.rpm", "jar.straight_length"]) == "settle"
+    assert sj.resolve_start("auto", ["motion.rpm", "jar.straight_length"]) == "dem"
     assert sj.resolve_start("packing", ["jar.radius"]) == "packing"
     with pytest.raises(DesignError, match="start must be"):
-        sj.resolve_start("dem", ["motion.rpm"])
+        sj.resolve_start("lid", ["motion.rpm"])
     seeds_only = sj.seed_packings(cfg, packings.seeds)
     with pytest.raises(DesignError, match="seeds only"):
         sj.design_study(model, cfg, ["motion.rpm"], seeds_only, duration=0.016, burn_in=0.0,
                         n_segments=1)
     study = sj.design_study(model, cfg, ["jar.straight_length"], seeds_only, duration=0.016,
                             burn_in=0.0, n_segments=1)
-    assert study.ensemble.start == "settle"
-    assert study.ensemble.n_settle == round(cfg.dem.settle_time / cfg.dem.dt)
+    assert study.ensemble.start == "dem"
+
+    from sgn_jax.pipelines.configure import jar_params_from_config, motion_from_config
+
+    start = sj._packing_start("dem", model, cfg, sj.graph_spec_from_config(
+        replace_section(model.config, "dem", dt=cfg.dem.dt), n_particles=cfg.balls.count),
+        model.model, False)
+    assert start.t_start == pytest.approx(packings.t0, rel=1e-12)
+    make = jax.jit(start.make)
+    longer = replace_section(cfg, "jar", straight_length=cfg.jar.straight_length + 0.005)
+    for jar_cfg, expected in ((cfg, packings), (longer, None)):
+        seed = packings.seeds[0]
+        if expected is None:
+            expected = sj.make_packings(jar_cfg, seeds=[seed])
+        made = make(model.params, model.norm_stats, placement_candidates(seed),
+                    motion_from_config(cfg.motion), jar_params_from_config(jar_cfg.jar))
+        assert made.spins is None and expected.windows.spins is None
+        for field in ("positions", "offsets", "offset_velocities"):
+            np.testing.assert_allclose(np.asarray(getattr(made, field)),
+                                       np.asarray(getattr(expected.windows, field))[0],
+                                       rtol=0, atol=1e-9, err_msg=field)

@@ -440,7 +440,10 @@ def checkpoint(dem, tiny, tmp_path_factory):
 
     traj = dem[0]
     cfg = replace_section(traj.config, "model", hidden=16)
-    cfg = replace_section(cfg, "rollout", save_every=10, chunk_steps=50, checkpoint_steps=50)
+    # With the ball-ball separation on (the built-in configs have it off since the contact
+    # model became the default): the chunked rollout must carry it as the one call does.
+    cfg = replace_section(cfg, "rollout", save_every=10, chunk_steps=50, checkpoint_steps=50,
+                          pp_separation=True)
     directory = tmp_path_factory.mktemp("run") / "checkpoints" / "best"
     save_checkpoint(directory, 1, params=jax.device_get(tiny["params"]),
                     norm_stats=tiny["stats"], meta={"config": config_to_dict(cfg)})
@@ -453,7 +456,7 @@ def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
 
     traj, spec, grid, motion = dem
     run_dir, cfg = checkpoint
-    assert cfg.rollout.pp_separation  # the shipped configs separate ball pairs; so must `whole`
+    assert cfg.rollout.pp_separation  # the checkpoint's config separates ball pairs; so must `whole`
     out = run_dir / "pred.npz"
     # 120 steps in chunks of 50: two calls of one compiled chunk and a remainder of 20.
     summary = run_rollout(load_trained_model(run_dir), traj, 20, 0.012, out, progress=False)

@@ -13,7 +13,7 @@ from sgn_jax.config import replace_section
 @pytest.fixture(scope="module")
 def setting(short_packings):
     cfg, packings = short_packings  # settle_time 0.02 s, seeds 0 and 1 (conftest.py)
-    return cfg, sj.load_surrogate(), packings
+    return cfg, sj.load_surrogate("emax_300rpm"), packings   # the paper-setting SGN (1e-4 s)
 
 
 def test_a_sweep_equals_one_ensemble_per_motion(setting):

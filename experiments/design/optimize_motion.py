@@ -1,9 +1,10 @@
 """Find the circular jar motion that reaches a target dissipation power with the smallest peak jar
 acceleration (surrogate + optax), then check the optimum with a DEM ensemble.
 
-    python experiments/design/optimize_motion.py optimize [--target 0.3] [--iterations 25]
-    python experiments/design/optimize_motion.py dem        # 8 DEM packings at the optimum
-    python experiments/design/optimize_motion.py report
+    python experiments/design/optimize_motion.py [--out DIR] optimize [--target 0.3]
+        [--iterations 25] [--checkpoint MODEL]
+    python experiments/design/optimize_motion.py [--out DIR] dem     # 8 DEM packings there
+    python experiments/design/optimize_motion.py [--out DIR] report
 
 The design space is the motion envelope of docs/design.md: circles with rpm in [150, 500] and
 amplitude in [10, 20] mm (the standard jar). The objective, in normalised coordinates
@@ -59,7 +60,10 @@ def cmd_optimize(args: argparse.Namespace) -> None:
                 "segments": args.segments, "seeds": list(OPT_SEEDS)}
     (OUT).mkdir(parents=True, exist_ok=True)
     (OUT / "settings.json").write_text(json.dumps(settings, indent=1))
-    model = sj.load_surrogate()
+    model = sj.load_surrogate(args.checkpoint)
+    cfg = sj.at_surrogate_step(cfg, model)          # a 2e-4 s model runs at its step
+    settings["checkpoint"] = args.checkpoint
+    (OUT / "settings.json").write_text(json.dumps(settings, indent=1))
     t0 = time.perf_counter()
     packings = sj.make_packings(cfg, OPT_SEEDS)
     print(f"packings: {time.perf_counter() - t0:.1f} s", flush=True)
@@ -167,9 +171,14 @@ def cmd_report(_: argparse.Namespace) -> None:
 
 
 def main() -> None:
+    global OUT
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=OUT,
+                   help="output folder (default runs/design/optimize)")
     sub = p.add_subparsers(dest="cmd", required=True)
     o = sub.add_parser("optimize")
+    o.add_argument("--checkpoint", default=None,
+                   help="surrogate (default: the shipped default model)")
     o.add_argument("--target", type=float, default=0.3, help="target power, W")
     o.add_argument("--weight", type=float, default=0.02,
                    help="weight of a_peak / a_ref against the squared relative power miss")
@@ -184,6 +193,7 @@ def main() -> None:
     d.add_argument("--burn-in", type=float, default=0.5)
     sub.add_parser("report")
     args = p.parse_args()
+    OUT = args.out
     {"optimize": cmd_optimize, "dem": cmd_dem, "report": cmd_report}[args.cmd](args)
 
 

@@ -152,7 +152,8 @@ def load_dem() -> dict[tuple, list[float]]:
 
 
 def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
-                  separation: bool | None = None, start: str = "auto") -> None:
+                  separation: bool | None = None, start: str = "auto",
+                  estimators: str = "both") -> None:
     model = sj.load_surrogate(checkpoint)
     results = {}
     path = OUT / "surrogate.json"
@@ -164,17 +165,20 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         cfg = sj.at_surrogate_step(point_config(point), model)   # a 2e-4 s model at its step
         names = list(POINTS[point]["steps"])
         t0 = time.perf_counter()
-        # The study's start as a user's: with a jar parameter among the names ("auto") every
-        # evaluation places the seeds' balls and lets the surrogate settle them in its jar.
+        # The study's start as a user's: with a jar parameter among the names ("auto") the DEM
+        # makes the seeds' packings in every jar the study evaluates.
         point_start = sj.resolve_start(start, names)
         packings = (sj.make_packings(cfg, SEEDS) if point_start == "packing"
                     else sj.seed_packings(cfg, SEEDS))
         t_pack = time.perf_counter() - t0
         # "estimate": the truncated-horizon autodiff estimator; "surrogate_fd": the default
         # difference estimator at the DEM's steps (the same packings on both sides).
+        difference_only = estimators == "difference"
         study = sj.design_study(model, cfg, names, packings, duration=DURATION,
                                 burn_in=BURN_IN, horizon=horizon, n_segments=segments,
-                                estimator="horizon", separation=separation, start=point_start)
+                                estimator="difference" if difference_only else "horizon",
+                                separation=separation, start=point_start,
+                                steps=POINTS[point]["steps"])
         t0 = time.perf_counter()
         est = study.estimate()
         t_est = time.perf_counter() - t0
@@ -182,7 +186,12 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         for i, name in enumerate(names):
             h = POINTS[point]["steps"][name]
             sides = {}
+            if difference_only:     # the study's own estimate: its side powers (+h rows first)
+                rows = np.asarray(est["side_powers_W"])
+                sides = {1: rows[i].tolist(), -1: rows[len(names) + i].tolist()}
             for side in (-1, 1):
+                if side in sides:
+                    continue
                 theta = study.theta0.copy()
                 theta[i] += side * h
                 sides[side] = study.powers(theta).tolist()
@@ -190,6 +199,8 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
             fd[name] = {"h": h, "minus_W": sides[-1], "plus_W": sides[1],
                         "gradient": float(diff.mean()),
                         "gradient_se": float(diff.std(ddof=1) / np.sqrt(diff.size))}
+        if difference_only:   # no horizon estimate in this run (the report shows "-")
+            est = {k: v for k, v in est.items() if not k.startswith("gradient")}
         results[point] = {"theta0": study.theta0.tolist(), "names": names, "estimate": est,
                           "surrogate_fd": fd, "packings_s": t_pack, "estimate_s": t_est,
                           "horizon": horizon, "segments": segments,
@@ -197,7 +208,7 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
                           "start": point_start}
         OUT.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(results, indent=1))
-        print(json.dumps({point: {"gradient": est["gradient"],
+        print(json.dumps({point: {"gradient": est.get("gradient"),
                                   "fd": {n: v["gradient"] for n, v in fd.items()}}}), flush=True)
 
 
@@ -343,9 +354,13 @@ def main() -> None:
     s.add_argument("--segments", type=int, default=8)
     s.add_argument("--separation", choices=("config", "on", "off"), default="config",
                    help="the ball-ball separation (default: the point's config)")
-    s.add_argument("--start", choices=("auto", "packing", "settle"), default="auto",
-                   help="the study's start (sgn_jax.api.design_study; default auto: settled "
-                   "by the surrogate in every evaluated jar where a jar parameter is studied)")
+    s.add_argument("--estimators", choices=("both", "difference"), default="both",
+                   help="both (default): the horizon estimator's estimate and the difference "
+                   "estimator's sides as separate evaluations; difference: one difference "
+                   "estimate of the study (its sides), no horizon estimator")
+    s.add_argument("--start", choices=("auto", "packing", "dem", "settle"), default="auto",
+                   help="the study's start (sgn_jax.api.design_study; default auto: the DEM "
+                   "makes the packings in every evaluated jar where a jar parameter is studied)")
     sp = sub.add_parser("surrogate-paired")
     sp.add_argument("--checkpoint", default=None)
     sp.add_argument("--separation", choices=("config", "on", "off"), default="config")
@@ -358,7 +373,8 @@ def main() -> None:
         cmd_dem_worker(args.index, args.of)
     elif args.cmd == "surrogate":
         cmd_surrogate(args.checkpoint, args.horizon, args.segments,
-                      {"config": None, "on": True, "off": False}[args.separation], args.start)
+                      {"config": None, "on": True, "off": False}[args.separation], args.start,
+                      args.estimators)
     elif args.cmd == "surrogate-paired":
         cmd_surrogate_paired(args.checkpoint,
                              {"config": None, "on": True, "off": False}[args.separation])

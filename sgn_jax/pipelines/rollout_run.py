@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 import sgn_jax
-from sgn_jax.config import config_to_dict
+from sgn_jax.config import config_to_dict, replace_section
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     motion_from_config,
@@ -48,6 +48,16 @@ def coarser_step_factor(model_dt: float, case_dt: float) -> int:
     if factor > 1 and math.isclose(model_dt, factor * case_dt, rel_tol=1e-9):
         return int(factor)
     return 1
+
+
+def config_at_model_step(cfg: Any, model_dt: float) -> Any:
+    """``cfg`` sampled at a model's step ``model_dt`` (s) when that step is a whole multiple
+    of ``cfg``'s ``[dem] dt`` (:func:`coarser_step_factor`: the 2e-4 s contact model on a
+    1e-4 s case): ``[dem] dt`` is the sampling and surrogate step, so the DEM of the returned
+    config records at the model's step (its own step is ``dt_dem_max``). Otherwise ``cfg``."""
+    if coarser_step_factor(float(model_dt), float(cfg.dem.dt)) > 1:
+        return replace_section(cfg, "dem", dt=float(model_dt))
+    return cfg
 
 
 def _effective_config(trained_cfg: Any, override: Any) -> Any:
