@@ -442,8 +442,9 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
             jar the study evaluates, as :func:`make_packings` makes one (the seed's placement,
             ``[dem] settle_time`` with the jar at rest, a window of motion;
             :func:`sgn_jax.design.make_dem_start`): the start the DEM's own runs in that jar
-            have, at ~25 s of one core per packing and jar for a 0.5-s settle; a motion
-            parameter's sides share the design point's packings. ``"settle"``: the same
+            have, at the price of a DEM settle per packing and jar (3-6.5 min of one core
+            for a 3-parameter study over 8 packings, docs/design.md); a motion parameter's
+            sides share the design point's packings. ``"settle"``: the same
             placement settled by the surrogate instead (cheap; its jar-length gradients were
             biased low, docs/design.md). ``"auto"`` (default): ``"dem"`` when a jar-shape
             parameter is studied, else ``"packing"``. With ``"dem"`` and ``"settle"`` only the

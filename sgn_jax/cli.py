@@ -377,8 +377,8 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
                    help="skip the power evaluations at theta +- h (faster; no curve points)")
     p.add_argument("--start", choices=("auto", "packing", "dem", "settle"), default="auto",
                    help="where the rollouts start: packing (the DEM's packings of the config's "
-                   "jar), dem (the DEM makes each packing in every evaluated jar: ~25 s of a "
-                   "core per packing and jar), settle (the same placement settled by the "
+                   "jar), dem (the DEM makes each packing in every evaluated jar: a DEM settle "
+                   "per packing and jar), settle (the same placement settled by the "
                    "surrogate); default auto: dem when a jar.* parameter is studied, else "
                    "packing (docs/design.md)")
     p.add_argument("--out", default="runs/sensitivity", help="output directory")

@@ -172,11 +172,13 @@ def test_cli_sensitivity_prints_json_and_writes_plot(cfg, tmp_path, session_cach
     out = tmp_path / "sens"
     stdout = io.StringIO()
     with contextlib.redirect_stdout(stdout):
-        # The sizes of test_estimate_matches_value_and_grad_and_is_finite: the same program.
+        # The sizes and model of test_estimate_matches_value_and_grad_and_is_finite: the same
+        # program (the default model's study compiles another, ~30 s of the default run; the
+        # default's resolution is test_demo's).
         code = main(["sensitivity", "--config", str(config_path), "--param", "motion.rpm",
                      "--duration", "0.015", "--burn-in", "0.005", "--packings", "2",
                      "--first-seed", "0", "--horizon", "10", "--segments", "2",
-                     "--out", str(out), "--no-progress"])
+                     "--checkpoint", "emax_300rpm", "--out", str(out), "--no-progress"])
     assert code == 0
     line = json.loads(stdout.getvalue().strip().splitlines()[-1])
     assert set(line) >= {"power_W", "power_se_W", "gradient"}

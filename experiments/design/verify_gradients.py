@@ -38,6 +38,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -86,10 +87,14 @@ def variant_config(point: str, param: str | None, side: int):
     return sj.design_config(cfg, study_names, [base + side * POINTS[point]["steps"][param]])
 
 
-def dem_jobs() -> list[tuple[str, str | None, int, int]]:
+def dem_jobs(packings: int = len(SEEDS), rows: Sequence[str] | None = None
+             ) -> list[tuple[str, str | None, int, int]]:
+    """The DEM runs: for each (point, parameter) of :data:`ORDER` (or of ``rows``,
+    ``"point:parameter"``), both sides on seeds 20 .. 20 + packings - 1."""
     jobs = []
-    for point, param in ORDER:
-        for seed in SEEDS:
+    order = ORDER if rows is None else [tuple(r.split(":")) for r in rows]
+    for point, param in order:
+        for seed in range(SEEDS[0], SEEDS[0] + packings):
             if param is None:
                 jobs.append((point, None, 0, seed))
             else:
@@ -108,8 +113,9 @@ def done_keys() -> set[str]:
             if "key" in r}
 
 
-def cmd_dem_worker(index: int, of: int) -> None:
-    jobs = [j for i, j in enumerate(dem_jobs()) if i % of == index]
+def cmd_dem_worker(index: int, of: int, packings: int = len(SEEDS),
+                   rows: Sequence[str] | None = None) -> None:
+    jobs = [j for i, j in enumerate(dem_jobs(packings, rows)) if i % of == index]
     done = done_keys()
     todo = [j for j in jobs if job_key(j) not in done]
     ensemble = sj.DEMEnsemble()
@@ -128,11 +134,14 @@ def cmd_dem_worker(index: int, of: int) -> None:
               f"{result['wall_s']:.1f} s; ETA {rate * (len(todo) - n) / 60:.1f} min", flush=True)
 
 
-def cmd_dem(workers: int) -> None:
+def cmd_dem(workers: int, packings: int = len(SEEDS), rows: Sequence[str] | None = None
+            ) -> None:
     procs = []
     for i in range(workers):
         cmd = [sys.executable, __file__, "--out", str(OUT), "dem-worker", "--index", str(i),
-               "--of", str(workers)]
+               "--of", str(workers), "--packings", str(packings)]
+        if rows is not None:
+            cmd += ["--rows", ",".join(rows)]
         if workers > 1 and os.path.exists("/usr/bin/taskset"):
             cmd = ["taskset", "-c", str(i % os.cpu_count()), *cmd]
         procs.append(subprocess.Popen(cmd))
@@ -153,13 +162,14 @@ def load_dem() -> dict[tuple, list[float]]:
 
 def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
                   separation: bool | None = None, start: str = "auto",
-                  estimators: str = "both") -> None:
+                  estimators: str = "both", packings: int = len(SEEDS),
+                  points: Sequence[str] | None = None) -> None:
     model = sj.load_surrogate(checkpoint)
     results = {}
     path = OUT / "surrogate.json"
     if path.exists():
         results = json.loads(path.read_text())
-    for point in POINTS:
+    for point in POINTS if points is None else points:
         if point in results:
             continue
         cfg = sj.at_surrogate_step(point_config(point), model)   # a 2e-4 s model at its step
@@ -168,13 +178,16 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         # The study's start as a user's: with a jar parameter among the names ("auto") the DEM
         # makes the seeds' packings in every jar the study evaluates.
         point_start = sj.resolve_start(start, names)
-        packings = (sj.make_packings(cfg, SEEDS) if point_start == "packing"
-                    else sj.seed_packings(cfg, SEEDS))
+        # The DEM's seeds, or more of them (20, 21, ...): the surrogate's packings are cheap,
+        # and its estimate's standard error shrinks with them (the DEM's ensemble stays 8).
+        seeds = tuple(range(SEEDS[0], SEEDS[0] + packings))
+        packings_ = (sj.make_packings(cfg, seeds) if point_start == "packing"
+                     else sj.seed_packings(cfg, seeds))
         t_pack = time.perf_counter() - t0
         # "estimate": the truncated-horizon autodiff estimator; "surrogate_fd": the default
         # difference estimator at the DEM's steps (the same packings on both sides).
         difference_only = estimators == "difference"
-        study = sj.design_study(model, cfg, names, packings, duration=DURATION,
+        study = sj.design_study(model, cfg, names, packings_, duration=DURATION,
                                 burn_in=BURN_IN, horizon=horizon, n_segments=segments,
                                 estimator="difference" if difference_only else "horizon",
                                 separation=separation, start=point_start,
@@ -205,7 +218,7 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
                           "surrogate_fd": fd, "packings_s": t_pack, "estimate_s": t_est,
                           "horizon": horizon, "segments": segments,
                           "checkpoint": checkpoint, "separation": separation,
-                          "start": point_start}
+                          "start": point_start, "seeds": list(seeds)}
         OUT.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(results, indent=1))
         print(json.dumps({point: {"gradient": est.get("gradient"),
@@ -348,12 +361,22 @@ def main() -> None:
     w = sub.add_parser("dem-worker")
     w.add_argument("--index", type=int, required=True)
     w.add_argument("--of", type=int, required=True)
+    for q in (d, w):
+        q.add_argument("--packings", type=int, default=len(SEEDS),
+                       help=f"seeds {SEEDS[0]}.. per side (default {len(SEEDS)})")
+        q.add_argument("--rows", default=None,
+                       help="comma-separated point:parameter rows (default: all, in order)")
     s = sub.add_parser("surrogate")
     s.add_argument("--checkpoint", default=None)
     s.add_argument("--horizon", type=int, default=100)
     s.add_argument("--segments", type=int, default=8)
     s.add_argument("--separation", choices=("config", "on", "off"), default="config",
                    help="the ball-ball separation (default: the point's config)")
+    s.add_argument("--points", default=None,
+                   help=f"comma-separated design points (default all: {', '.join(POINTS)})")
+    s.add_argument("--packings", type=int, default=len(SEEDS),
+                   help=f"the surrogate's packings, seeds {SEEDS[0]}.. (default {len(SEEDS)}: "
+                   "the DEM's)")
     s.add_argument("--estimators", choices=("both", "difference"), default="both",
                    help="both (default): the horizon estimator's estimate and the difference "
                    "estimator's sides as separate evaluations; difference: one difference "
@@ -367,14 +390,16 @@ def main() -> None:
     sub.add_parser("report")
     args = p.parse_args()
     OUT = args.out
+    rows = None if getattr(args, "rows", None) is None else args.rows.split(",")
     if args.cmd == "dem":
-        cmd_dem(args.workers)
+        cmd_dem(args.workers, args.packings, rows)
     elif args.cmd == "dem-worker":
-        cmd_dem_worker(args.index, args.of)
+        cmd_dem_worker(args.index, args.of, args.packings, rows)
     elif args.cmd == "surrogate":
         cmd_surrogate(args.checkpoint, args.horizon, args.segments,
                       {"config": None, "on": True, "off": False}[args.separation], args.start,
-                      args.estimators)
+                      args.estimators, args.packings,
+                      None if args.points is None else args.points.split(","))
     elif args.cmd == "surrogate-paired":
         cmd_surrogate_paired(args.checkpoint,
                              {"config": None, "on": True, "off": False}[args.separation])
