@@ -45,8 +45,8 @@ LONGEST_FILES_FIRST = (
     "test_design.py",           # ~80 s; short_packings
     "test_train.py",            # ~60 s
     "test_sharding.py",         # ~50 s (the two-device process)
-    "test_sweep.py",            # ~45 s; short_packings and contact_short_packings (2026-11-26,
-                                # session 6: unlisted, it could start last on one worker)
+    "test_sweep.py",            # ~35 s; contact_short_packings (2026-11-26, session 6:
+                                # unlisted, it could start last on one worker)
     "test_contact.py",          # ~48 s
     "test_dem_jar.py",          # ~46 s
     "test_sdf_grid.py",         # ~41 s

@@ -11,9 +11,11 @@ from sgn_jax.config import replace_section
 
 
 @pytest.fixture(scope="module")
-def setting(short_packings):
-    cfg, packings = short_packings  # settle_time 0.02 s, seeds 0 and 1 (conftest.py)
-    return cfg, sj.load_surrogate("emax_300rpm"), packings   # the paper-setting SGN (1e-4 s)
+def setting(contact_short_packings):
+    # The default (contact) model at its 2e-4 s step, settle_time 0.02 s, seeds 0 and 1
+    # (conftest.py): the file's other test uses the same fixture, so the file makes one.
+    model, cfg, packings = contact_short_packings
+    return cfg, model, packings
 
 
 def test_a_sweep_equals_one_ensemble_per_motion(setting):
