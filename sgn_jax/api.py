@@ -264,11 +264,7 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
     (``[dem] settle_time``), then runs ``W`` samples of the config's motion; the window ends at
     ``t0 = W dt``. ``log`` is called after each packing.
     """
-    seeds = tuple(int(s) for s in seeds)
-    if not seeds:
-        raise DesignError("make_packings needs at least one seed")
-    if any(s < 0 for s in seeds):
-        raise DesignError(f"seeds must be >= 0, got {list(seeds)}")
+    seeds = _placement_seeds(seeds, "make_packings")
     w = int(cfg.graph.window if window is None else window)
     dt = float(cfg.dem.dt)
     freq = float(frequency_hz(motion_from_config(cfg.motion)))
@@ -288,10 +284,18 @@ def seed_packings(cfg: Config, seeds: Iterable[int]) -> Packings:
     """Packings that are only their seeds (no DEM run): for a design study that makes each
     packing itself in every jar it evaluates (``start="dem"`` or ``"settle"``), from the
     seed's placement as the DEM places it."""
+    return Packings(windows=None, t0=0.0, seeds=_placement_seeds(seeds, "seed_packings"),
+                    config=cfg)
+
+
+def _placement_seeds(seeds: Iterable[int], who: str) -> tuple[int, ...]:
+    """``seeds`` as a tuple of ints, refused unless there is one or more and all are >= 0."""
     seeds = tuple(int(s) for s in seeds)
-    if not seeds or any(s < 0 for s in seeds):
-        raise DesignError(f"need at least one seed, all >= 0; got {list(seeds)}")
-    return Packings(windows=None, t0=0.0, seeds=seeds, config=cfg)
+    if not seeds:
+        raise DesignError(f"{who} needs at least one seed")
+    if any(s < 0 for s in seeds):
+        raise DesignError(f"seeds must be >= 0, got {list(seeds)}")
+    return seeds
 
 
 STARTS = ("packing", "dem", "settle")
@@ -459,7 +463,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     start = resolve_start(start, names)
     if start == "packing" and packings.windows is None:
         raise DesignError("these packings are seeds only (seed_packings): a study from the "
-                          "packings needs make_packings, or start='settle'")
+                          "packings needs make_packings, or start='dem' or 'settle'")
     frame = _surrogate_frame(surrogate, cfg, packings)
     motion, jar = frame.motion, frame.jar
     dt = float(cfg.dem.dt)

@@ -47,7 +47,7 @@ import numpy as np
 
 from sgn_jax.dem.engine import DEMParams, DEMSpec, make_sampler, observe
 from sgn_jax.dem.engine import init_state as init_dem_state
-from sgn_jax.dem.placement import place_balls_traced
+from sgn_jax.dem.placement import PLACEMENT_GAP, place_balls_traced
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.geometry import JarParams
 from sgn_jax.geometry.jar import jar_sdf
@@ -281,10 +281,6 @@ def fit_packing_to_jar(window: Window, jar: JarParams, radius: float,
     return window.replace(positions=window.positions + shift[None])
 
 
-PLACEMENT_GAP = 5.0e-4
-"""m: the clearance of a start's placement (the DEM's, ``dem_run.initial_state``)."""
-
-
 @dataclasses.dataclass(frozen=True)
 class PackingStart:
     """How a design study makes each packing's start in the jar it evaluates
@@ -303,16 +299,12 @@ class PackingStart:
     t_start: float
 
 
-def rest_window(positions: jax.Array, window: int, frequency: jax.Array,
-                jar_offset: jax.Array | None = None) -> Window:
-    """A :class:`Window` of balls at rest at ``positions`` (N, 3) (jar frame) in a jar at rest
-    at ``jar_offset`` (3,) m (default the origin): ``window`` + 1 equal slots, zero jar
-    velocities and spins."""
+def rest_window(positions: jax.Array, window: int, frequency: jax.Array) -> Window:
+    """A :class:`Window` of balls at rest at ``positions`` (N, 3) in a jar at rest at the
+    origin: ``window`` + 1 equal slots, zero jar offsets, velocities and spins."""
     positions = jnp.asarray(positions, F64)
-    jar_offset = jnp.zeros(3, F64) if jar_offset is None else jnp.asarray(jar_offset, F64)
-    return Window(positions=jnp.broadcast_to(positions + jar_offset,
-                                             (window + 1, *positions.shape)),
-                  offsets=jnp.broadcast_to(jar_offset, (window, 3)),
+    return Window(positions=jnp.broadcast_to(positions, (window + 1, *positions.shape)),
+                  offsets=jnp.zeros((window, 3), F64),
                   offset_velocities=jnp.zeros((window, 3), F64),
                   frequency_hz=jnp.asarray(frequency, F64),
                   spins=jnp.zeros(positions.shape, F64))
@@ -332,7 +324,7 @@ def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **o
 
     ``make(params, stats, candidates, motion, jar)``: the balls placed from ``candidates``
     (C, 3) as the DEM places them in ``jar`` (:func:`sgn_jax.dem.placement.place_balls_traced`,
-    clearance :data:`PLACEMENT_GAP`), at rest; rolled out ``n_settle`` steps by the surrogate
+    clearance :data:`sgn_jax.dem.placement.PLACEMENT_GAP`), at rest; rolled out ``n_settle`` steps by the surrogate
     with the jar at rest at the origin (gravity settles them); then the jar put at
     ``motion``'s offset at t = 0, as the DEM settles at rest at ``offset(0)`` before its motion
     starts. The window's newest sample is at ``t_start = 0``. ``options``: the rollout's

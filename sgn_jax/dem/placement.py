@@ -21,6 +21,9 @@ class PlacementError(SGNJaxError, ValueError):
     """The balls cannot be placed (too many, too large, or a jar without room)."""
 
 
+PLACEMENT_GAP = 5e-4
+"""m: the clearance kept from the wall and between balls when they are placed."""
+
 PLACEMENT_BATCH = 4096
 """Candidates drawn (and SDF-evaluated) at a time by :func:`place_balls`; the first batch is
 what :func:`placement_candidates` gives :func:`place_balls_traced`."""
@@ -35,7 +38,7 @@ def placement_candidates(seed: int, count: int = PLACEMENT_BATCH) -> np.ndarray:
 
 def place_balls_traced(sdf_fn: Callable[[jnp.ndarray], jnp.ndarray], lower: jax.Array,
                        upper: jax.Array, candidates: jax.Array, n_balls: int, radius: float,
-                       gap: float = 5e-4) -> tuple[jax.Array, jax.Array]:
+                       gap: float = PLACEMENT_GAP) -> tuple[jax.Array, jax.Array]:
     """:func:`place_balls` as a jittable function of the jar: the same random sequential
     insertion over fixed unit-box ``candidates`` (C, 3) (:func:`placement_candidates`), so
     that the box ``lower``, ``upper`` (3,) m and ``sdf_fn`` may depend on traced jar
@@ -74,7 +77,7 @@ def place_balls(
     n_balls: int,
     radius: float,
     seed: int,
-    gap: float = 5e-4,
+    gap: float = PLACEMENT_GAP,
     batch: int = PLACEMENT_BATCH,
     max_candidates: int = 2_000_000,
 ) -> np.ndarray:

@@ -45,7 +45,7 @@ from sgn_jax.dem.engine import (
     observe,
     reset_ledger_totals,
 )
-from sgn_jax.dem.placement import place_balls
+from sgn_jax.dem.placement import PLACEMENT_GAP, place_balls
 from sgn_jax.motion import offset
 from sgn_jax.pipelines.configure import (
     contact_law_from_config,
@@ -131,7 +131,7 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
 _offset_jit = jax.jit(offset)
 
 
-def initial_state(setup: DEMSetup, seed: int, gap: float = 5e-4) -> DEMState:
+def initial_state(setup: DEMSetup, seed: int, gap: float = PLACEMENT_GAP) -> DEMState:
     """Balls placed at rest from ``seed``, at DEM step -settle_steps (jar at rest)."""
     jar = setup.jar
     x_jar = place_balls(lambda x: jar.sdf_fn(jar.geometry, x), jar.lower, jar.upper,
