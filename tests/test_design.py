@@ -47,6 +47,11 @@ def test_packings_hold_one_window_per_seed(cfg, packings):
     np.testing.assert_allclose(packings.windows.frequency_hz, 300.0 / 60.0)  # rpm / 60
 
 
+# The slow tier (session 7, to keep the default run under 6 minutes: 22-30 s, most of it
+# compiling the horizon estimator's gradient). The horizon estimator is not the default (the
+# ensemble difference is, docs/design.md); the default run checks autodiff through a rollout
+# against finite differences in tests/test_rollout.py::test_gradients_match_finite_differences.
+@pytest.mark.slow
 def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packings):
     """With no burn-in and one gradient horizon covering the whole measurement interval, the
     truncated-horizon estimator differentiates exactly the power that ``powers`` computes: it
@@ -70,10 +75,10 @@ def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packing
         assert float(grad[i]) == pytest.approx(fd, rel=0.05), (study.names[i], fd, grad[i])
 
 
-# The horizon variant is in the slow tier (issue 20: 27-44 s of compiling). Its twin in the
-# default run is test_one_segment_without_burn_in_is_the_exact_derivative, whose
-# value_and_grad runs the same compiled horizon ``estimate`` (design.py: power's derivative is
-# the estimate's) and must match finite differences.
+# The horizon variant is in the slow tier (issue 20: 27-44 s of compiling), beside
+# test_one_segment_without_burn_in_is_the_exact_derivative, whose value_and_grad runs the same
+# compiled horizon ``estimate`` (design.py: power's derivative is the estimate's) and must
+# match finite differences.
 @pytest.mark.parametrize("estimator", ["difference",
                                        pytest.param("horizon", marks=pytest.mark.slow)])
 def test_estimate_matches_value_and_grad_and_is_finite(cfg, model, packings, estimator):

@@ -341,6 +341,10 @@ def _motions(k):
                          phase=jnp.float64(0.1 * i)) for i in range(k)]
 
 
+# The slow tier (session 7: 11-17 s): its twin in the default run is
+# tests/test_sweep.py::test_a_sweep_equals_one_ensemble_per_motion (a rollout vmapped over
+# motions against one ensemble per motion).
+@pytest.mark.slow
 def test_vmap_over_motions_matches_separate_calls(tiny):
     from sgn_jax.motion import stack_motions
 

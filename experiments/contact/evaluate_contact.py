@@ -20,6 +20,18 @@ with the DEM over the same interval. Per case (means over the packings, SE ddof 
 
 Writes ``OUT/NAME.json`` (every run and the case summaries) and ``OUT/NAME.md`` (the table).
 Resumable: runs already in the JSON are kept.
+
+**The DEM's side from an earlier evaluation** (``--dem-reference JSON``, session 7). The DEM
+numbers of a run (every ``dem_*`` entry: powers, speeds, contact census, deepest overlaps,
+spins) depend only on the case, the seed and the DEM, not on the model, so an earlier
+evaluation's JSON (e.g. experiments/contact/results/contact_s1c_heldout8.json) holds them for
+every packing. With it, ``--data`` needs only each record's first window: a DEM run of a few
+milliseconds (``sgn-jax dem ... --duration 0.002``), whose samples are bit-identical to the
+first samples of the full run (the same settled packing, the same steps; checked on
+train_c00_seed1000: 21 samples, every array equal to 0.0). The model then rolls out for the
+reference run's number of steps, the DEM's statistics come from the reference, and the JSON
+records which reference it used. The DEM record of 2 s per packing is 500-1000x the prefix's
+cost, and a new session's checkout holds no data (docs/contact.md, "Evaluating a candidate").
 """
 
 from __future__ import annotations
@@ -49,7 +61,10 @@ def parse_settings(items):
     return out
 
 
-def one_run(model, cfg, traj, duration, window):
+def one_run(model, cfg, traj, duration, window, dem_ref=None):
+    """One free rollout from sample ``window`` of ``traj`` against the DEM over the same
+    interval; with ``dem_ref`` (an earlier evaluation's row of the same case and seed) the
+    DEM's numbers are that row's and ``traj`` need only hold the first window."""
     dt = float(cfg.dem.dt)
     start = window
     n_steps = int(round(duration / dt))
@@ -65,18 +80,22 @@ def one_run(model, cfg, traj, duration, window):
     radius, mass = float(cfg.balls.radius), float(cfg.balls.density) * 4 / 3 * math.pi * float(cfg.balls.radius) ** 3
     # The DEM over the same interval (samples start .. start + n_steps).
     sl = slice(start, start + n_steps + 1)
-    dem_pos, dem_off = np.asarray(traj.pos[sl]), np.asarray(traj.offset[sl])
     span = n_steps * dt
-    dem_target = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in DAMPING)
-    dem_total = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in ALL_LOSSES)
     row = {"seed": int(traj.meta.get("seed", -1)), "steps": n_steps, "wall_s": wall,
            "finite": finite,
-           "dem_power_W": dem_target / span, "dem_total_power_W": dem_total / span,
            "model_power_W": float(np.sum(a["dE"])) / span,
            "outside_ball_steps": int(np.sum(a["n_outside"])),
            "snapped_fraction": float(np.sum(a["n_snapped"])) / (n_steps * pos.shape[1]),
-           "dem_speed_m_s": float(np.mean(sj.jar_frame_speed(np.asarray(traj.t[sl]), dem_pos, dem_off))),
            }
+    if dem_ref is None:
+        dem_pos, dem_off = np.asarray(traj.pos[sl]), np.asarray(traj.offset[sl])
+        dem_target = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in DAMPING)
+        dem_total = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in ALL_LOSSES)
+        row.update({"dem_power_W": dem_target / span, "dem_total_power_W": dem_total / span,
+                    "dem_speed_m_s": float(np.mean(sj.jar_frame_speed(
+                        np.asarray(traj.t[sl]), dem_pos, dem_off)))})
+    else:
+        row.update({k: v for k, v in dem_ref.items() if k.startswith("dem_")})
     if "diss_pp_model" in a:
         d_pp, d_pw, w_wall = (np.asarray(a[k]) for k in ("diss_pp_model", "diss_pw_model",
                                                          "work_wall_model"))
@@ -94,19 +113,23 @@ def one_run(model, cfg, traj, duration, window):
             lhs = float(np.sum(w_wall[1:]) - (ke[-1] - ke[0]) - (pe[-1] - pe[1]))
             rhs = float(np.sum(d_pp[1:] + d_pw[1:]))
             row["ledger_residual"] = (lhs - rhs) / max(abs(rhs), 1e-30)
-    if "omega_model" in a and traj.omega is not None:
+    if "omega_model" in a and traj.omega is not None and dem_ref is None:
         # The spin a model with spin state carries against the DEM's: mean contact-point
         # speed of the rotation, R |w| (m/s), over the same samples (docs/contact.md).
         row["model_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
             np.asarray(a["omega_model"]), axis=-1)))
         row["dem_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
             np.asarray(traj.omega[sl]), axis=-1)))
+    elif "omega_model" in a:
+        row["model_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
+            np.asarray(a["omega_model"]), axis=-1)))
     if finite:
         row["model_speed_m_s"] = float(np.mean(sj.jar_frame_speed(t_pos, pos, off)))
         census_m = sj.contact_census(pos, off, jar, radius)
-        census_d = sj.contact_census(dem_pos, dem_off, jar, radius)
         row.update({f"model_{k}": v for k, v in census_m.items()})
-        row.update({f"dem_{k}": v for k, v in census_d.items()})
+        if dem_ref is None:
+            census_d = sj.contact_census(dem_pos, dem_off, jar, radius)
+            row.update({f"dem_{k}": v for k, v in census_d.items()})
     return row
 
 
@@ -175,7 +198,13 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--rollout", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--out", default="runs/contact_eval")
+    ap.add_argument("--dem-reference", default=None, metavar="JSON",
+                    help="an earlier evaluation's JSON of the same ensembles: the DEM's numbers "
+                    "of each run from it, and --data need only hold each record's first window")
     args = ap.parse_args()
+    reference = None
+    if args.dem_reference:
+        reference = json.loads(Path(args.dem_reference).read_text())["runs"]
 
     sj.enable_compilation_cache()
     model = sj.load_trained_model(sj.resolve_checkpoint(args.model))
@@ -207,9 +236,22 @@ def main() -> None:
                 continue
             traj = sj.load_trajectory(path).at_step(model_dt)
             window = int(model.config.graph.window)
-            duration = args.duration or (len(traj.t) - 2 - window) * float(cfg.dem.dt)
+            dem_ref = None
+            if reference is not None:
+                dem_ref = reference.get(key)
+                if dem_ref is None or int(dem_ref["seed"]) != seed:
+                    raise SystemExit(f"--dem-reference {args.dem_reference} has no run {key}")
+                if args.duration is not None:
+                    raise SystemExit("--duration with --dem-reference: the reference's steps "
+                                     "set the duration")
+                if len(traj.t) < window + 1:
+                    raise SystemExit(f"{path}: {len(traj.t)} samples at {model_dt} s, fewer "
+                                     f"than the first window's {window + 1}")
+                duration = int(dem_ref["steps"]) * float(cfg.dem.dt)
+            else:
+                duration = args.duration or (len(traj.t) - 2 - window) * float(cfg.dem.dt)
             duration = round(duration / float(cfg.dem.dt)) * float(cfg.dem.dt)
-            row = one_run(model, cfg, traj, duration, window)
+            row = one_run(model, cfg, traj, duration, window, dem_ref)
             done["runs"][key] = row
             runs.append(row)
             json_path.write_text(json.dumps(done, indent=1))
@@ -221,6 +263,8 @@ def main() -> None:
     done["summaries"] = summaries
     done["model"] = str(args.model)
     done["settings"] = settings
+    if args.dem_reference:
+        done["dem_reference"] = args.dem_reference
     json_path.write_text(json.dumps(done, indent=1))
     (out / f"{args.name}.md").write_text(table(summaries))
     print(table(summaries))

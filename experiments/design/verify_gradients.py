@@ -14,7 +14,10 @@ ensemble-mean power, with its standard error, is set beside the surrogate's esti
 ``--out DIR`` (before the command) puts everything in DIR instead of runs/design, e.g. a second
 model's check beside the first (copy the DEM lines, experiments/design/results/dem_powers.jsonl,
 to DIR/dem/worker0.jsonl to reuse them); ``surrogate --checkpoint contact --separation off``
-checks the contact model with the paper's rollout (no ball-ball separation).
+checks the contact model with the paper's rollout (no ball-ball separation);
+``surrogate --points edge --params motion.rpm --packings 24`` one row with more packings (a
+candidate model's quick check of one gradient; the DEM's 24-packing lines of session 6 are in
+experiments/design/results/session6/dem24_worker*.jsonl).
 
 **Jar-shape parameters, paired** (``surrogate-paired``, added 2026-11-26). The DEM's side runs
 of a jar parameter start from packings settled in the changed jar; the surrogate's difference
@@ -163,7 +166,8 @@ def load_dem() -> dict[tuple, list[float]]:
 def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
                   separation: bool | None = None, start: str = "auto",
                   estimators: str = "both", packings: int = len(SEEDS),
-                  points: Sequence[str] | None = None) -> None:
+                  points: Sequence[str] | None = None,
+                  params: Sequence[str] | None = None) -> None:
     model = sj.load_surrogate(checkpoint)
     results = {}
     path = OUT / "surrogate.json"
@@ -173,7 +177,9 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         if point in results:
             continue
         cfg = sj.at_surrogate_step(point_config(point), model)   # a 2e-4 s model at its step
-        names = list(POINTS[point]["steps"])
+        names = [n for n in POINTS[point]["steps"] if params is None or n in params]
+        if not names:
+            continue
         t0 = time.perf_counter()
         # The study's start as a user's: with a jar parameter among the names ("auto") the DEM
         # makes the seeds' packings in every jar the study evaluates.
@@ -191,7 +197,7 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
                                 burn_in=BURN_IN, horizon=horizon, n_segments=segments,
                                 estimator="difference" if difference_only else "horizon",
                                 separation=separation, start=point_start,
-                                steps=POINTS[point]["steps"])
+                                steps={n: POINTS[point]["steps"][n] for n in names})
         t0 = time.perf_counter()
         est = study.estimate()
         t_est = time.perf_counter() - t0
@@ -374,6 +380,9 @@ def main() -> None:
                    help="the ball-ball separation (default: the point's config)")
     s.add_argument("--points", default=None,
                    help=f"comma-separated design points (default all: {', '.join(POINTS)})")
+    s.add_argument("--params", default=None,
+                   help="comma-separated parameters (default: each point's three); a point "
+                   "without any of them is skipped")
     s.add_argument("--packings", type=int, default=len(SEEDS),
                    help=f"the surrogate's packings, seeds {SEEDS[0]}.. (default {len(SEEDS)}: "
                    "the DEM's)")
@@ -399,7 +408,8 @@ def main() -> None:
         cmd_surrogate(args.checkpoint, args.horizon, args.segments,
                       {"config": None, "on": True, "off": False}[args.separation], args.start,
                       args.estimators, args.packings,
-                      None if args.points is None else args.points.split(","))
+                      None if args.points is None else args.points.split(","),
+                      None if args.params is None else args.params.split(","))
     elif args.cmd == "surrogate-paired":
         cmd_surrogate_paired(args.checkpoint,
                              {"config": None, "on": True, "off": False}[args.separation])
