@@ -41,21 +41,22 @@ SESSION_DIR_ENV = "SGN_JAX_TEST_SESSION_DIR"
 # collection order. The ones that make the session's DEM runs (conftest's fixtures below) are
 # spread so that the two workers do not wait on the same one at the start.
 LONGEST_FILES_FIRST = (
-    "test_rollout.py",          # ~100 s; standard_dem_file
-    "test_design.py",           # ~80 s; short_packings
-    "test_train.py",            # ~60 s
-    "test_sharding.py",         # ~50 s (the two-device process)
-    "test_sweep.py",            # ~35 s; contact_short_packings (2026-11-26, session 6:
-                                # unlisted, it could start last on one worker)
-    "test_contact.py",          # ~48 s
-    "test_dem_jar.py",          # ~46 s
-    "test_sdf_grid.py",         # ~41 s
-    "test_contact_train.py",    # ~40 s
-    "test_experiments.py",      # ~34 s
-    "test_dem_driver.py",       # ~21 s
+    # seconds of one worker in the default run, measured 2026-11-27 (session 7, --durations=0)
+    "test_rollout.py",          # ~92 s; standard_dem_file
+    "test_contact.py",          # ~55 s
+    "test_design.py",           # ~52 s; short_packings
+    "test_dem_jar.py",          # ~51 s
+    "test_train.py",            # ~50 s
+    "test_sdf_grid.py",         # ~45 s
+    "test_sweep.py",            # ~44 s; contact_short_packings
+    "test_sharding.py",         # ~41 s (the two-device process)
+    "test_dem_driver.py",       # ~26 s
     "test_motion.py",           # ~20 s
-    "test_demo.py",             # ~19 s
-    "test_geometry.py",         # ~19 s
+    "test_extension_contact_law.py",  # ~18 s
+    "test_contact_train.py",    # ~17 s
+    "test_demo.py",             # ~17 s
+    "test_cache.py",            # ~15 s
+    "test_geometry.py",         # ~14 s
 )
 
 

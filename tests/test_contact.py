@@ -97,6 +97,10 @@ def test_contact_kind_is_registered_and_builds_from_the_whole_config():
     assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
 
 
+# The slow tier (session 7, the default run's 6 minutes): a speed-up's equality (the graphs
+# without the node-wall queries give the same step); every contact-model test of the default
+# run builds its graphs without them.
+@pytest.mark.slow
 def test_its_graphs_skip_the_node_wall_columns_it_never_reads():
     """Kind "contact" reads only the nodes' velocities (its walls are its ball-wall edges), so
     its config's graphs leave the W nearest-wall queries out (``GraphSpec.node_walls``): the
@@ -311,7 +315,9 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
     assert counts == {0: 1, 4: 2}
 
 
-@pytest.mark.parametrize("patches", [0, 4])
+# patches = 4 in the slow tier (session 7, the default run's 6 minutes): the same rows split
+# with the wall-patch edges of a jar with four patches; patches = 0 runs by default.
+@pytest.mark.parametrize("patches", [0, pytest.param(4, marks=pytest.mark.slow)])
 def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
     """``ContactPhysics.wall_patches`` known (from the config, as the graphs') and the model's
     single-rollout form (``rows_by_kind``): each MLP runs only on its own kind's rows, half the

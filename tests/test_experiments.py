@@ -66,6 +66,11 @@ def test_sensitivity_variants_change_only_what_they_declare(tmp_path):
         assert g["phi_sb"] - g["phi_pw"] == pytest.approx(0.0003)
 
 
+# The slow tier (session 7, the default run's 6 minutes: 32-34 s of subprocesses). The default
+# run keeps generate_data's records, skips and redos (tests/test_generate_data.py) and
+# run_experiments' scheduler with its logs and exit statuses (below); the rollouts, results
+# and report of a whole run are checked here only.
+@pytest.mark.slow
 @pytest.mark.skipif(not (shipped_model_dir() / "PROVENANCE.json").is_file(),
                     reason="no shipped model")
 def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
