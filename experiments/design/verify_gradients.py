@@ -405,6 +405,10 @@ def main() -> None:
     elif args.cmd == "dem-worker":
         cmd_dem_worker(args.index, args.of, args.packings, rows)
     elif args.cmd == "surrogate":
+        known = {n for spec in POINTS.values() for n in spec["steps"]}
+        unknown = sorted(set(args.params.split(",")) - known) if args.params else []
+        if unknown:
+            p.error(f"--params {unknown}: not a parameter of the check (one of {sorted(known)})")
         cmd_surrogate(args.checkpoint, args.horizon, args.segments,
                       {"config": None, "on": True, "off": False}[args.separation], args.start,
                       args.estimators, args.packings,
