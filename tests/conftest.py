@@ -35,13 +35,12 @@ SESSION_DIR_ENV = "SGN_JAX_TEST_SESSION_DIR"
 # The longest test files first (issue 20): with ``-n 2 --dist loadfile`` each xdist worker takes
 # the next whole file when it runs out, so longest-first leaves only short files for the end and
 # the two workers finish within seconds of each other (in collection order a 30-50 s file could
-# start last on one worker while the other sat idle). Approximate seconds on one core of the
-# 2-core CI machine (benchmarks/compile_probe.py, 2026-11-26); the order is only a scheduling
+# start last on one worker while the other sat idle). Approximate seconds of one worker
+# (`pytest --durations=0`, 2026-11-27; benchmarks/compile_probe.py shows where they go); the order is only a scheduling
 # hint: a wrong or stale entry costs time, never a result. Files not listed follow in
 # collection order. The ones that make the session's DEM runs (conftest's fixtures below) are
 # spread so that the two workers do not wait on the same one at the start.
 LONGEST_FILES_FIRST = (
-    # seconds of one worker in the default run, measured 2026-11-27 (session 7, --durations=0)
     "test_rollout.py",          # ~92 s; standard_dem_file
     "test_contact.py",          # ~55 s
     "test_design.py",           # ~52 s; short_packings
