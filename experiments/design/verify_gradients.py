@@ -346,7 +346,7 @@ def cmd_report() -> None:
                             color="tab:red", label="surrogate gradient (difference estimator)")
             ax.set_xlabel(f"{name} [{sj.parameter_unit(name)}]")
             ax.set_ylabel("mean dissipation power [W]")
-            ax.set_title(f"{point}: power vs {name}\n(8 packings, power over {BURN_IN}-"
+            ax.set_title(f"{point}: power vs {name}\n({len(minus)} DEM packings, power over {BURN_IN}-"
                          f"{DURATION} s)", fontsize=9)
             ax.legend(fontsize=7)
             fig.tight_layout()
