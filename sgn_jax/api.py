@@ -21,6 +21,7 @@ This module is the layer where configs and files meet the core (:mod:`sgn_jax.de
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -608,14 +609,42 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
         ``n_snapped`` (K, S).
     """
     check_batching(batching)   # before any work (the rollout's form depends on it)
-    rollout = _ensemble_rollout(surrogate, cfg, duration, save_every,
-                                single=batching == "map")
     frame = _surrogate_frame(surrogate, cfg, packings)
+    run = _ensemble_runner(surrogate, cfg, duration, save_every, batching, shard)
     windows = shard_packings(frame.windows) if shard else frame.windows
-    run = over_packings(lambda window, shared: rollout(*shared, window, frame.motion,
-                                                       frame.jar, packings.t0),
-                        batching, shard)
-    return jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats)))
+    return jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats, frame.motion,
+                                        frame.jar, jnp.asarray(packings.t0))))
+
+
+# rollout_ensemble's compiled programs, by what fixes the program: the motion's and the jar's
+# values, the start time and the parameters are arguments, so a second ensemble of the same
+# model, sizes and [rollout] settings under another motion (a sweep of rpm, the two sides of a
+# difference) runs the program already compiled instead of tracing and compiling it again.
+_ENSEMBLE_RUNNERS: dict[tuple, Callable] = {}
+_ENSEMBLE_RUNNERS_MAX = 8
+
+
+def _ensemble_runner(surrogate: TrainedModel, cfg: Config, duration: float,
+                     save_every: int | None, batching: str, shard: bool) -> Callable:
+    """The jitted ``run(windows, (params, norm_stats, motion, jar, t0))`` of
+    :func:`rollout_ensemble`, made once per model, [balls], [dem], [rollout], duration,
+    ``save_every``, batching and devices (for ``shard``), and kept (the last few)."""
+    key = (surrogate.model, surrogate.config, cfg.balls, cfg.dem, cfg.rollout, float(duration),
+           save_every, batching, shard, tuple(jax.devices()) if shard else None)
+    run = _ENSEMBLE_RUNNERS.get(key)
+    if run is None:
+        rollout = _ensemble_rollout(surrogate, cfg, duration, save_every,
+                                    single=batching == "map")
+
+        def one(window, shared):
+            params, norm_stats, motion, jar, t0 = shared
+            return rollout(params, norm_stats, window, motion, jar, t0)
+
+        run = over_packings(one, batching, shard)
+        if len(_ENSEMBLE_RUNNERS) >= _ENSEMBLE_RUNNERS_MAX:
+            _ENSEMBLE_RUNNERS.pop(next(iter(_ENSEMBLE_RUNNERS)))   # the oldest
+        _ENSEMBLE_RUNNERS[key] = run
+    return run
 
 
 def rollout_sweep(surrogate: TrainedModel, cfgs: Sequence[Config], packings: Packings,
@@ -689,9 +718,16 @@ def shard_packings(tree: Any, devices: Sequence[Any] | None = None) -> Any:
 
 def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float) -> Window:
     """The packings' windows moved to ``motion`` (jar-frame positions kept; host side)."""
-    move = jax.jit(jax.vmap(lambda w: anchored_window(w, jnp.asarray(packings.t0, jnp.float64),
-                                                      made_under, motion, dt)[0]))
-    return jax.device_get(move(packings.windows))
+    return jax.device_get(_anchored_windows(packings.windows,
+                                            jnp.asarray(packings.t0, jnp.float64),
+                                            made_under, motion, float(dt)))
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def _anchored_windows(windows: Window, t0: jax.Array, made_under: Motion, motion: Motion,
+                      dt: float) -> Window:
+    # (one compiled program per motion kind and sizes: the motions' values are arguments)
+    return jax.vmap(lambda w: anchored_window(w, t0, made_under, motion, dt)[0])(windows)
 
 
 def parameter_values_of(cfg: Config, names: Sequence[str]) -> np.ndarray:

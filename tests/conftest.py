@@ -47,8 +47,8 @@ LONGEST_FILES_FIRST = (
     "test_dem_jar.py",          # ~51 s
     "test_train.py",            # ~50 s
     "test_sdf_grid.py",         # ~45 s
-    "test_sweep.py",            # ~44 s; contact_short_packings
-    "test_sharding.py",         # ~41 s (the two-device process)
+    "test_sharding.py",         # ~36 s (the two-device process)
+    "test_sweep.py",            # ~28 s; contact_short_packings
     "test_dem_driver.py",       # ~26 s
     "test_motion.py",           # ~20 s
     "test_extension_contact_law.py",  # ~18 s

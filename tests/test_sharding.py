@@ -10,8 +10,8 @@ starts), so that the rest of the suite keeps one device: tests/two_device_checks
 two-device process (it waited 15-18 s for it when they were two files).
 
 What "the same" means for ensembles, measured: a sharded ensemble of two packings (one per device) is
-bit-identical to rolling each packing out alone. The one-device vmapped batch of two differs
-from both at float32 rounding (batched matmuls round differently), which the chaotic rollout
+bit-identical to rolling each packing out alone (the default run checks this). The one-device
+vmapped batch of two (checked in the slow tier) differs from both at float32 rounding (batched matmuls round differently), which the chaotic rollout
 amplifies by about e^7 per 10 ms: after 100 steps positions differ by ~1e-6 m, energies by
 ~2e-4 relative, and the 0.01-s ensemble power by ~4e-3 relative; those are the tolerances below.
 """
@@ -25,8 +25,8 @@ from two_device_checks import run_in_two_device_process
 def _check_ensemble(out: dict) -> None:
     assert len(out["devices"]) == 2                      # one packing on each device
     assert out["max_pos_diff_alone"] == 0.0              # each device runs its packing alone
-    assert out["max_pos_diff"] < 1e-5                     # vs the batched run: float32 rounding
-    assert out["energy_sharded"] == pytest.approx(out["energy_plain"], rel=2e-3)
+    assert out["energy_sharded"] == out["energy_alone"]
+    assert min(out["energy_alone"]) > 0                   # the balls did collide
     assert "multiple of 2" in out["odd"]
 
 
@@ -40,9 +40,11 @@ def test_sharded_ensemble_equals_unsharded_on_two_host_devices(two_device_result
 def test_sharded_ensemble_and_design_study_equal_unsharded_on_two_host_devices():
     out = run_in_two_device_process(["ensemble_study"])["ensemble_study"]
     _check_ensemble(out)
+    assert out["max_pos_diff"] < 1e-5     # vs the one-device batch: float32 rounding
     # each device maps over its packings (batching="map", jax.shard_map): float32 rounding
     assert out["max_pos_diff_mapped"] < 1e-5
     assert out["power"][1] == pytest.approx(out["power"][0], rel=2e-2)
+    assert abs(out["grad"][0]) > 0
     assert out["grad"][1] == pytest.approx(out["grad"][0], rel=5e-2)
 
 

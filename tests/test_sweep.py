@@ -3,11 +3,24 @@ api.rollout_ensemble gives for its config; configs that differ outside [motion] 
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
 import sgn_jax.api as sj
 from sgn_jax.config import replace_section
+
+# XLA compilations in this process (jax.monitoring), to check that a second ensemble under
+# another motion runs the program already compiled.
+_COMPILES: list[float] = []
+
+
+def _count_compiles(event: str, duration: float, **_) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _COMPILES.append(duration)
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compiles)
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +38,10 @@ def test_a_sweep_equals_one_ensemble_per_motion(setting):
     assert sweep.positions.shape[:2] == (2, 2)
     assert sweep.steps.energy_cum.shape[:2] == (2, 2)
     for m, c in enumerate(cfgs):
+        compiled_before = len(_COMPILES)
         alone = sj.rollout_ensemble(model, c, packings, duration=0.01)
+        if m:   # the motion's values are arguments of the first motion's compiled program
+            assert len(_COMPILES) == compiled_before, _COMPILES[compiled_before:]
         # A batch of 4 rounds the float32 network differently from a batch of 2, and the
         # rollout amplifies it (tests/test_sharding.py measures the same: ~1e-6 m, 2e-4 J/J
         # after 100 steps); a wrong motion or packing would differ by millimetres.

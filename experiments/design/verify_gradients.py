@@ -322,7 +322,8 @@ def cmd_report() -> None:
                         f" | {f(g_s)} ({f(se_s)}) | {sign_h} | {within_h} |")
             fig, ax = plt.subplots(figsize=(5, 3.6))
             centre = dem.get((point, None, 0))
-            x0 = s.get("theta0", [None] * 3)[s["names"].index(name)] if s else None
+            # (a surrogate run of some of the point's parameters: the others' rows are the DEM's)
+            x0 = s["theta0"][s["names"].index(name)] if name in s.get("names", ()) else None
             if x0 is None:
                 x0 = sj.parameter_values_of(point_config(point), [name])[0]
             xs = [x0 - h, x0 + h]
@@ -335,7 +336,7 @@ def cmd_report() -> None:
                 es.insert(1, np.std(centre, ddof=1) / np.sqrt(len(centre)))
             ax.errorbar(xs, ys, yerr=es, fmt="o-", color="k", capsize=3,
                         label="DEM ensemble mean (+-SE)")
-            if s:
+            if s and name in s.get("names", ()):
                 p0 = s["estimate"]["power_W"]
                 sx = [x0 - h, x0, x0 + h]
                 sy = [np.mean(fd["minus_W"]), p0, np.mean(fd["plus_W"])] if fd else None
