@@ -13,7 +13,7 @@ from sgn_jax.surrogate.model import init_params
 
 @dataclass
 class SyntheticTrajectory:
-    """A SPEC-4-like trajectory (only what the featurizer reads): smooth random ball motions
+    """Trajectory-record-like arrays (only what the featurizer reads): smooth random ball motions
     inside the standard jar, which moves on the standard circle. Not physical: for tests."""
 
     t: np.ndarray

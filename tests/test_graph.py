@@ -95,7 +95,7 @@ def test_edges_follow_the_rules_in_both_directions(jar, seed):
     graph, counts = jax.jit(lambda w: build_graph(w, jar, spec, analytic_query))(win)
     pp, pw = _edge_set(graph)
 
-    # Expected by brute force from the same SDF and the rules of SPEC 5.
+    # Expected by brute force from the same SDF and the rules of docs/conventions.md section 5.
     phi, normal = (np.asarray(a, np.float64) for a in reference_query(jar, x + offset, offset))
     d = np.linalg.norm(x[:, None] - x[None], axis=-1)
     expected_pp = {(j, i) for i in range(n) for j in range(n)

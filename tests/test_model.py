@@ -41,7 +41,7 @@ def analytic_query(params, points, offset):
     return phi, grad / jnp.linalg.norm(grad, axis=-1, keepdims=True)
 
 
-SPEC = GraphSpec(n_particles=N, window=W, ball_radius=0.005, dt=1e-4, pp_pair_capacity=16)
+GRAPH_SPEC = GraphSpec(n_particles=N, window=W, ball_radius=0.005, dt=1e-4, pp_pair_capacity=16)
 
 # The tests' normalisation of graphs as one program, instead of dozens of eager op compiles
 # (issue 20); test_normalisation_round_trip_... checks normalize_graph itself, called as is.
@@ -56,7 +56,7 @@ def windows():
 
 @pytest.fixture(scope="module")
 def builder(jar):
-    return jax.jit(lambda w: build_graph(w, jar, SPEC, analytic_query))
+    return jax.jit(lambda w: build_graph(w, jar, GRAPH_SPEC, analytic_query))
 
 
 

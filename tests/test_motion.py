@@ -1,4 +1,5 @@
-"""Tests of sgn_jax.motion: SPEC 2 formulas, autodiff derivatives, the periodic spline, batching."""
+"""Tests of sgn_jax.motion: docs/conventions.md section 2 formulas, autodiff derivatives, the
+periodic spline, batching."""
 
 from pathlib import Path
 
@@ -78,7 +79,7 @@ def test_circle_radius_period_and_plane():
     np.testing.assert_allclose(shifted, xyz, atol=1e-14)
     # half a period later the jar is on the opposite side of the orbit
     np.testing.assert_allclose(np.asarray(_offset(circle, TIMES + 0.1)), -xyz, atol=1e-14)
-    # SPEC 2: offset(0) = (0, 0, A)
+    # docs/conventions.md section 2: offset(0) = (0, 0, A)
     np.testing.assert_allclose(np.asarray(_offset(circle, 0.0)), [0.0, 0.0, 0.017], atol=1e-16)
 
 

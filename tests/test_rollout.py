@@ -129,7 +129,8 @@ def test_snap_back_would_move_dem_balls(dem):
 
 
 def _circle_offset(rpm, amplitude, t):
-    """SPEC 2 circle in numpy: (A sin 2 pi f t, 0, A cos 2 pi f t), f = rpm / 60."""
+    """The circle of docs/conventions.md section 2 in numpy: (A sin 2 pi f t, 0, A cos 2 pi f t),
+    f = rpm / 60."""
     angle = 2 * np.pi * rpm / 60 * t
     return np.array([amplitude * np.sin(angle), 0.0, amplitude * np.cos(angle)])
 

@@ -36,7 +36,7 @@ DEFAULT = JarParams()
 POST_JAR = JarParams(post_radius=0.006, has_post=True)
 SPACING = 5e-4
 BALL_RADIUS = 0.005
-PHI_SB = -0.0049  # snap-back threshold of the surrogate (SPEC)
+PHI_SB = -0.0049  # snap-back threshold of the surrogate (docs/conventions.md section 5)
 
 
 # The exact SDFs and the grid queries run jitted (issue 20): one compiled program per jar and

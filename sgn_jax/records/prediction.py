@@ -259,7 +259,8 @@ def load_prediction(path: str | Path) -> Prediction:
     arrays, meta = records.read_npz_record(path, _FORMAT)
     if isinstance(meta, Mapping) and "t_step" not in arrays and "pos" in arrays \
             and "pp_pairs" in arrays:
-        raise PredictionError(f"{_FORMAT.where(path)} is a DEM trajectory file (SPEC 4), not a "
+        raise PredictionError(f"{_FORMAT.where(path)} is a DEM trajectory file "
+                              "(docs/conventions.md section 4), not a "
                               "rollout prediction; pass it as --reference instead")
     validate_prediction(arrays, meta, path)
     _FORMAT.config_from_meta(meta, path)

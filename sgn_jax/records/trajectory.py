@@ -1,4 +1,5 @@
-"""The trajectory file (SPEC section 4): one ``.npz`` per DEM trajectory, sampled every ``dt``.
+"""The trajectory file (docs/conventions.md section 4): one ``.npz`` per DEM trajectory, sampled
+every ``dt``.
 
 The DEM writes it with :func:`save_trajectory`; everything else reads it with
 :func:`load_trajectory`, which returns a read-only :class:`Trajectory`. Both run the same checks
@@ -92,7 +93,7 @@ _FORMAT = RecordFormat(
     error=DatasetError,
     arrays=REQUIRED_ARRAYS,
     meta_keys=REQUIRED_META,
-    documented_in="SPEC section 4",
+    documented_in="docs/conventions.md section 4",
     size_sources="T from 't', N from 'pos', K from 'pp_pairs'",
     float64_hint=("positions and velocities must be float64 (the surrogate's finite "
                   "differences need them); cast with .astype(np.float64) before saving"),
@@ -282,13 +283,14 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
         """Cumulative dissipated energy since the first sample (T,) J; [0] = 0.
 
         The default (normal + tangential damping, ball-ball + ball-wall) is the surrogate's dE
-        target (SPEC section 3); ``kind="all"`` adds Coulomb slip and rolling friction.
+        target (docs/conventions.md section 3); ``kind="all"`` adds Coulomb slip and rolling
+        friction.
         """
         return np.cumsum(self.dissipation(kind, which))
 
     def energy_balance(self) -> np.ndarray:
         """``ke_trans + ke_rot + pe_grav + e_elastic + all dissipation - work_wall`` minus its
-        first value, (T,) J: zero up to the integrator's error (SPEC section 4)."""
+        first value, (T,) J: zero up to the integrator's error (docs/conventions.md section 4)."""
         a = self.arrays
         total = (a["ke_trans"] + a["ke_rot"] + a["pe_grav"] + a["e_elastic"]
                  + self.cumulative_dissipation("all", "all") - a["work_wall"])
@@ -299,8 +301,8 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
 
         Required arrays and extra arrays whose first dimension is T are sliced; other extra
         arrays are kept whole. The dissipation arrays of the first kept sample are set to 0
-        (the interval before it is not part of the slice), so the SPEC's "first sample 0" still
-        holds and ``cumulative_dissipation`` starts at 0. ``work_wall`` stays cumulative since
+        (the interval before it is not part of the slice), so the record format's "first sample 0"
+        still holds and ``cumulative_dissipation`` starts at 0. ``work_wall`` stays cumulative since
         t = 0 of the original run.
         """
         first, last, _ = slice(start, stop).indices(self.n_samples)
