@@ -117,7 +117,8 @@ def position_mse(pred_pos: np.ndarray, ref_pos: np.ndarray) -> np.ndarray:
     """MSE_t = mean over balls of |x_pred - x_ref|^2 (paper Eq. 33), m^2.
 
     Args:
-        pred_pos, ref_pos: (P, N, 3) positions (m), balls matched by index.
+        pred_pos: (P, N, 3) predicted positions (m).
+        ref_pos: (P, N, 3) reference positions (m), balls matched by index.
     Returns:
         (P,) float64.
     """
@@ -417,9 +418,10 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
     sections 6 and 7.
 
     Args:
-        prediction: ``Prediction`` or path; reference: ``Trajectory`` or path.
-        classify_by, threshold: the state rule, see :func:`classify_state` (threshold default
-            :func:`default_threshold`).
+        prediction: ``Prediction`` or path.
+        reference: ``Trajectory`` or path.
+        classify_by: the state rule, see :func:`classify_state`.
+        threshold: the state rule's threshold (default :func:`default_threshold`).
     Returns:
         :class:`Comparison`; its ``summary`` keys: prediction, reference, overlap, position,
         energy, outside, overflow, snapped, regime, motion (:func:`motion_checks` and
@@ -629,12 +631,14 @@ def motion_checks(*, jar_speed_dem_m_s: float | None, jar_speed_sgn_m_s: float |
     """The motion checks of one run: the DEM's value next to the surrogate's (pure function).
 
     Args:
-        jar_speed_dem_m_s, jar_speed_sgn_m_s: mean ball speed in the jar frame (m/s) at the
-            same frame times (:func:`jar_frame_speed`).
-        snapped_ball_steps: the surrogate's ball-steps moved by the snap-back; ball_steps:
-            steps x balls of the rollout.
-        overlap_dem_m, overlap_sgn_m: deepest ball-ball overlap over the run (m, >= 0;
+        jar_speed_dem_m_s: the DEM's mean ball speed in the jar frame (m/s)
+            (:func:`jar_frame_speed`).
+        jar_speed_sgn_m_s: the surrogate's, at the same frame times (m/s).
+        snapped_ball_steps: the surrogate's ball-steps moved by the snap-back.
+        ball_steps: steps x balls of the rollout.
+        overlap_dem_m: the DEM's deepest ball-ball overlap over the run (m, >= 0;
             :func:`deepest_pair_overlap`).
+        overlap_sgn_m: the surrogate's (m, >= 0).
         mse_plateau_m2: the surrogate's MSE_t plateau (m^2).
     Returns:
         one JSON-able dict per check, in a fixed order (jar_speed, snapped, overlap,

@@ -221,7 +221,7 @@ def save_prediction(path: str | Path, arrays: Mapping[str, Any], meta: Mapping[s
     config; ``compress``: write with ``np.savez_compressed``.
 
     Raises:
-        PredictionError on any problem, before anything is written.
+        PredictionError: on any problem, before anything is written.
     """
     records.write_npz_record(path, arrays, meta, _FORMAT, validate_prediction, compress=compress)
 

@@ -132,8 +132,8 @@ def validate_trajectory(arrays: Mapping[str, Any], meta: Mapping[str, Any],
     """Check names, shapes, dtypes, finiteness, time spacing, consistency and meta.
 
     Raises:
-        DatasetError naming ``path`` (if given), the offending array or meta key, what was
-        expected and what was found.
+        DatasetError: naming ``path`` (if given), the offending array or meta key, what was
+            expected and what was found.
     """
     where, arrays = records.check_names_and_meta(arrays, meta, path, _FORMAT, _check_meta)
 
@@ -229,7 +229,7 @@ def save_trajectory(path: str | Path, arrays: Mapping[str, Any], meta: Mapping[s
     positions compress poorly).
 
     Raises:
-        DatasetError saying what is wrong; nothing is written then.
+        DatasetError: saying what is wrong; nothing is written then.
     """
     records.write_npz_record(path, arrays, meta, _FORMAT, validate_trajectory,
                              compress=compress)
