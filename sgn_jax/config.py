@@ -347,12 +347,12 @@ class GraphConfig:
         phi_sb: m, rollout snap-back threshold, phi_pw < phi_sb < 0.
         pp_edges_per_particle: static directed ball-ball edge slots per graph, per ball.
         contact_features: two more edge columns, the surface gap and the overlap of the two
-            balls (or of ball and wall), so the network sees a contact coming (issue 10;
-            docs/sgn.md). Off: the paper's 3 columns (displacement, phi n).
+            balls (or of ball and wall), so the network sees a contact coming (docs/sgn.md).
+            Off: the paper's 3 columns (displacement, phi n).
         wall_patches: 0 (the paper): one ball-wall edge per ball, to the nearest wall; P > 0:
             one ball-wall edge per ball and wall patch (floor, lid, side, post), at most P
-            patches, as the DEM has one contact per ball and patch (the contact model, issue
-            19; a ball in the corner of floor and side wall feels both walls).
+            patches, as the DEM has one contact per ball and patch (the contact model; a ball
+            in the corner of floor and side wall feels both walls).
     """
 
     window: int = 7

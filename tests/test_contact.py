@@ -97,7 +97,7 @@ def test_contact_kind_is_registered_and_builds_from_the_whole_config():
     assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
 
 
-# The slow tier (session 7, the default run's 6 minutes): a speed-up's equality (the graphs
+# The slow tier (the default run's 6-minute budget): a speed-up's equality (the graphs
 # without the node-wall queries give the same step); every contact-model test of the default
 # run builds its graphs without them.
 @pytest.mark.slow
@@ -161,7 +161,7 @@ def test_gradients_are_finite_for_balls_at_rest():
         terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
         return jnp.sum(terms["dv"] ** 2) + terms["diss_pw"][0]
 
-    # jitted: one program instead of ~250 eager compiles of the backward pass's ops (issue 20)
+    # jitted: one program instead of ~250 eager compiles of the backward pass's ops
     grad = np.asarray(jax.jit(jax.grad(energy))(jnp.zeros_like(still.positions)))
     assert np.all(np.isfinite(grad))
     assert float(np.abs(grad).max()) > 0
@@ -299,7 +299,7 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
     counts = {}
-    # jitted: two programs instead of ~250 eager compiles of the jar query's ops (issue 20)
+    # jitted: two programs instead of ~250 eager compiles of the jar query's ops
     jar_graph = jax.jit(build_graph, static_argnums=(1, 2, 3))
     for patches in (0, 4):
         spec = GraphSpec(n_particles=n, window=W, ball_radius=R, dt=DT, pp_pair_capacity=1,
@@ -315,7 +315,7 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
     assert counts == {0: 1, 4: 2}
 
 
-# patches = 4 in the slow tier (session 7, the default run's 6 minutes): the same rows split
+# patches = 4 in the slow tier (the default run's 6-minute budget): the same rows split
 # with the wall-patch edges of a jar with four patches; patches = 0 runs by default.
 @pytest.mark.parametrize("patches", [0, pytest.param(4, marks=pytest.mark.slow)])
 def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):

@@ -37,7 +37,7 @@ POST = JarParams(post_radius=0.006, has_post=True)
 BALL_RADIUS = 0.005
 
 
-# The analytic SDFs run jitted (issue 20): one compiled program per jar and point shape instead
+# The analytic SDFs run jitted: one compiled program per jar and point shape instead
 # of dozens of op-by-op compiles per call; the same functions, the same numbers.
 _jar_sdf = jax.jit(jar_sdf)
 _jar_patch_sdf = jax.jit(jar_patch_sdf)

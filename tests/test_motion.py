@@ -44,7 +44,7 @@ ALL_MOTIONS = {
 }
 
 
-# The tests evaluate the motion functions jitted (issue 20): one compiled program per motion
+# The tests evaluate the motion functions jitted: one compiled program per motion
 # kind and time shape instead of dozens of op-by-op compiles; the numbers are the same
 # functions'. test_time_shapes_and_jit compares them with the eager calls.
 _offset, _velocity, _acceleration = jax.jit(offset), jax.jit(velocity), jax.jit(acceleration)

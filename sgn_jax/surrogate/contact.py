@@ -1,4 +1,4 @@
-"""The contact-impulse surrogate (model kind "contact", issue 19): contact physics built in.
+"""The contact-impulse surrogate (model kind "contact"): contact physics built in.
 
 The SGN (:mod:`sgn_jax.surrogate.model`) maps raw displacement vectors, velocity histories and the jar's
 global state through MLPs and must learn from data rotation invariance, Newton's third law,
@@ -810,4 +810,4 @@ def make_contact_net(cfg: Any) -> ContactNet:
 
 register_model("contact", make_contact_net, builds_from="config", node_walls=False,
                description="contact-impulse model: invariant edge inputs, equal and opposite "
-                           "impulses, dissipation from its own impulses (issue 19)")
+                           "impulses, dissipation from its own impulses")

@@ -75,8 +75,8 @@ class GraphSpec:
         pp_skin: surface-gap skin s_pp (m): ball-ball edge if ``|x_j - x_i| <= 2 R + s_pp``.
         phi_pw: ball-wall edge if ``phi >= phi_pw`` (m).
         pp_pair_capacity: unordered ball pairs kept per graph (2 directed edges each).
-        contact_features: two more edge columns that make a contact visible to the network
-            (issue 10): ball-ball ``[|x_j - x_i| - 2 R, max(0, 2 R - |x_j - x_i|)]`` (surface
+        contact_features: two more edge columns that make a contact visible to the network:
+            ball-ball ``[|x_j - x_i| - 2 R, max(0, 2 R - |x_j - x_i|)]`` (surface
             gap and overlap, m), ball-wall ``[-phi - R, max(0, phi + R)]`` (the same for the
             wall). Off: the paper's 3 columns.
         wall_patches: 0 (the paper): one ball-wall edge per ball, to the nearest wall. P > 0:
