@@ -32,7 +32,7 @@ Pure numpy. The pieces (each usable alone):
 State classification (docs/conventions.md section 7, "bed" vs "agitated"): the rules, their
 thresholds and where they come from live in :mod:`sgn_jax.regime` (:func:`classify_state`,
 :data:`AGITATED_SPEED_M_S`, :data:`BED_PAIRS_PER_BALL`); this module applies them to the prediction
-and to the reference at the same frame times. They are re-exported here under their old names.
+and to the reference at the same frame times. They are re-exported here under the same names.
 """
 
 from __future__ import annotations
