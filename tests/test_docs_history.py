@@ -130,6 +130,13 @@ def test_package_code_and_configs_have_no_history():
     assert not problems, "history in sgn_jax/:\n" + "\n".join(problems)
 
 
+def test_project_files_have_no_history():
+    files = [ROOT / "pyproject.toml", ROOT / "mkdocs.yml",
+             *_files(ROOT / ".ci", TEXT_SUFFIXES | {""})]  # .ci/run has no suffix
+    problems = _report(_read([p for p in files if p.is_file()]))
+    assert not problems, "history in the project files:\n" + "\n".join(problems)
+
+
 def test_tests_have_no_history():
     problems = _report(_read(_files(ROOT / "tests", TEXT_SUFFIXES)))
     assert not problems, "history in tests/:\n" + "\n".join(problems)
