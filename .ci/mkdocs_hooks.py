@@ -1,10 +1,12 @@
-"""MkDocs hooks of the docs site (mkdocs.yml ``hooks:``): the README and the changelog as pages.
+"""MkDocs hooks of the docs site (mkdocs.yml ``hooks:``).
 
-The site's home page is README.md and its changelog page is CHANGELOG.md, both kept at the
-repository root where GitHub and PyPI show them. This hook adds them to the site as generated
-pages (``index.md``, ``changelog.md``) and rewrites the README's links to docs pages
-(``docs/x.md`` -> ``x.md``), so that there is one copy of each text and ``mkdocs build --strict``
-checks their links like any other page's.
+- The README and the changelog as pages: the site's home page is README.md and its changelog
+  page is CHANGELOG.md, both kept at the repository root where GitHub and PyPI show them. They
+  are added as generated pages (``index.md``, ``changelog.md``), with the README's links to docs
+  pages rewritten (``docs/x.md`` -> ``x.md``), so that there is one copy of each text and
+  ``mkdocs build --strict`` checks their links like any other page's.
+- The docstrings' Sphinx roles (``:func:`name```, ``:class:``, ...) render as plain code in the
+  API reference instead of showing the role's name.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 GENERATED = {"index.md": "README.md", "changelog.md": "CHANGELOG.md"}
 _DOCS_LINK = re.compile(r"\]\(docs/")
 _CHANGELOG_LINK = re.compile(r"\]\(CHANGELOG\.md")
+_SPHINX_ROLE = re.compile(r":(?:func|class|mod|meth|attr|data|exc|obj):(?=<code>)")
 
 
 def _page_text(source: str) -> str:
@@ -31,3 +34,9 @@ def on_files(files, config):
         if files.get_file_from_path(page) is None:
             files.append(File.generated(config, page, content=_page_text(source)))
     return files
+
+
+def on_page_content(html, page, config, files):
+    if page.file.src_uri.startswith("reference/"):
+        html = _SPHINX_ROLE.sub("", html)
+    return html

@@ -9,24 +9,18 @@ problem, and says how to fix it.
 
 Arrays (S surrogate steps, P saved position frames, N balls), SI units:
 
-=================================  =========  =======  ==============================================
-name                               shape      dtype    meaning
-=================================  =========  =======  ==============================================
-``t_step``                         (S,)       float    s since the start of motion at the END of each
-                                                       surrogate step; uniformly spaced by meta dt
-``dE``                             (S,)       float    J, predicted dissipation of each step
-``energy_cum``                     (S,)       float    J, cumulative predicted dissipation since the
-                                                       rollout's start (= cumsum(dE))
-``n_pp_edges``, ``n_pw_edges``     (S,)       int      directed edge counts of the step's graph
-                                                       (n_pp_edges / 2 = ball-ball pairs)
-``overflow``                       (S,)       int      edges dropped by the static capacity
-``n_outside``                      (S,)       int      balls with phi > 0 after the step
-``n_snapped``                      (S,)       int      balls moved by the snap-back
-``t_pos``                          (P,)       float    s, times of the saved frames (strictly
-                                                       increasing, on the step grid)
-``pos``                            (P, N, 3)  float64  ball positions (m, lab frame)
-``offset``                         (P, 3)     float    jar offset at those times (m)
-=================================  =========  =======  ==============================================
+| name | shape | dtype | meaning |
+|---|---|---|---|
+| ``t_step`` | (S,) | float | s since the start of motion at the END of each surrogate step; uniformly spaced by meta dt |
+| ``dE`` | (S,) | float | J, predicted dissipation of each step |
+| ``energy_cum`` | (S,) | float | J, cumulative predicted dissipation since the rollout's start (= cumsum(dE)) |
+| ``n_pp_edges``, ``n_pw_edges`` | (S,) | int | directed edge counts of the step's graph (n_pp_edges / 2 = ball-ball pairs) |
+| ``overflow`` | (S,) | int | edges dropped by the static capacity |
+| ``n_outside`` | (S,) | int | balls with phi > 0 after the step |
+| ``n_snapped`` | (S,) | int | balls moved by the snap-back |
+| ``t_pos`` | (P,) | float | s, times of the saved frames (strictly increasing, on the step grid) |
+| ``pos`` | (P, N, 3) | float64 | ball positions (m, lab frame) |
+| ``offset`` | (P, 3) | float | jar offset at those times (m) |
 
 Optional extra arrays, written for a model kind that reports its own energy ledger (the
 contact model, :mod:`sgn_jax.surrogate.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its

@@ -8,21 +8,16 @@ with a :class:`DatasetError` that names the file, the array and the problem, and
 
 Arrays (T samples, N balls, K ball-ball contact slots), SI units:
 
-==========================================  ===========  ========  ==============================
-name                                        shape        dtype     meaning
-==========================================  ===========  ========  ==============================
-``t``                                       (T,)         float64   s since the start of motion,
-                                                                   uniformly spaced by meta dt
-``pos``, ``vel``, ``omega``                 (T, N, 3)    float64   ball state (m, m/s, rad/s)
-``offset``, ``offset_vel``                  (T, 3)       float     jar offset (m), velocity (m/s)
-``diss_{pp,pw}_{normal,tangential,          (T,)         float     J dissipated over the interval
-slip,rolling}``                                                    ending at each sample; [0] = 0
-``ke_trans``, ``ke_rot``, ``pe_grav``,      (T,)         float     J at the sample
-``e_elastic``
-``work_wall``                               (T,)         float     J, cumulative since t = 0
-``pp_pairs``                                (T, K, 2)    int       ball indices, padded with -1
-``pw_contact``                              (T, N)       bool      ball touches a wall
-==========================================  ===========  ========  ==============================
+| name | shape | dtype | meaning |
+|---|---|---|---|
+| ``t`` | (T,) | float64 | s since the start of motion, uniformly spaced by meta dt |
+| ``pos``, ``vel``, ``omega`` | (T, N, 3) | float64 | ball state (m, m/s, rad/s) |
+| ``offset``, ``offset_vel`` | (T, 3) | float | jar offset (m), velocity (m/s) |
+| ``diss_{pp,pw}_{normal,tangential,slip,rolling}`` | (T,) | float | J dissipated over the interval ending at each sample; [0] = 0 |
+| ``ke_trans``, ``ke_rot``, ``pe_grav``, ``e_elastic`` | (T,) | float | J at the sample |
+| ``work_wall`` | (T,) | float | J, cumulative since t = 0 |
+| ``pp_pairs`` | (T, K, 2) | int | ball indices, padded with -1 |
+| ``pw_contact`` | (T, N) | bool | ball touches a wall |
 
 Extra arrays are allowed and kept. ``meta`` is stored as a 0-d unicode array holding a JSON
 object with at least :data:`REQUIRED_META` (``config`` is ``sgn_jax.config.config_to_dict`` of
