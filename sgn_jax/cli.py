@@ -81,10 +81,10 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
         "demo",
         help="DEM vs the trained surrogate on the standard case: energy, MSE, speed, animation",
         description="Run the DEM of the case (settling, then DURATION s of motion), roll the "
-        "trained surrogate out for DURATION s from the DEM's first full window, print the dissipated "
-        "energy of both and its relative error, the position MSE, the wall-time speed ratio, "
-        "balls outside the jar and edge overflows, and write OUT/summary.json, the comparison "
-        "plots and OUT/animation.gif.",
+        "trained surrogate out for DURATION s from the DEM's first full window, print the "
+        "dissipated energy of both and its relative error, the position MSE, the wall-time speed "
+        "ratio, balls outside the jar and edge overflows, and write OUT/summary.json, the "
+        "comparison plots and OUT/animation.gif.",
     )
     p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
     p.add_argument("--checkpoint", default=None,
