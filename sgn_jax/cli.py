@@ -27,6 +27,7 @@ from sgn_jax.analysis.metrics import headline as run_headline
 from sgn_jax.config import resolve_config
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.pipelines.configure import jar_mesh_from_config, mesh_report
+from sgn_jax.pipelines.contact_train_run import train_stages
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.demo import format_report, resolve_checkpoint, run_demo
 from sgn_jax.pipelines.rollout_run import run_rollout
@@ -115,34 +116,55 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _add_train(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train",
-        help="train the SGN surrogate on DEM trajectories",
-        description="Featurize the trajectories with the config's [graph] rules and SDF grid, "
-        "split them chronologically ([train] train_time, val_time), train the SGN with the "
-        "[model] and [train] settings, and write metrics.jsonl/.csv, loss.png and orbax "
+        help="train a surrogate on DEM records (the SGN, or the contact model in stages)",
+        description="With [model] kind = 'contact' and [[train.stages]] in the config (the "
+        "shipped model's recipe: `--config contact_train`), run the stages in order, each in "
+        "OUT/<stage>/, each warm-started from the previous stage's best checkpoint, on the "
+        "records its globs match under --data (a folder); OUT/summary.json names the trained "
+        "model (docs/training.md). With an SGN config, featurize the --data files with the "
+        "config's [graph] rules and SDF grid, split them chronologically ([train] train_time, "
+        "val_time), train for [train] epochs, and write metrics.jsonl/.csv, loss.png and orbax "
         "checkpoints (checkpoints/latest, checkpoints/best) to OUT. Prints a JSON summary.",
     )
-    p.add_argument("--config", required=True, help="experiment config: a TOML file or a built-in name (emax_300rpm, motion1, motion2, emax_post_motion1)")
+    p.add_argument("--config", required=True,
+                   help="experiment config: a TOML file or a built-in name (contact_train, "
+                   "emax_300rpm, motion1, motion2, emax_post_motion1)")
     p.add_argument("--data", required=True,
-                   help="trajectory file(s) (.npz, docs/conventions.md section 4), "
+                   help="staged contact training: the folder the stages' record globs are "
+                   "relative to; SGN: record file(s) (.npz, docs/conventions.md section 4), "
                    "comma-separated")
     p.add_argument("--out", required=True, help="run directory")
     p.add_argument("--epochs", type=int, default=None,
-                   help="total epochs of the run (overrides [train] epochs)")
+                   help="SGN only: total epochs of the run (overrides [train] epochs)")
     p.add_argument("--resume", action="store_true",
-                   help="continue the run in OUT from its latest checkpoint")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+                   help="continue the run in OUT from its latest checkpoint (finished stages "
+                   "are skipped)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or per-step lines")
     p.set_defaults(handler=_cmd_train)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
     if args.epochs is not None and args.epochs < 1:
         raise UserError(f"--epochs must be >= 1, got {args.epochs}")
+    cfg = resolve_config(args.config)
+    log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
+    if cfg.train.stages:
+        if args.epochs is not None:
+            raise UserError("--epochs is for an SGN; a staged config sets each stage's steps")
+        if not Path(args.data).is_dir():
+            raise UserError(f"--data {args.data!r}: a staged config reads its records from a "
+                            "folder (its [[train.stages]] records globs are relative to it)")
+        summary = train_stages(cfg, args.data, args.out, resume=args.resume,
+                               progress=not args.quiet, log=log)
+        print(json.dumps({"out": str(Path(args.out)), **summary}))
+        return 0
+    if cfg.model.kind == "contact":
+        raise UserError(f"{args.config}: [model] kind = 'contact' trains in stages; add "
+                        "[[train.stages]] (see the built-in config contact_train)")
     paths = [p.strip() for p in args.data.split(",") if p.strip()]
     if not paths:
         raise UserError("--data needs at least one trajectory file")
-    cfg = resolve_config(args.config)
     trajectories = [load_trajectory(p) for p in paths]
-    log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr))
     summary = train(cfg, trajectories, args.out, epochs=args.epochs, resume=args.resume,
                     names=paths, progress=not args.quiet, log=log)
     keys = ("epochs", "best_epoch", "best_loss", "n_train", "n_val", "n_params")

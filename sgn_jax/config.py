@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 import types
 import typing
@@ -464,6 +465,72 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
+class TrainStage:
+    """One stage of a staged training run of the contact-impulse surrogate ([[train.stages]]).
+
+    ``sgn-jax train --config CFG --data DIR --out OUT`` runs the stages in order, each in
+    ``OUT/<name>/``; a stage after the first starts from the previous stage's best checkpoint
+    (warm start). The learning rate follows a cosine decay from ``lr_init`` to ``lr_final``
+    over ``schedule_steps`` optimiser steps (0: over ``steps``), and the stage stops after
+    ``steps`` steps, so a stage can end part-way down its schedule (docs/training.md).
+
+    Attributes:
+        name: the stage's directory under the run's output folder (letters, digits, _ and -).
+        records: glob patterns of DEM records (.npz), relative to the --data directory; every
+            pattern must match at least one file.
+        steps: optimiser steps of the stage.
+        schedule_steps: length of the cosine learning-rate schedule in steps (0 = steps;
+            otherwise >= steps).
+        unroll: model steps per training stretch (the loss is summed over them).
+        pushforward: later steps of a stretch start from the model's own prediction (no
+            gradient through the earlier steps) instead of the DEM's.
+        lr_init: learning rate at the stage's first step.
+        lr_final: learning rate at the end of the schedule (0 < lr_final <= lr_init).
+        relative_floor: m/s, the floor of the per-ball velocity-change scale of the loss.
+        spin_weight: weight of the spin error (R |w - w_DEM|) beside the velocity error.
+        position_noise: m, std of the random-walk noise on the training positions (0 = off).
+        batch_size: stretches per optimiser step.
+        checkpoint_every: steps between checkpoints and log lines.
+    """
+
+    name: str
+    records: tuple[str, ...]
+    steps: int
+    unroll: int
+    lr_init: float
+    lr_final: float
+    schedule_steps: int = 0
+    pushforward: bool = False
+    relative_floor: float = 1e-3
+    spin_weight: float = 1.0
+    position_noise: float = 0.0
+    batch_size: int = 32
+    checkpoint_every: int = 100
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"[A-Za-z0-9_-]+", self.name):
+            raise ConfigError(f"[[train.stages]] name {self.name!r}: use letters, digits, _ "
+                              "and - only (it names the stage's directory)")
+        if not self.records:
+            raise ConfigError(f"[[train.stages]] {self.name}: records needs at least one glob "
+                              "pattern, e.g. records = [\"envelope/train_*.npz\"]")
+        if self.steps < 1 or self.unroll < 1 or self.batch_size < 1 or self.checkpoint_every < 1:
+            raise ConfigError(f"[[train.stages]] {self.name}: steps, unroll, batch_size and "
+                              f"checkpoint_every must be >= 1, got {self.steps}, {self.unroll}, "
+                              f"{self.batch_size}, {self.checkpoint_every}")
+        if self.schedule_steps and self.schedule_steps < self.steps:
+            raise ConfigError(f"[[train.stages]] {self.name}: schedule_steps "
+                              f"{self.schedule_steps} < steps {self.steps}; use 0 (= steps) "
+                              "or a longer schedule")
+        if not 0 < self.lr_final <= self.lr_init:
+            raise ConfigError(f"[[train.stages]] {self.name}: need 0 < lr_final <= lr_init, "
+                              f"got {self.lr_final}, {self.lr_init}")
+        if self.relative_floor <= 0 or self.spin_weight < 0 or self.position_noise < 0:
+            raise ConfigError(f"[[train.stages]] {self.name}: need relative_floor > 0, "
+                              "spin_weight >= 0 and position_noise >= 0")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """SGN training (docs/conventions.md section 5). Defaults are the paper's (batch 2, 2000 epochs,
     GPU).
@@ -499,6 +566,9 @@ class TrainConfig:
         devices: data-parallel training over this many local devices (1 = one device, the
             default); each step's ``batch_size`` graphs are split evenly over the devices, so
             batch_size must be a multiple (docs/sgn.md, "Data-parallel training").
+        stages: the staged training of the contact-impulse surrogate ([[train.stages]],
+            :class:`TrainStage`; docs/training.md). Empty for an SGN, which trains for
+            ``epochs`` with the keys above.
     """
 
     batch_size: int = 2
@@ -516,6 +586,7 @@ class TrainConfig:
     position_noise_std: float = 0.0
     envelope: str = ""
     devices: int = 1
+    stages: tuple[TrainStage, ...] = ()
 
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.epochs < 1:
@@ -538,6 +609,9 @@ class TrainConfig:
                               f"{self.position_noise_std}")
         if self.train_time <= 0 or self.val_time < 0:
             raise ConfigError("[train] need train_time > 0 and val_time >= 0 (s)")
+        names = [stage.name for stage in self.stages]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"[[train.stages]] names must differ, got {names}")
 
 
 @dataclass(frozen=True)
@@ -618,6 +692,12 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     rollout: RolloutConfig = field(default_factory=RolloutConfig)
+
+    def __post_init__(self) -> None:
+        if self.train.stages and self.model.kind != "contact":
+            raise ConfigError(f"[[train.stages]] trains the contact-impulse surrogate ([model] "
+                              f"kind = 'contact'), got kind = {self.model.kind!r}; an SGN "
+                              "trains for [train] epochs: remove the stages")
 
 
 # --------------------------------------------------------------------------------------------

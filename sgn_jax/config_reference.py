@@ -22,7 +22,7 @@ import typing
 from typing import Any, NamedTuple
 
 from sgn_jax import config as config_module
-from sgn_jax.config import Config, MotionConfig
+from sgn_jax.config import Config, MotionConfig, TrainStage
 from sgn_jax.records.io_utils import atomic_write
 
 REGENERATE_COMMAND = "python -m sgn_jax.config_reference --out docs/config.md"
@@ -233,6 +233,18 @@ def _section_markdown(section: SectionDoc) -> list[str]:
         lines += ["Keys by motion kind (`kind` plus these; a key of another kind is an error, and "
                   "the saved config keeps only its kind's keys):", ""]
         lines += _keys_by_kind_table(kinds) + [""]
+    if section.name == "train":
+        stage_hints = typing.get_type_hints(TrainStage, vars(config_module))
+        stage_attrs = parse_attributes(TrainStage.__doc__)
+        lines += ["### `[[train.stages]]`", "",
+                  f"`sgn_jax.config.TrainStage`. {_cell(docstring_prose(TrainStage.__doc__))}",
+                  "", "| key | type | default | description |", "|---|---|---|---|"]
+        for f in dataclasses.fields(TrainStage):
+            default = _default_text(f)
+            lines.append(f"| `{f.name}` | `{_cell(type_name(stage_hints[f.name]))}` | "
+                         f"{'required' if default == 'required' else f'`{_cell(default)}`'} | "
+                         f"{_cell(stage_attrs.get(f.name, ''))} |")
+        lines.append("")
     if section.name == "jar":
         lines += ["Keys by jar kind (`kind` plus these; the other kind's keys are not used):",
                   ""]

@@ -7,7 +7,7 @@ import typing
 from pathlib import Path
 
 from sgn_jax import config as config_module
-from sgn_jax.config import Config, MotionConfig, config_from_dict
+from sgn_jax.config import Config, MotionConfig, TrainStage, config_from_dict
 from sgn_jax.config_reference import (
     EXAMPLE_TOML,
     REGENERATE_COMMAND,
@@ -31,7 +31,8 @@ def _markdown_rows(markdown: str) -> dict[str, dict[str, list[str]]]:
     rows: dict[str, dict[str, list[str]]] = {}
     section = None
     for line in markdown.splitlines():
-        m = re.fullmatch(r"## `\[(\w+)\]`", line)
+        m = re.fullmatch(r"## `\[(\w+)\]`", line) or re.fullmatch(
+            r"### `\[\[(\w+\.\w+)\]\]`", line)
         if m:
             section = m.group(1)
             rows[section] = {}
@@ -47,6 +48,9 @@ def test_every_field_of_every_section_is_documented():
     assert documentation_problems() == []
     rows = _markdown_rows(config_reference_markdown())
     sections = _section_classes()
+    stage_keys = rows.pop("train.stages")     # the array of tables inside [train]
+    assert list(stage_keys) == [f.name for f in dataclasses.fields(TrainStage)]
+    assert all(cells[2] for cells in stage_keys.values()), "a stage key has no description"
     assert list(rows) == list(sections)
     for name, cls in sections.items():
         fields = [f.name for f in dataclasses.fields(cls)]

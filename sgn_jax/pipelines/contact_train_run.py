@@ -40,6 +40,7 @@ from sgn_jax.pipelines.train_run import (
 )
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import git_commit, write_json
+from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.surrogate.contact import make_contact_net
 from sgn_jax.surrogate.contact_train import (
     ContactTrainState,
@@ -115,12 +116,14 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                   lr_init: float = 1e-3, lr_final: float = 3e-5, seed: int = 0,
                   minutes: float | None = None, checkpoint_every: int = 250,
                   impact_weight: float = 0.0, n_impacts: int = 64,
-                  init_from: str | Path | None = None,
+                  init_from: str | Path | None = None, schedule_steps: int | None = None,
                   resume: bool = False, progress: bool = True,
                   log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train a contact-impulse surrogate; see the module docstring.
 
-    ``steps`` is the run's total number of optimiser steps (also when resuming); ``minutes``
+    ``steps`` is the run's total number of optimiser steps (also when resuming); the learning
+    rate decays from ``lr_init`` to ``lr_final`` over ``schedule_steps`` (default ``steps``:
+    a longer schedule stops the run part-way down it); ``minutes``
     stops earlier (after a checkpoint) when the wall-clock budget is spent. ``impact_weight``
     > 0 adds ``impact_weight`` x the same unrolled loss on ``n_impacts`` isolated head-on
     impacts whose answer is the DEM contact law's (:func:`impact_stretches`, seeded by
@@ -188,7 +191,10 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
         params, warm_names = _warm_start(params, restore_checkpoint(init_from).params, init_from)
         log(f"warm start from {init_from}: {', '.join(warm_names)}")
 
-    schedule = optax.cosine_decay_schedule(lr_init, steps, alpha=lr_final / lr_init)
+    if schedule_steps is not None and schedule_steps < steps:
+        raise TrainingError(f"schedule_steps {schedule_steps} < steps {steps}")
+    schedule = optax.cosine_decay_schedule(lr_init, schedule_steps or steps,
+                                           alpha=lr_final / lr_init)
     tx = make_optimizer(schedule)
     opt_state = tx.init(params)
     history: list[dict[str, Any]] = []
@@ -227,7 +233,8 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
             "train_files": train_files,
             "n_val_trajectories": len(val_trajectories),
             "n_params": int(sum(p.size for p in jax.tree_util.tree_leaves(params))),
-            "model_kind": "contact", "steps": steps, "batch_size": batch_size,
+            "model_kind": "contact", "steps": steps,
+            "schedule_steps": schedule_steps or steps, "batch_size": batch_size,
             "unroll": unroll.unroll, "pushforward": unroll.pushforward,
             "position_noise": unroll.position_noise,
             "relative_floor": unroll.relative_floor, "lr_init": lr_init, "lr_final": lr_final,
@@ -288,3 +295,96 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
                "seconds": time.perf_counter() - t0, **info}
     write_json(out_dir / "summary.json", summary)
     return summary
+
+
+def stage_records(data_dir: str | Path, patterns: Sequence[str]) -> list[Path]:
+    """The record files of a stage: each glob pattern of ``patterns`` relative to ``data_dir``,
+    sorted per pattern, in the patterns' order, without repeats. A pattern that matches no
+    file raises :class:`TrainingError` naming it (before any training)."""
+    data_dir = Path(data_dir)
+    files: list[Path] = []
+    for pattern in patterns:
+        matched = sorted(data_dir.glob(pattern))
+        if not matched:
+            raise TrainingError(f"records pattern {pattern!r} matches no file in {data_dir}; "
+                                "make the DEM records first (docs/training.md) or pass the "
+                                "folder that holds them as --data")
+        files += [f for f in matched if f not in files]
+    return files
+
+
+def train_stages(cfg: Any, data_dir: str | Path, out_dir: str | Path, *,
+                 resume: bool = False, progress: bool = True,
+                 load: Callable[[Path], Any] | None = None,
+                 log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run the config's ``[[train.stages]]`` in order (docs/training.md).
+
+    Stage ``k`` trains in ``out_dir/<name>/`` with :func:`train_contact` on the records its
+    globs match under ``data_dir``; a stage after the first warm-starts from the previous
+    stage's ``checkpoints/best``. Every stage's record patterns are checked before the first
+    step. With ``resume=True`` a finished stage (its ``summary.json`` written with all its
+    steps) is skipped and an interrupted one goes on from its latest checkpoint, so a killed
+    run continues where it stopped. ``load`` reads a record (default
+    :func:`sgn_jax.records.trajectory.load_trajectory`).
+
+    Returns a summary: per stage its directory, steps, best loss and wall time, the total wall
+    time and ``model``, the final stage's best checkpoint (the trained model).
+    """
+    stages = cfg.train.stages
+    if not stages:
+        raise TrainingError("the config has no [[train.stages]]: the contact-impulse surrogate "
+                            "trains in stages (see sgn_jax/configs/contact_train.toml)")
+    load = load_trajectory if load is None else load
+    out_dir = Path(out_dir)
+    files_of = {stage.name: stage_records(data_dir, stage.records) for stage in stages}
+    if out_dir.exists() and any(out_dir.iterdir()) and not resume:
+        raise TrainingError(f"{out_dir} already holds a training run; pass resume=True "
+                            "(--resume) to continue it or choose another --out")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out_dir / "config.toml")
+    cache: dict[Path, Any] = {}
+    done: list[dict[str, Any]] = []
+    previous_best: Path | None = None
+    for k, stage in enumerate(stages):
+        stage_dir = out_dir / stage.name
+        summary_path = stage_dir / "summary.json"
+        if resume and summary_path.is_file():
+            finished = json.loads(summary_path.read_text())
+            if finished.get("steps_done") == stage.steps:
+                log(f"stage {k + 1}/{len(stages)} {stage.name}: done, skipped")
+                done.append(_stage_line(stage, stage_dir, finished))
+                previous_best = stage_dir / "checkpoints" / "best"
+                continue
+        files = files_of[stage.name]
+        log(f"stage {k + 1}/{len(stages)} {stage.name}: {stage.steps} steps, unroll "
+            f"{stage.unroll}, {len(files)} records"
+            + (f", from {previous_best}" if previous_best is not None else ", from scratch"))
+        for f in files:
+            if f not in cache:
+                cache[f] = load(f)
+        summary = train_contact(
+            cfg, [cache[f] for f in files], stage_dir, steps=stage.steps,
+            schedule_steps=stage.schedule_steps or None, batch_size=stage.batch_size,
+            unroll=UnrollSpec(unroll=stage.unroll, pushforward=stage.pushforward,
+                              position_noise=stage.position_noise,
+                              relative_floor=stage.relative_floor,
+                              spin_weight=stage.spin_weight),
+            lr_init=stage.lr_init, lr_final=stage.lr_final, seed=cfg.train.seed,
+            checkpoint_every=stage.checkpoint_every, init_from=previous_best,
+            resume=resume or latest_step(stage_dir / "checkpoints" / "latest") is not None,
+            progress=progress, log=log)
+        if summary["steps_done"] != stage.steps:
+            raise TrainingError(f"stage {stage.name} stopped after {summary['steps_done']} of "
+                                f"{stage.steps} steps")
+        done.append(_stage_line(stage, stage_dir, summary))
+        previous_best = stage_dir / "checkpoints" / "best"
+    result = {"model": str(previous_best), "stages": done,
+              "seconds": float(sum(line["seconds"] for line in done))}
+    write_json(out_dir / "summary.json", result)
+    return result
+
+
+def _stage_line(stage: Any, stage_dir: Path, summary: dict[str, Any]) -> dict[str, Any]:
+    return {"name": stage.name, "dir": str(stage_dir), "steps": int(summary["steps_done"]),
+            "best_loss": float(summary["best_loss"]), "seconds": float(summary["seconds"]),
+            "n_records": int(summary["n_train_trajectories"])}
