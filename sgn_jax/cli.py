@@ -82,10 +82,10 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
         "demo",
         help="DEM vs the trained surrogate on the standard case: energy, MSE, speed, animation",
         description="Run the DEM of the case (settling, then DURATION s of motion), roll the "
-        "trained SGN out for DURATION s from the DEM's first full window, print the dissipated "
-        "energy of both and its relative error, the position MSE, the wall-time speed ratio, "
-        "balls outside the jar and edge overflows, and write OUT/summary.json, the comparison "
-        "plots and OUT/animation.gif.",
+        "trained surrogate out for DURATION s from the DEM's first full window, print the "
+        "dissipated energy of both and its relative error, the position MSE, the wall-time speed "
+        "ratio, balls outside the jar and edge overflows, and write OUT/summary.json, the "
+        "comparison plots and OUT/animation.gif.",
     )
     p.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
     p.add_argument("--checkpoint", default=None,
@@ -131,7 +131,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    "emax_300rpm, motion1, motion2, emax_post_motion1)")
     p.add_argument("--data", required=True,
                    help="staged contact training: the folder the stages' record globs are "
-                   "relative to; SGN: record file(s) (.npz), comma-separated")
+                   "relative to; SGN: record file(s) (.npz, docs/conventions.md section 4), "
+                   "comma-separated")
     p.add_argument("--out", required=True, help="run directory")
     p.add_argument("--epochs", type=int, default=None,
                    help="SGN only: total epochs of the run (overrides [train] epochs)")
@@ -178,7 +179,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _add_dem(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "dem",
-        help="run the DEM of a config and write a SPEC-4 trajectory (.npz)",
+        help="run the DEM of a config and write a trajectory record (.npz, docs/conventions.md "
+        "section 4)",
         description="Place the balls from SEED, settle them with the jar at rest, run DURATION "
         "seconds of motion and write the trajectory. Checkpoints after every chunk go to "
         "OUT.partial/; rerunning the same command resumes from there. Prints one JSON line: "
@@ -217,19 +219,20 @@ def _cmd_dem(args: argparse.Namespace) -> int:
 def _add_rollout(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "rollout",
-        help="roll a trained SGN out from a dataset's window and write a prediction (.npz)",
+        help="roll a trained surrogate out from a dataset's window and write a prediction (.npz)",
         description="Start from the window of DATASET ending at sample START_INDEX, run the "
-        "trained SGN for DURATION seconds (jitted lax.scan, [rollout] settings of the trained "
+        "trained surrogate for DURATION seconds (jitted lax.scan, [rollout] settings of the trained "
         "config) and write the prediction file read by `sgn-jax evaluate`. --config replaces "
         "the [jar], [motion], [sdf] and [rollout] sections (balls and dt must match). Prints "
         "one JSON line: energy, counts, wall and compile time, ms per step.",
     )
     p.add_argument("--checkpoint", default=None,
                    help="training run directory (its checkpoints/best), checkpoint directory or "
-                   "shipped model name (emax_300rpm, envelope); default: the shipped default "
-                   "model, emax_300rpm (docs/envelope.md)")
+                   "shipped model name (contact, emax_300rpm, envelope); default: the shipped "
+                   "default model, contact (docs/contact.md)")
     p.add_argument("--init", required=True, metavar="DATASET",
-                   help="trajectory (.npz, SPEC 4) that provides the initial window")
+                   help="trajectory (.npz, docs/conventions.md section 4) that provides the "
+                   "initial window")
     p.add_argument("--duration", required=True, type=float, help="seconds of rollout")
     p.add_argument("--out", required=True, help="output prediction file (.npz)")
     p.add_argument("--config", default=None,
@@ -275,12 +278,13 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "evaluate",
-        help="compare rollout predictions with DEM references (SPEC 6/7 metrics and plots)",
+        help="compare rollout predictions with DEM references (metrics and plots of "
+        "docs/conventions.md sections 6 and 7)",
         description="Compare each rollout prediction with its DEM reference trajectory: position "
         "MSE_t, cumulative-energy error and Pearson r, balls outside, overflow, regime "
         "indicators. One pair writes OUT/metrics.json and the plots; several pairs write "
-        "OUT/run_XX/ for each and OUT/ensemble.json + ensemble.png (SPEC 7). Prints one JSON "
-        "line with the headline numbers.",
+        "OUT/run_XX/ for each and OUT/ensemble.json + ensemble.png (docs/conventions.md "
+        "section 7). Prints one JSON line with the headline numbers.",
     )
     p.add_argument("--prediction", required=True, nargs="+", metavar="FILE",
                    help="prediction .npz file(s) written by the rollout")
@@ -288,8 +292,8 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
                    help="DEM trajectory .npz file(s), one per prediction, same order")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--classify-by", choices=CLASSIFIERS, default="speed",
-                   help="state rule (SPEC 7): mean ball speed in the jar frame (default), ball "
-                   "pairs within the skin per ball, or dissipation power")
+                   help="state rule (docs/conventions.md section 7): mean ball speed in the jar "
+                   "frame (default), ball pairs within the skin per ball, or dissipation power")
     p.add_argument("--threshold", type=float, default=None,
                    help="state threshold: m/s (speed, default 0.16), pairs per ball "
                    "(contacts, default 0.75) or W (power, required)")

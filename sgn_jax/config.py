@@ -50,11 +50,11 @@ class CaseConfig:
 class JarConfig:
     """The milling jar.
 
-    ``kind = "emax"``: the parametric Emax-like stadium cavity of SPEC section 2 (semicircles of
-    ``radius`` centred at x = +-straight_length/2, height ``height``, optional solid central post
-    of radius ``post_radius``; 0 means no post). ``kind = "stl"``: a closed mesh of the cavity read
-    from ``stl_path`` in ``stl_units`` ("m" or "mm"), jar-frame coordinates (floor centre at the
-    origin, y up).
+    ``kind = "emax"``: the parametric Emax-like stadium cavity of docs/conventions.md section 2
+    (semicircles of ``radius`` centred at x = +-straight_length/2, height ``height``, optional solid
+    central post of radius ``post_radius``; 0 means no post). ``kind = "stl"``: a closed mesh of the
+    cavity read from ``stl_path`` in ``stl_units`` ("m" or "mm"), jar-frame coordinates (floor
+    centre at the origin, y up).
 
     Attributes:
         kind: "emax" (the parametric stadium cavity) or "stl" (a closed cavity mesh from a file).
@@ -102,7 +102,7 @@ class MotionConfig:
       Keys: rpm, amplitude, phase.
     - ``harmonic``: each axis a sum over k = 1..K of ``{axis}_sin[k-1] sin(2 pi k f0 t) +
       {axis}_cos[k-1] cos(2 pi k f0 t)`` with f0 = ``base_frequency_hz``; coefficients in m.
-      Motion 1 and Motion 2 of SPEC section 2 are harmonic series.
+      Motion 1 and Motion 2 of docs/conventions.md section 2 are harmonic series.
     - ``spline``: a periodic cubic spline through ``points`` (M x 3, m) sampled uniformly over
       ``period`` seconds, points[0] at t = 0.
 
@@ -210,7 +210,7 @@ class BallsConfig:
 
 @dataclass(frozen=True)
 class MaterialConfig:
-    """Contact material, the same for ball-ball and ball-wall (SPEC section 2).
+    """Contact material, the same for ball-ball and ball-wall (docs/conventions.md section 2).
 
     Attributes:
         young: Pa, Young's modulus (Hertz-Mindlin stiffness).
@@ -242,7 +242,8 @@ class DEMConfig:
     """DEM solver settings.
 
     ``dt`` is the sampling step (s); the solver step is ``dt / k`` with the smallest integer k such
-    that ``dt / k <= dt_dem_max`` (SPEC section 2), so that every sample falls on a step.
+    that ``dt / k <= dt_dem_max`` (docs/conventions.md section 2), so that every sample falls on a
+    step.
 
     Attributes:
         dt: s, sampling step of the DEM trajectory, also the surrogate's time step.
@@ -251,7 +252,8 @@ class DEMConfig:
         duration: s, motion simulated after settling (``sgn-jax dem --duration`` overrides it).
         seed: seed of the random initial placement of the balls.
         dtype: "float64" or "float32" for positions, velocities and forces (ledger always float64).
-        clip_attractive: clip the normal contact force at zero (off by default, SPEC section 3).
+        clip_attractive: clip the normal contact force at zero (off by default;
+            docs/conventions.md section 3).
         gravity: m/s^2, gravity vector [x, y, z] in the lab frame (y up).
         chunk_samples: samples per jitted DEM chunk, also the resume checkpoint interval.
         pp_capacity: slots for touching ball pairs recorded per sample (pp_pairs), 0 = 3 * count.
@@ -331,7 +333,7 @@ class SDFConfig:
 
 @dataclass(frozen=True)
 class GraphConfig:
-    """The SGN graph featurizer (SPEC section 5, paper Table 3).
+    """The SGN graph featurizer (docs/conventions.md section 5, paper Table 3).
 
     ``window`` slots of [v, phi, grad phi] per particle (a window needs window + 1 positions);
     ball-ball edges where the centre distance is <= 2 R + ``pp_skin`` (a surface gap, m);
@@ -346,12 +348,12 @@ class GraphConfig:
         phi_sb: m, rollout snap-back threshold, phi_pw < phi_sb < 0.
         pp_edges_per_particle: static directed ball-ball edge slots per graph, per ball.
         contact_features: two more edge columns, the surface gap and the overlap of the two
-            balls (or of ball and wall), so the network sees a contact coming (issue 10;
-            docs/sgn.md). Off: the paper's 3 columns (displacement, phi n).
+            balls (or of ball and wall), so the network sees a contact coming (docs/sgn.md).
+            Off: the paper's 3 columns (displacement, phi n).
         wall_patches: 0 (the paper): one ball-wall edge per ball, to the nearest wall; P > 0:
             one ball-wall edge per ball and wall patch (floor, lid, side, post), at most P
-            patches, as the DEM has one contact per ball and patch (the contact model, issue
-            19; a ball in the corner of floor and side wall feels both walls).
+            patches, as the DEM has one contact per ball and patch (the contact model; a ball
+            in the corner of floor and side wall feels both walls).
     """
 
     window: int = 7
@@ -530,7 +532,8 @@ class TrainStage:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """SGN training (SPEC section 5). Defaults are the paper's (batch 2, 2000 epochs, GPU).
+    """SGN training (docs/conventions.md section 5). Defaults are the paper's (batch 2, 2000 epochs,
+    GPU).
 
     The learning rate decays exponentially from ``lr_init`` to ``lr_final`` over all epochs.
     Loss = ``node_loss_weight`` * Huber(node) + ``global_loss_weight`` * Huber(global), Huber as
@@ -613,7 +616,7 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class RolloutConfig:
-    """The surrogate rollout (SPEC 5, paper 2.2.3; docs/rollout.md).
+    """The surrogate rollout (docs/conventions.md section 5, paper 2.2.3; docs/rollout.md).
 
     ``save_every``: steps between saved position frames (10 = every 1 ms at dt = 1e-4 s).
     ``chunk_steps``: steps per jitted call of the host-level run (progress-bar granularity; a

@@ -278,8 +278,8 @@ def config_reference_markdown() -> str:
         "- values are SI units (m, s, kg, Pa) unless the key or its description says otherwise;",
         "- every artifact is saved with its resolved config (defaults written out).",
         "",
-        "A complete config with only the required keys (shipped examples: "
-        "`experiments/configs/*.toml`):",
+        "A complete config with only the required keys (the built-in cases, "
+        "`sgn_jax/configs/*.toml`, are complete examples; `--config NAME` loads one by name):",
         "",
         "```toml",
         EXAMPLE_TOML.rstrip("\n"),

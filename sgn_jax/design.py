@@ -475,7 +475,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         spec: the surrogate's :class:`GraphSpec`.
         predictor: ``predictor(params, stats, graph, step)`` (:func:`model_predictor`).
         names: the D design parameters (:func:`check_parameters`).
-        base_motion, base_jar: the design point's motion and jar; ``theta`` replaces ``names``.
+        base_motion: the design point's motion; ``theta`` replaces ``names``.
+        base_jar: the design point's jar.
         t0: time (s since the start of motion) of the packings' newest window sample.
         n_burn: steps rolled out before the measurement starts (the state settles).
         n_measure: steps of the measurement interval (power = energy / (n_measure dt)); a
@@ -483,8 +484,11 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         horizon: steps of each gradient horizon (<= n_measure / n_segments).
         n_segments: gradient segments per packing, one at the start of each of the
             ``n_segments`` equal parts of the measurement interval.
-        snap_back, phi_sb, snap_velocity, pp_max_overlap: the rollout's settings
+        snap_back: the rollout's snap-back switch
             (:func:`sgn_jax.surrogate.rollout.make_rollout`).
+        phi_sb: the snap-back threshold (m).
+        snap_velocity: the velocity rule of the snap-back and the separation.
+        pp_max_overlap: the ball-ball separation's largest overlap (m), or None (off).
         checkpoint_steps: ``jax.checkpoint`` chunk of the differentiated horizons.
         estimator: ``"difference"`` (default): the gradient is the ensemble central difference
             of the power with common packings, ``(P(theta + h_i e_i) - P(theta - h_i e_i)) /

@@ -1,7 +1,7 @@
 """Jar motions: pytrees of parameters with a jittable, differentiable ``offset(t)``.
 
-The jar only translates (SPEC section 1). ``offset(motion, t)`` is the lab-frame position (m) of
-the jar-frame origin at time ``t`` (s) since the start of motion; ``velocity`` and
+The jar only translates (docs/conventions.md section 1). ``offset(motion, t)`` is the lab-frame
+position (m) of the jar-frame origin at time ``t`` (s) since the start of motion; ``velocity`` and
 ``acceleration`` are its first and second time derivatives, computed by JAX forward-mode
 autodiff of ``offset`` (so they can never disagree with it).
 
@@ -18,10 +18,12 @@ every field is a pytree leaf, so that
   ``jax.vmap(offset, in_axes=(0, None))(stacked, t)``.
 
 ``CircleMotion``
-    ``(A sin(2 pi f t + phase), 0, A cos(2 pi f t + phase))`` with ``f = rpm / 60`` (SPEC 2).
+    ``(A sin(2 pi f t + phase), 0, A cos(2 pi f t + phase))`` with ``f = rpm / 60``
+    (docs/conventions.md section 2).
 ``HarmonicMotion``
     per axis ``sum_k sin_coeffs[k-1, axis] sin(2 pi k f0 t) + cos_coeffs[k-1, axis] cos(2 pi k f0 t)``.
-    Motion 1 and Motion 2 of SPEC section 2 are harmonic series (``motion1()``, ``motion2()``).
+    Motion 1 and Motion 2 of docs/conventions.md section 2 are harmonic series (``motion1()``,
+    ``motion2()``).
 ``SplineMotion``
     the periodic cubic spline through ``points[j]`` at ``t_j = j * period / M`` (C2, wraps with
     ``period``); the spline system is solved in ``jnp`` (circulant solve by FFT), so the curve is
@@ -32,10 +34,10 @@ functions are vmapped over its elements and return ``t.shape + (3,)``. Keep ``t`
 (integers are converted to float64): ``2 pi f t`` over 10 s of motion loses ~1e-5 rad in float32.
 The result dtype is the JAX promotion of the parameter dtype and the time dtype.
 
-SPEC note: during DEM settling the jar rests at ``offset(motion, 0)`` with zero velocity; at
-``t = 0`` the motion starts and the jar velocity jumps to ``velocity(motion, 0)``. These functions
-describe the motion for ``t >= 0`` only (they are periodic and also defined for ``t < 0``); the
-rest phase is the DEM driver's business.
+Settling (docs/conventions.md section 2): during DEM settling the jar rests at
+``offset(motion, 0)`` with zero velocity; at ``t = 0`` the motion starts and the jar velocity
+jumps to ``velocity(motion, 0)``. These functions describe the motion for ``t >= 0`` only (they
+are periodic and also defined for ``t < 0``); the rest phase is the DEM driver's business.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ _TWO_PI = 2.0 * np.pi
 
 @flax.struct.dataclass
 class CircleMotion:
-    """Circular translation in the x-z plane (SPEC section 2).
+    """Circular translation in the x-z plane (docs/conventions.md section 2).
 
     Attributes:
         rpm: revolutions per minute (the jar centre's orbit frequency is ``rpm / 60`` Hz).
@@ -457,7 +459,8 @@ def acceleration(motion: Motion, t: float | jax.Array) -> jax.Array:
 
 
 def frequency_hz(motion: Motion) -> jax.Array:
-    """The "rotational frequency" (Hz) fed to the surrogate's wall node (SPEC section 5).
+    """The "rotational frequency" (Hz) fed to the surrogate's wall node (docs/conventions.md
+    section 5).
 
     The kind's ``frequency_hz``: ``rpm / 60`` for a circle, ``base_frequency_hz`` for a
     harmonic series, ``1 / period`` for a spline.
@@ -466,13 +469,14 @@ def frequency_hz(motion: Motion) -> jax.Array:
 
 
 def standard_circle(dtype: jnp.dtype = jnp.float64) -> CircleMotion:
-    """The standard case (SPEC 2): circle, 300 rpm, amplitude 0.017 m, phase 0."""
+    """The standard case (docs/conventions.md section 2): circle, 300 rpm, amplitude 0.017 m,
+    phase 0."""
     return CircleMotion(rpm=jnp.asarray(300.0, dtype), amplitude=jnp.asarray(0.017, dtype),
                         phase=jnp.asarray(0.0, dtype))
 
 
 def motion1(dtype: jnp.dtype = jnp.float64) -> HarmonicMotion:
-    """Motion 1 (SPEC 2): x = 1.7 sin(10 pi t) - 0.85 cos(20 pi t),
+    """Motion 1 (docs/conventions.md section 2): x = 1.7 sin(10 pi t) - 0.85 cos(20 pi t),
     z = 1.7 cos(10 pi t) - 0.85 sin(20 pi t) (cm); f0 = 5 Hz."""
     sin_coeffs = [[0.017, 0.0, 0.0], [0.0, 0.0, -0.0085]]
     cos_coeffs = [[0.0, 0.0, 0.017], [-0.0085, 0.0, 0.0]]
@@ -482,7 +486,8 @@ def motion1(dtype: jnp.dtype = jnp.float64) -> HarmonicMotion:
 
 
 def motion2(dtype: jnp.dtype = jnp.float64) -> HarmonicMotion:
-    """Motion 2 (SPEC 2): x = 1.7 sin(10 pi t), z = 1.7 cos(20 pi t) (cm); f0 = 5 Hz."""
+    """Motion 2 (docs/conventions.md section 2): x = 1.7 sin(10 pi t), z = 1.7 cos(20 pi t) (cm);
+    f0 = 5 Hz."""
     sin_coeffs = [[0.017, 0.0, 0.0], [0.0, 0.0, 0.0]]
     cos_coeffs = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.017]]
     return HarmonicMotion(base_frequency_hz=jnp.asarray(5.0, dtype),

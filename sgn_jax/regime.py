@@ -1,4 +1,6 @@
-"""The regime of a ball-mill run (SPEC 7): "bed" or "agitated", with every rule and threshold.
+"""The regime of a ball-mill run: "bed" or "agitated", with every rule and threshold.
+
+The two states are those of docs/conventions.md section 7.
 
 One place for the science of the two states: the thresholds (with units and where they come
 from) and the classifiers. :mod:`sgn_jax.analysis.metrics` applies them to a prediction and its DEM
@@ -66,7 +68,7 @@ the calibration above was measured."""
 
 
 def classify_state(value: float, threshold: float, classify_by: str = "speed") -> str:
-    """SPEC 7 state of a run: "bed" or "agitated".
+    """The state of a run (docs/conventions.md section 7): "bed" or "agitated".
 
     ``classify_by="speed"``: ``value`` = mean ball speed in the jar frame (m/s); agitated when
     >= threshold. ``classify_by="contacts"``: ``value`` = mean pairs within the skin per ball;

@@ -10,8 +10,8 @@ A scene is three things (:class:`Scene`):
 
 **The wall-query protocol.** ``walls(geometry, x_jar) -> (phi (..., P), normal (..., P, 3))``:
 at jar-frame points ``x_jar`` (..., 3) (m), the signed distance of each of P wall patches
-(negative inside the cavity, SPEC 1) and its unit normal (pointing towards the wall). The
-implementations:
+(negative inside the cavity, docs/conventions.md section 1) and its unit normal (pointing towards
+the wall). The implementations:
 
 - :func:`patch_walls` - the parametric jar as P separate analytic patches (floor, lid, side,
   post): a ball in a concave edge feels both walls (the DEM's default for the parametric jar);
@@ -188,7 +188,7 @@ def parametric_jar(params: JarParams) -> JarGeometry:
 def grid_jar(grid: SDFGrid, margin: float) -> JarGeometry:
     """A jar read from an SDF grid (a single patch; ``margin`` (m) is the grid's padding around
     the cavity): a ball in a concave edge feels only the nearer wall, and the wall is only as
-    smooth as the trilinear grid (documented limitation, SPEC 3)."""
+    smooth as the trilinear grid (documented limitation, docs/conventions.md section 3)."""
     lower = np.asarray(grid.origin, np.float64) + margin
     upper = np.asarray(grid.upper, np.float64) - margin
     return JarGeometry(grid, grid_walls, grid_sdf, ("mesh",), lower, upper)

@@ -13,7 +13,7 @@ from sgn_jax.surrogate.model import init_params
 
 @dataclass
 class SyntheticTrajectory:
-    """A SPEC-4-like trajectory (only what the featurizer reads): smooth random ball motions
+    """Trajectory-record-like arrays (only what the featurizer reads): smooth random ball motions
     inside the standard jar, which moves on the standard circle. Not physical: for tests."""
 
     t: np.ndarray
@@ -78,7 +78,7 @@ def random_weights(shapes: Any, seed: int) -> Any:
     """Random weights for a pytree of ``jax.ShapeDtypeStruct`` (``jax.eval_shape`` of a model's
     init), drawn as flax's default init draws them (LeCun-normal kernels truncated at 2 std,
     zero biases) but in numpy: for tests that need some weights, without the init's op-by-op
-    compilations (~150, ~6 s) or, jitted, its 3-5 s compile (issue 20). Leaves whose path ends
+    compilations (~150, ~6 s) or, jitted, its 3-5 s compile. Leaves whose path ends
     in ``['bias']`` are zeros; the others ``(fan_in, ...)`` kernels."""
     rng = np.random.default_rng(seed)
 

@@ -1,5 +1,5 @@
 """Fixtures shared by the tests of the ``.npz`` record files (test_dataset.py, test_prediction.py),
-and the session's shared folder, compilation cache and DEM runs (issue 20; at the end).
+and the session's shared folder, compilation cache and DEM runs (at the end).
 
 Both record files are read by ``sgn_jax.records.base.read_npz_record``, so the files that fail
 before any validation (missing, not a zip, corrupt, bad meta entry) and the messages they must
@@ -22,7 +22,7 @@ os.environ["SGN_JAX_NO_CACHE"] = "1"
 import numpy as np
 import pytest
 
-# One test session shares one scratch folder (issue 20): JAX's persistent compilation cache
+# One test session shares one scratch folder: JAX's persistent compilation cache
 # (``jax/``), so that a program compiled by one test, one xdist worker or one subprocess
 # (the docs examples, the two-device checks) is loaded, not compiled again, by the next; and
 # the DEM runs the session fixtures below make once (settled packings). The folder is new for
@@ -32,12 +32,12 @@ import pytest
 SESSION_DIR_ENV = "SGN_JAX_TEST_SESSION_DIR"
 
 
-# The longest test files first (issue 20): with ``-n 2 --dist loadfile`` each xdist worker takes
+# The longest test files first: with ``-n 2 --dist loadfile`` each xdist worker takes
 # the next whole file when it runs out, so longest-first leaves only short files for the end and
 # the two workers finish within seconds of each other (in collection order a 30-50 s file could
 # start last on one worker while the other sat idle). Approximate seconds of one worker
-# (`pytest --durations=0`, 2026-11-27; benchmarks/compile_probe.py shows where they go); the order is only a scheduling
-# hint: a wrong or stale entry costs time, never a result. Files not listed follow in
+# (`pytest --durations=0`; benchmarks/compile_probe.py shows where they go); the order is only
+# a scheduling hint: a wrong or stale entry costs time, never a result. Files not listed follow in
 # collection order. The ones that make the session's DEM runs (conftest's fixtures below) are
 # spread so that the two workers do not wait on the same one at the start.
 LONGEST_FILES_FIRST = (
@@ -213,7 +213,7 @@ def round_trip(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# DEM runs that several test files need, made once per session (issue 20).
+# DEM runs that several test files need, made once per session.
 
 
 @contextlib.contextmanager
@@ -312,7 +312,7 @@ def standard_dem_file():
 def two_device_results():
     """The default run's two-device checks (tests/two_device_checks.py: ``ensemble`` and
     ``step``, both for tests/test_sharding.py), run once per session in one process with two
-    host devices (one JAX start and import instead of two, issue 20); the results by check
+    host devices (one JAX start and import instead of two); the results by check
     name, kept in the session folder (under a lock, should another worker ever ask too)."""
     from two_device_checks import run_in_two_device_process
 

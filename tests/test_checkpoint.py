@@ -90,7 +90,7 @@ def test_save_restore_gives_bit_identical_predictions(setup, tmp_path):
 def test_optimiser_state_round_trip_and_keep(setup, tmp_path):
     params = setup[4]
     tx = make_optimizer(1e-3)
-    # jitted: two programs instead of ~50 eager op compiles (issue 20)
+    # jitted: two programs instead of ~50 eager op compiles
     init = jax.jit(tx.init)
     opt_state = init(params)
     grads = jax.tree_util.tree_map(lambda p: 0.01 * np.ones_like(p), params)

@@ -39,7 +39,7 @@ def test_shipped_configs_load_with_spec_values(name):
     cfg = load_config(builtin_config_path(name))
     assert cfg == load_config(CONFIG_DIR / f"{name}.toml")  # experiments/configs is the same
     assert cfg.case.name == name
-    # SPEC 2: the standard balls, material and sampling
+    # docs/conventions.md section 2: the standard balls, material and sampling
     assert (cfg.balls.count, cfg.balls.radius, cfg.balls.density) == (24, 0.005, 7700.0)
     assert (cfg.material.young, cfg.material.poisson, cfg.material.restitution,
             cfg.material.friction, cfg.material.rolling_friction) == (2.05e9, 0.235, 0.3, 0.3, 0.045)

@@ -25,7 +25,7 @@ from sgn_jax.surrogate.model import model_factory
 
 R, DT, W = 0.005, 1e-4, 3
 PHYS = ContactPhysics(ball_radius=R, dt=DT, window=W, history=3, gate_margin=2e-4)
-SPEC = GraphSpec(n_particles=5, window=W, ball_radius=R, dt=DT, pp_skin=1.5e-3,
+GRAPH_SPEC = GraphSpec(n_particles=5, window=W, ball_radius=R, dt=DT, pp_skin=1.5e-3,
                  phi_pw=-0.0052, pp_pair_capacity=10)
 
 
@@ -78,7 +78,7 @@ def net_with(gravity, passes=1, spin=False):
 
 def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, passes=1,
              spin=False, friction_sweeps=0):
-    graph, _ = build_graph(window, None, SPEC, floor_query(up))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query(up))
     net = net_with(gravity, passes, spin)
     if friction_sweeps:
         net = net.clone(physics=dataclasses.replace(net.physics, friction_sweeps=friction_sweeps))
@@ -97,7 +97,7 @@ def test_contact_kind_is_registered_and_builds_from_the_whole_config():
     assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
 
 
-# The slow tier (session 7, the default run's 6 minutes): a speed-up's equality (the graphs
+# The slow tier (the default run's 6-minute budget): a speed-up's equality (the graphs
 # without the node-wall queries give the same step); every contact-model test of the default
 # run builds its graphs without them.
 @pytest.mark.slow
@@ -114,7 +114,7 @@ def test_its_graphs_skip_the_node_wall_columns_it_never_reads():
     assert graph_spec_from_config(cfg).node_walls
     assert not graph_spec_from_config(replace_section(cfg, "model", kind="contact")).node_walls
     window, _ = scene(np.random.default_rng(3))
-    graphs = {walls: build_graph(window, None, dataclasses.replace(SPEC, node_walls=walls),
+    graphs = {walls: build_graph(window, None, dataclasses.replace(GRAPH_SPEC, node_walls=walls),
                                  floor_query((0.0, 1.0, 0.0)))[0] for walls in (True, False)}
     phi_columns = np.arange(3, 7 * W, 7)
     assert np.abs(np.asarray(graphs[True].nodes["features"])[:5, phi_columns]).max() > 1e-3
@@ -157,11 +157,11 @@ def test_gradients_are_finite_for_balls_at_rest():
 
     def energy(shift):
         moved = still.replace(positions=still.positions + shift)
-        graph, _ = build_graph(moved, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+        graph, _ = build_graph(moved, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
         terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
         return jnp.sum(terms["dv"] ** 2) + terms["diss_pw"][0]
 
-    # jitted: one program instead of ~250 eager compiles of the backward pass's ops (issue 20)
+    # jitted: one program instead of ~250 eager compiles of the backward pass's ops
     grad = np.asarray(jax.jit(jax.grad(energy))(jnp.zeros_like(still.positions)))
     assert np.all(np.isfinite(grad))
     assert float(np.abs(grad).max()) > 0
@@ -241,7 +241,7 @@ def test_energy_ledger_closes_over_a_rollout():
     rng = np.random.default_rng(5)
     window, _ = scene(rng)
     query = floor_query((0.0, 1.0, 0.0))
-    graph, _ = build_graph(window, None, SPEC, query)
+    graph, _ = build_graph(window, None, GRAPH_SPEC, query)
     net = net_with((0.0, -9.81, 0.0))
     params = random_params(net, graph, seed=4)
     g = np.array([0.0, -9.81, 0.0])
@@ -249,7 +249,7 @@ def test_energy_ledger_closes_over_a_rollout():
 
     @jax.jit
     def step(window):
-        graph, _ = build_graph(window, None, SPEC, query)
+        graph, _ = build_graph(window, None, GRAPH_SPEC, query)
         terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
         return terms
 
@@ -299,7 +299,7 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
     counts = {}
-    # jitted: two programs instead of ~250 eager compiles of the jar query's ops (issue 20)
+    # jitted: two programs instead of ~250 eager compiles of the jar query's ops
     jar_graph = jax.jit(build_graph, static_argnums=(1, 2, 3))
     for patches in (0, 4):
         spec = GraphSpec(n_particles=n, window=W, ball_radius=R, dt=DT, pp_pair_capacity=1,
@@ -315,7 +315,7 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
     assert counts == {0: 1, 4: 2}
 
 
-# patches = 4 in the slow tier (session 7, the default run's 6 minutes): the same rows split
+# patches = 4 in the slow tier (the default run's 6-minute budget): the same rows split
 # with the wall-patch edges of a jar with four patches; patches = 0 runs by default.
 @pytest.mark.parametrize("patches", [0, pytest.param(4, marks=pytest.mark.slow)])
 def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
@@ -342,7 +342,7 @@ def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.asarray(rng.normal(0.0, 0.1, (W, 3))),
                     frequency_hz=jnp.asarray(5.0))
-    spec = dataclasses.replace(SPEC, wall_patches=patches)
+    spec = dataclasses.replace(GRAPH_SPEC, wall_patches=patches)
     graph, _ = build_graph(window, jar, spec, analytic_jar_query)
     forms = {"rows by kind": {"acting_per_ball": 0.0}, "acting": {},
              "acting, block too small": {"acting_per_ball": 0.2}}   # a block of 1 row
@@ -465,7 +465,7 @@ def test_spin_energy_ledger_closes_over_a_rollout():
 
     window, _ = spinning_scene(5)
     query = floor_query((0.0, 1.0, 0.0))
-    graph, _ = build_graph(window, None, SPEC, query)
+    graph, _ = build_graph(window, None, GRAPH_SPEC, query)
     net = net_with((0.0, -9.81, 0.0), spin=True)
     net = net.clone(physics=dataclasses.replace(net.physics, overlap_limit=5e-5,
                                                 overlap_sweeps=2, friction_sweeps=2))
@@ -477,7 +477,7 @@ def test_spin_energy_ledger_closes_over_a_rollout():
 
     @jax.jit
     def step(window):
-        graph, _ = build_graph(window, None, SPEC, query)
+        graph, _ = build_graph(window, None, GRAPH_SPEC, query)
         return net.apply({"params": params}, graph, method=ContactNet.step_terms)
 
     rows, t = [], 0.0
@@ -520,17 +520,17 @@ def test_the_rollout_integrates_the_spins_of_a_spin_model():
 
     window, _ = spinning_scene(7)
     query = floor_query((0.0, 1.0, 0.0))
-    graph, _ = build_graph(window, None, SPEC, query)
+    graph, _ = build_graph(window, None, GRAPH_SPEC, query)
     net = net_with((0.0, -9.81, 0.0), spin=True)
     params = random_params(net, graph, seed=2)
     motion = CircleMotion(rpm=jnp.asarray(300.0), amplitude=jnp.asarray(0.0))
-    run = make_rollout(SPEC, model_predictor(net), 4, 1, snap_back=False, query=query)
+    run = make_rollout(GRAPH_SPEC, model_predictor(net), 4, 1, snap_back=False, query=query)
     res = run(params, None, window, motion, None, 0.0)
     spins = np.asarray(res.spins)
     assert spins.shape == (5, 5, 3)
     np.testing.assert_array_equal(spins[0], np.asarray(window.spins))
     # the rollout's first step: the window's jar state recomputed from the motion (a still jar)
-    graph0, _ = build_graph(jar_state_window(window, motion, 0.0, DT), None, SPEC, query)
+    graph0, _ = build_graph(jar_state_window(window, motion, 0.0, DT), None, GRAPH_SPEC, query)
     first = net.apply({"params": params}, graph0, method=ContactNet.step_terms)
     dw = np.asarray(first["dw"][:5], np.float64)
     assert np.abs(dw).max() > 1.0
@@ -555,7 +555,7 @@ def test_a_fresh_spin_model_sticks_a_sliding_ball_into_rolling_within_the_cone()
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
                     spins=jnp.zeros((5, 3)))
-    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
     net = net_with((0.0, -9.81, 0.0), spin=True)
     params = net.init(jax.random.PRNGKey(0), graph)["params"]
     terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
@@ -574,7 +574,7 @@ def test_the_stick_impulse_is_relaxed_by_the_balls_number_of_contacts():
     """A ball in a bed has several contacts, each computing its stick impulse as if it were the
     ball's only one: each is divided by the larger number of acting contacts of its balls."""
     window, _ = spinning_scene(0)
-    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
     geo = edge_geometry(graph, PHYS, primary_only=True, spin=True)
     gate, is_pp = np.asarray(geo["gate"]), np.asarray(geo["is_pp"])
     recv, send = np.asarray(geo["receivers"]), np.asarray(geo["senders"])
@@ -600,7 +600,7 @@ def test_friction_sweeps_stop_a_packed_clusters_slip_within_the_cone():
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
                     spins=jnp.asarray(rng.normal(0.0, 2.0, (5, 3))))     # R w ~ 1 cm/s
-    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
     geo = edge_geometry(graph, PHYS, primary_only=True, spin=True)
     gate, normal = np.asarray(geo["gate"]) > 0, np.asarray(geo["normal"], np.float64)
     recv, send = np.asarray(geo["receivers"]), np.asarray(geo["senders"])
@@ -674,7 +674,7 @@ def test_the_overlap_limit_stops_fast_impacts_within_it_and_keeps_the_physics(sp
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
                     spins=jnp.zeros((5, 3)) if spin else None)
-    graph, _ = build_graph(window, None, SPEC, floor_query((0.0, 1.0, 0.0)))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
     limits = np.array([max(base, law_factor * PHYS.overlap_peak_pw * fall ** 0.8),
                        max(base, law_factor * PHYS.overlap_peak_pp * closing ** 0.8)])
 
@@ -720,7 +720,7 @@ def test_overlap_sweeps_keep_a_chain_within_the_limit(spin=False):
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
                     spins=jnp.zeros((3, 3)) if spin else None)
-    spec = dataclasses.replace(SPEC, n_particles=3)
+    spec = dataclasses.replace(GRAPH_SPEC, n_particles=3)
     graph, _ = build_graph(window, None, spec, floor_query((0.0, 1.0, 0.0)))
 
     params = ContactNet(physics=PHYS, hidden=16, mlp_layers=2, spin=spin).init(

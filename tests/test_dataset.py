@@ -1,5 +1,5 @@
-"""Tests of sgn_jax.records.trajectory: the SPEC 4 trajectory file, its round trip and every
-refusal."""
+"""Tests of sgn_jax.records.trajectory: the docs/conventions.md section 4 trajectory file, its round
+trip and every refusal."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -28,7 +28,8 @@ def _config():
 
 
 def make_valid(seed: int = 0):
-    """A small synthetic trajectory that satisfies SPEC 4 (values random, energy balance exact)."""
+    """A small synthetic trajectory that satisfies docs/conventions.md section 4 (values random,
+    energy balance exact)."""
     rng = np.random.default_rng(seed)
     arrays = {
         "t": np.arange(T) * DT,
@@ -51,7 +52,8 @@ def make_valid(seed: int = 0):
         values[0] = 0.0
         arrays[name] = values
     total_diss = np.cumsum(sum(arrays[name] for name in DISS))
-    # work_wall such that the SPEC 4 energy balance holds exactly (up to 0.3 J of constant)
+    # work_wall such that the docs/conventions.md section 4 energy balance holds exactly (up to
+    # 0.3 J of constant)
     arrays["work_wall"] = (arrays["ke_trans"] + arrays["ke_rot"] + arrays["pe_grav"]
                            + arrays["e_elastic"] + total_diss - 0.3)
     arrays["extra_per_sample"] = rng.normal(size=(T, 2))

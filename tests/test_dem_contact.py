@@ -1,4 +1,4 @@
-"""Known-answer tests of the Hertz-Mindlin contact law (issue 3, MercuryDPM style).
+"""Known-answer tests of the Hertz-Mindlin contact law (MercuryDPM style).
 
 Normal impacts ball-wall and ball-ball at 0.1-5 m/s with dt_dem = 9.5e-7 s, no gravity:
 restitution 0.300 +- 0.003, contact duration within 1 % of an accurate ODE solution of the same
@@ -67,7 +67,7 @@ def _crossings(overlap: np.ndarray, dt: float) -> float:
 
 
 # One compiled simulator per contact type, the parameters (restitution) and speeds its
-# arguments: the restitution and the elastic tests run the same program (issue 20).
+# arguments: the restitution and the elastic tests run the same program.
 _SIMULATORS = {}
 
 

@@ -1,8 +1,8 @@
-"""Time-step convergence of the standard case (issue 3; slow: ~20 M DEM steps).
+"""Time-step convergence of the standard case (slow: ~20 M DEM steps).
 
 The mean dissipation power over 1 s of motion at dt_dem = 9.5e-7 s (k = 106) and at half of it
 (k = 212) must agree within the spread of 4 seeds. The single runs are chaotic (and the charge
-is multistable, SPEC 7), so only the ensemble statistics can be compared.
+is multistable, docs/conventions.md section 7), so only the ensemble statistics can be compared.
 """
 
 from __future__ import annotations

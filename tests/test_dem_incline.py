@@ -1,4 +1,4 @@
-"""Sphere on an incline (issue 3): rolling without slip and sliding, with tilted gravity.
+"""Sphere on an incline: rolling without slip and sliding, with tilted gravity.
 
 The plane is the floor y = 0; gravity is tilted by theta in the x-y plane, so "down the slope"
 is +x. A ball starting at rest at its static overlap must reach

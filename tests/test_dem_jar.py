@@ -1,4 +1,4 @@
-"""The DEM in the Emax-like jar (issue 3): wall patches, energy ledger, no escapes, vmap.
+"""The DEM in the Emax-like jar: wall patches, energy ledger, no escapes, vmap.
 
 One module-scoped fixture places and settles the standard case (24 balls, seed 0, 0.5 s with
 the jar at rest); the tests then run motion from that state.
@@ -32,7 +32,7 @@ from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
 
 SAMPLE_STEPS = 106  # dt_dem = 1e-4 / 106
 
-# observe and the SDFs run jitted in these tests (issue 20): one compiled program instead of
+# observe and the SDFs run jitted in these tests: one compiled program instead of
 # dozens of op-by-op compiles; the same functions, the same numbers.
 _observe = jax.jit(observe, static_argnums=(0, 1, 4))
 _ledger_balance = jax.jit(ledger_balance, static_argnums=(0, 1))
@@ -105,7 +105,7 @@ def _check_run(setup, params, settled, n_samples):
     return samples
 
 
-# The default tier runs 0.1 s of motion from the settled bed (issue 20); the slow tier runs the
+# The default tier runs 0.1 s of motion from the settled bed; the slow tier runs the
 # same checks over 0.5 s and 2 s. After 0.1 s at 300 rpm the charge has dissipated 0.033 J and
 # the wall has done 0.050 J of work (0.5 s: > 0.05 J, the slow test's bar).
 
@@ -170,7 +170,7 @@ def test_pair_modes_agree(standard):
         advance = make_advance(spec, setup.jar.wall_fn)
         early = advance(setup.params, state, 300)
         # The remaining 2700 steps as nine more calls of the same compiled 300-step scan (one
-        # compile per mode instead of two, issue 20): the same 3000 steps, step by step.
+        # compile per mode instead of two): the same 3000 steps, step by step.
         final = early
         for _ in range(9):
             final = advance(setup.params, final, 300)

@@ -60,7 +60,7 @@ def tiny(tmp_path_factory):
     spec = graph_spec_from_config(model_cfg)
     synthetic = synthetic_trajectory(WINDOW + 2, cfg.balls.count, seed=0)
     window0 = initial_window(synthetic, WINDOW, WINDOW)
-    # The graph and the weights' shapes without running the model's init (issue 20: eager,
+    # The graph and the weights' shapes without running the model's init (eager,
     # hundreds of op compiles; jitted, a 3.7 s compile of its random number generation): the
     # weights are drawn here as flax's defaults draw them (LeCun-normal kernels, truncated at
     # 2 std; zero biases), random either way.
@@ -243,7 +243,7 @@ def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, cap
     assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "emax_300rpm" / "best"
     assert demo_module.has_checkpoint(tiny["run"])
     assert not demo_module.has_checkpoint(tmp_path / "models")
-    # The contact model is the default (issue 19) when it is shipped; the paper-setting one
+    # The contact model is the default when it is shipped; the paper-setting one
     # comes next, then the motion-general one; each is found by name.
     assert demo_module.DEFAULT_MODEL == "contact"
     (tmp_path / "models" / "envelope").symlink_to(tiny["run"] / "checkpoints" / "best")

@@ -47,7 +47,7 @@ def test_packings_hold_one_window_per_seed(cfg, packings):
     np.testing.assert_allclose(packings.windows.frequency_hz, 300.0 / 60.0)  # rpm / 60
 
 
-# The slow tier (session 7, to keep the default run under 6 minutes: 22-30 s, most of it
+# The slow tier (to keep the default run under 6 minutes: 22-30 s, most of it
 # compiling the horizon estimator's gradient). The horizon estimator is not the default (the
 # ensemble difference is, docs/design.md); the default run checks autodiff through a rollout
 # against finite differences in tests/test_rollout.py::test_gradients_match_finite_differences.
@@ -75,14 +75,14 @@ def test_one_segment_without_burn_in_is_the_exact_derivative(cfg, model, packing
         assert float(grad[i]) == pytest.approx(fd, rel=0.05), (study.names[i], fd, grad[i])
 
 
-# The horizon variant is in the slow tier (issue 20: 27-44 s of compiling), beside
+# The horizon variant is in the slow tier (27-44 s of compiling), beside
 # test_one_segment_without_burn_in_is_the_exact_derivative, whose value_and_grad runs the same
 # compiled horizon ``estimate`` (design.py: power's derivative is the estimate's) and must
 # match finite differences.
 @pytest.mark.parametrize("estimator", ["difference",
                                        pytest.param("horizon", marks=pytest.mark.slow)])
 def test_estimate_matches_value_and_grad_and_is_finite(cfg, model, packings, estimator):
-    # 50 burn-in and 100 measured steps (issue 20: was 100 + 200): what is checked is that
+    # 50 burn-in and 100 measured steps: what is checked is that
     # the estimate, value_and_grad and explicit evaluations agree, at any length; the CLI test
     # below runs the same program (compiled once per session).
     study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.015, burn_in=0.005,
@@ -171,7 +171,7 @@ def test_design_config_round_trips_the_parameters(cfg):
 
 def test_cli_sensitivity_prints_json_and_writes_plot(cfg, tmp_path, session_cache):
     # Seeds 0 and 1 (--first-seed 0) in the session's cache (conftest.py): the command reads
-    # the packings the other tests use instead of settling two more (issue 20).
+    # the packings the other tests use instead of settling two more.
     config_path = tmp_path / "case.toml"
     save_config(cfg, config_path)
     out = tmp_path / "sens"

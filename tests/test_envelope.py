@@ -1,4 +1,4 @@
-"""The motion envelope (sgn_jax.records.envelope) and the GNS training noise (issue 10)."""
+"""The motion envelope (sgn_jax.records.envelope) and the GNS training noise."""
 
 from __future__ import annotations
 

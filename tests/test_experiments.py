@@ -66,7 +66,7 @@ def test_sensitivity_variants_change_only_what_they_declare(tmp_path):
         assert g["phi_sb"] - g["phi_pw"] == pytest.approx(0.0003)
 
 
-# The slow tier (session 7, the default run's 6 minutes: 32-34 s of subprocesses). The default
+# The slow tier (the default run's 6-minute budget: 32-34 s of subprocesses). The default
 # run keeps generate_data's records, skips and redos (tests/test_generate_data.py) and
 # run_experiments' scheduler with its logs and exit statuses (below); the rollouts, results
 # and report of a whole run are checked here only.
@@ -81,7 +81,7 @@ def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
     ensembles.write_text('[cases.tiny]\nconfig = "tiny.toml"\nduration = 0.005\n'
                          "seeds = [0, 5, 6]\ntrain_seeds = [0]\n")
     data = tmp_path / "data"
-    # One job at a time (issue 20): the second DEM and the second rollout load the first one's
+    # One job at a time: the second DEM and the second rollout load the first one's
     # compiled programs from the session's cache instead of compiling the same programs at the
     # same time. Two parallel jobs are checked by tests/test_generate_data.py (generate_data)
     # and by test_run_pinned_runs_jobs_side_by_side_each_with_its_log below (run_experiments).

@@ -77,7 +77,7 @@ TIMES = np.array([0.0, 0.0123, 0.05, 0.1377, 0.9])
 def test_offset_velocity_acceleration_frequency_match_the_formula():
     motion = _ellipse()
     x, v, a = _analytic(RPM, SEMI_X, SEMI_Z, PHASE, TIMES)
-    # jitted (issue 20): one compile each instead of op-by-op; the shapes below stay eager
+    # jitted: one compile each instead of op-by-op; the shapes below stay eager
     np.testing.assert_allclose(np.asarray(jax.jit(offset)(motion, TIMES)), x, rtol=0, atol=1e-15)
     np.testing.assert_allclose(np.asarray(jax.jit(velocity)(motion, TIMES)), v, rtol=0,
                                atol=1e-13)

@@ -37,7 +37,7 @@ POST = JarParams(post_radius=0.006, has_post=True)
 BALL_RADIUS = 0.005
 
 
-# The analytic SDFs run jitted (issue 20): one compiled program per jar and point shape instead
+# The analytic SDFs run jitted: one compiled program per jar and point shape instead
 # of dozens of op-by-op compiles per call; the same functions, the same numbers.
 _jar_sdf = jax.jit(jar_sdf)
 _jar_patch_sdf = jax.jit(jar_patch_sdf)
@@ -81,7 +81,8 @@ def post_mesh() -> trimesh.Trimesh:
 def test_jar_volume_matches_spec_and_formula():
     r, length, height = 0.020, 0.035, 0.047
     assert jar_volume(DEFAULT) == pytest.approx((math.pi * r**2 + 2 * r * length) * height, rel=1e-12)
-    assert jar_volume(DEFAULT) * 1e6 == pytest.approx(124.9, abs=0.05)  # SPEC section 2
+    # 124.9 ml: the standard jar of docs/conventions.md section 2
+    assert jar_volume(DEFAULT) * 1e6 == pytest.approx(124.9, abs=0.05)
     assert jar_volume(POST) == pytest.approx(jar_volume(DEFAULT) - math.pi * 0.006**2 * height)
     # post_radius is ignored without has_post
     assert jar_volume(JarParams(post_radius=0.006)) == jar_volume(DEFAULT)

@@ -44,7 +44,7 @@ def analytic_query(params, points, offset):
 
 
 # The tests' own evaluations of the exact SDF (the expected values), as one program per shape
-# instead of ~60 eager compiles of its ops (issue 20); the featurizer calls analytic_query
+# instead of ~60 eager compiles of its ops; the featurizer calls analytic_query
 # inside its own programs.
 reference_query = jax.jit(analytic_query)
 
@@ -95,7 +95,7 @@ def test_edges_follow_the_rules_in_both_directions(jar, seed):
     graph, counts = jax.jit(lambda w: build_graph(w, jar, spec, analytic_query))(win)
     pp, pw = _edge_set(graph)
 
-    # Expected by brute force from the same SDF and the rules of SPEC 5.
+    # Expected by brute force from the same SDF and the rules of docs/conventions.md section 5.
     phi, normal = (np.asarray(a, np.float64) for a in reference_query(jar, x + offset, offset))
     d = np.linalg.norm(x[:, None] - x[None], axis=-1)
     expected_pp = {(j, i) for i in range(n) for j in range(n)
@@ -127,7 +127,7 @@ def test_pp_capacity_overflow_is_counted_and_pairs_stay_bidirectional(grid):
     # A row of 6 touching balls on the floor: 5 close pairs.
     x = np.array([[-0.025 + k * 0.0102, 0.012, 0.0] for k in range(6)])
     spec = _spec(6, pairs=2)
-    # jitted: one program per spec instead of ~160 eager compiles (issue 20)
+    # jitted: one program per spec instead of ~160 eager compiles
     graph, counts = jax.jit(build_graph, static_argnums=2)(_window(x), grid, spec)
     assert int(counts.n_pp) == 10
     assert int(counts.pp_dropped) == 6
@@ -224,7 +224,7 @@ def test_build_graph_inside_lax_scan_matches_direct_calls(jar):
         lambda c: jax.lax.scan(body, c, (new_pos, new_off, new_vel)))((first, jnp.int32(0)))
     assert int(dropped) == 0
     # The direct calls: build_graph on each dataset window, outside any scan (jitted on its
-    # own, one program instead of ~70 eager compiles, issue 20).
+    # own, one program instead of ~70 eager compiles).
     direct_call = jax.jit(lambda win: build_graph(win, jar, spec, analytic_query))
     for s in range(steps):
         direct, counts = direct_call(jax.tree_util.tree_map(lambda a, s=s: a[s + 1], wins))

@@ -1,4 +1,4 @@
-"""Training and the rollout featurize the same window into the same graph (issue 4).
+"""Training and the rollout featurize the same window into the same graph.
 
 The rollout is run with the replay ("cheating") predictor on a short real DEM trajectory, snap-back
 off: fed the DEM's finite-difference accelerations it reproduces the DEM positions to float64

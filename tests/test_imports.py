@@ -54,7 +54,7 @@ def test_batch_pad_segment_mean_and_graph_network_under_jit():
     assert result.globals.shape == (4, 1)
     assert np.all(np.isfinite(np.asarray(result.nodes)))
     # Gradients flow through the GraphNetwork (jitted: one program instead of ~50 eager op
-    # compiles, issue 20).
+    # compiles).
     grad = jax.jit(jax.grad(lambda nodes: jnp.sum(net(padded._replace(nodes=nodes)).globals)))(
         jnp.asarray(padded.nodes))
     assert grad.shape == (11, 4) and np.all(np.isfinite(np.asarray(grad)))

@@ -1,6 +1,7 @@
-"""Tests of sgn_jax.analysis.metrics (SPEC 6/7) and the `sgn-jax evaluate` CLI, on synthetic data
-with known answers: a perfect prediction, a 1 mm shift, dissipation scaled by 1.1, offset starts,
-references that cover only part of the rollout, and small ensembles."""
+"""Tests of sgn_jax.analysis.metrics (docs/conventions.md sections 6 and 7) and the `sgn-jax
+evaluate` CLI, on synthetic data with known answers: a perfect prediction, a 1 mm shift, dissipation
+scaled by 1.1, offset starts, references that cover only part of the rollout, and small
+ensembles."""
 
 import json
 import math
@@ -50,8 +51,9 @@ DISS = [f"diss_{w}_{k}" for w in ("pp", "pw") for k in ("normal", "tangential", 
 
 
 def make_reference(path, n_samples=N_SAMPLES):
-    """A valid SPEC 4 trajectory: balls moving rigidly with the circular jar motion plus a
-    vertical bounce; DEM contact (0, 1) listed at even samples only; smooth dissipation."""
+    """A valid docs/conventions.md section 4 trajectory: balls moving rigidly with the circular jar
+    motion plus a vertical bounce; DEM contact (0, 1) listed at even samples only; smooth
+    dissipation."""
     t = np.arange(n_samples) * DT
     omega = 2 * np.pi * 5.0
     offset = np.stack([0.017 * np.sin(omega * t), 0 * t, 0.017 * np.cos(omega * t)], axis=1)

@@ -41,10 +41,10 @@ def analytic_query(params, points, offset):
     return phi, grad / jnp.linalg.norm(grad, axis=-1, keepdims=True)
 
 
-SPEC = GraphSpec(n_particles=N, window=W, ball_radius=0.005, dt=1e-4, pp_pair_capacity=16)
+GRAPH_SPEC = GraphSpec(n_particles=N, window=W, ball_radius=0.005, dt=1e-4, pp_pair_capacity=16)
 
-# The tests' normalisation of graphs as one program, instead of dozens of eager op compiles
-# (issue 20); test_normalisation_round_trip_... checks normalize_graph itself, called as is.
+# The tests' normalisation of graphs as one program, instead of dozens of eager op compiles;
+# test_normalisation_round_trip_... checks normalize_graph itself, called as is.
 normalize = jax.jit(normalize_graph)
 
 
@@ -56,7 +56,7 @@ def windows():
 
 @pytest.fixture(scope="module")
 def builder(jar):
-    return jax.jit(lambda w: build_graph(w, jar, SPEC, analytic_query))
+    return jax.jit(lambda w: build_graph(w, jar, GRAPH_SPEC, analytic_query))
 
 
 
@@ -146,7 +146,7 @@ def test_model_matches_a_reference_implementation(setup):
 
 def _with_random_biases(params, seed):
     """``params`` with N(0, 0.1) biases (init gives zeros), so every bias path is exercised
-    (drawn in numpy: no eager op compiles, issue 20)."""
+    (drawn in numpy: no eager op compiles)."""
     rng = np.random.default_rng(seed)
     leaves, tree = jax.tree_util.tree_flatten_with_path(params)
     return jax.tree_util.tree_unflatten(tree, [
@@ -249,7 +249,7 @@ def _empty_graph(spec):
     win = Window(positions=np.repeat(far[None], spec.window + 1, 0),
                  offsets=np.zeros((spec.window, 3)), offset_velocities=np.zeros((spec.window, 3)),
                  frequency_hz=np.array(5.0))
-    # jitted: one program instead of ~80 eager compiles (issue 20)
+    # jitted: one program instead of ~80 eager compiles
     return jax.jit(lambda win: build_graph(win, None, spec, lambda _, p, o: (
         jnp.full(p.shape[:-1], -0.02), jnp.zeros(p.shape) + 1 / 3**0.5))[0])(win)
 

@@ -1,4 +1,5 @@
-"""Tests of sgn_jax.motion: SPEC 2 formulas, autodiff derivatives, the periodic spline, batching."""
+"""Tests of sgn_jax.motion: docs/conventions.md section 2 formulas, autodiff derivatives, the
+periodic spline, batching."""
 
 from pathlib import Path
 
@@ -43,7 +44,7 @@ ALL_MOTIONS = {
 }
 
 
-# The tests evaluate the motion functions jitted (issue 20): one compiled program per motion
+# The tests evaluate the motion functions jitted: one compiled program per motion
 # kind and time shape instead of dozens of op-by-op compiles; the numbers are the same
 # functions'. test_time_shapes_and_jit compares them with the eager calls.
 _offset, _velocity, _acceleration = jax.jit(offset), jax.jit(velocity), jax.jit(acceleration)
@@ -78,7 +79,7 @@ def test_circle_radius_period_and_plane():
     np.testing.assert_allclose(shifted, xyz, atol=1e-14)
     # half a period later the jar is on the opposite side of the orbit
     np.testing.assert_allclose(np.asarray(_offset(circle, TIMES + 0.1)), -xyz, atol=1e-14)
-    # SPEC 2: offset(0) = (0, 0, A)
+    # docs/conventions.md section 2: offset(0) = (0, 0, A)
     np.testing.assert_allclose(np.asarray(_offset(circle, 0.0)), [0.0, 0.0, 0.017], atol=1e-16)
 
 

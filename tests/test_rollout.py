@@ -129,7 +129,8 @@ def test_snap_back_would_move_dem_balls(dem):
 
 
 def _circle_offset(rpm, amplitude, t):
-    """SPEC 2 circle in numpy: (A sin 2 pi f t, 0, A cos 2 pi f t), f = rpm / 60."""
+    """The circle of docs/conventions.md section 2 in numpy: (A sin 2 pi f t, 0, A cos 2 pi f t),
+    f = rpm / 60."""
     angle = 2 * np.pi * rpm / 60 * t
     return np.array([amplitude * np.sin(angle), 0.0, amplitude * np.cos(angle)])
 
@@ -182,7 +183,7 @@ def test_separate_pairs_known_answer():
     positions = jnp.array([[0.0, 0.0, 0.0], [0.009, 0.0, 0.0],  # 1 mm overlap
                            [0.0, 0.03, 0.0],  # far away
                            [0.0, 0.0, 0.05], [0.0, 0.0, 0.05]])  # coincident: no normal
-    separate = jax.jit(separate_pairs, static_argnums=(1, 2))  # one compile (issue 20)
+    separate = jax.jit(separate_pairs, static_argnums=(1, 2))  # one compile
     shift, n_pairs = separate(positions, radius, limit)
     shift = np.asarray(shift)
     moved = positions + shift
@@ -341,7 +342,7 @@ def _motions(k):
                          phase=jnp.float64(0.1 * i)) for i in range(k)]
 
 
-# The slow tier (session 7: 11-17 s): its twin in the default run is
+# The slow tier (11-17 s): its twin in the default run is
 # tests/test_sweep.py::test_a_sweep_equals_one_ensemble_per_motion (a rollout vmapped over
 # motions against one ensemble per motion).
 @pytest.mark.slow
@@ -493,7 +494,7 @@ def test_run_rollout_with_a_coarser_step_starts_from_the_coarsened_record(dem, t
     coarse_cfg = replace_section(trained.config, "dem", dt=2 * traj.dt)
     coarse_model = dataclasses.replace(trained, config=coarse_cfg)
     # 0.010 s = 50 coarse steps: one chunk of 50 (the remainder path is the test above's; one
-    # compile fewer, issue 20).
+    # compile fewer).
     summary = run_rollout(coarse_model, traj, 40, 0.010, run_dir / "coarse.npz", progress=False)
     assert summary["steps"] == 50
     assert summary["meta"]["init_index"] == 40 and summary["meta"]["dt"] == 2 * traj.dt
@@ -594,7 +595,7 @@ def test_memory_of_differentiated_rollout_is_bounded():
 def test_the_init_step_pair_is_the_scan(tiny):
     """Stepping ``init_state`` with ``make_rollout_step`` by hand gives the jitted scan's
     states, energies and step records (the scan is this step): 20 steps by hand against the
-    first 20 steps (two frames) of the module's compiled 40-step rollout (issue 20: no
+    first 20 steps (two frames) of the module's compiled 40-step rollout (no
     compile of its own)."""
     from sgn_jax.surrogate.rollout import init_state, make_rollout_step
 

@@ -85,7 +85,7 @@ def test_a_scene_is_a_pytree_of_geometry_and_motion_with_static_walls(jar):
     for k, rpm in enumerate((200.0, 300.0)):
         m = CircleMotion(rpm=jnp.asarray(rpm), amplitude=jnp.asarray(0.017),
                          phase=jnp.asarray(0.0))
-        ref, _ = jax.jit(lambda m: analytic_jar_query(jar, pts, offset(m, t)))(m)  # issue 20
+        ref, _ = jax.jit(lambda m: analytic_jar_query(jar, pts, offset(m, t)))(m)  # one compile
         np.testing.assert_allclose(np.asarray(phi[k]), np.asarray(ref), atol=1e-15)
         assert float(frequency_hz(m)) == pytest.approx(float(freq[k]))
 
@@ -100,7 +100,7 @@ def test_scene_gradients_reach_the_jar_and_the_motion(jar):
     def total_phi(scene):
         return jnp.sum(scene.nearest_wall(pts, 0.01)[0])
 
-    # jitted: one compile instead of the op-by-op ones (issue 20)
+    # jitted: one compile instead of the op-by-op ones
     grads = jax.jit(jax.grad(total_phi))(Scene(geometry=jar, motion=motion, walls=analytic_walls))
     assert np.isfinite(float(grads.geometry.radius)) and float(grads.geometry.radius) != 0
     assert np.isfinite(float(grads.motion.amplitude)) and float(grads.motion.amplitude) != 0

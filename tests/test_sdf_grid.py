@@ -36,10 +36,10 @@ DEFAULT = JarParams()
 POST_JAR = JarParams(post_radius=0.006, has_post=True)
 SPACING = 5e-4
 BALL_RADIUS = 0.005
-PHI_SB = -0.0049  # snap-back threshold of the surrogate (SPEC)
+PHI_SB = -0.0049  # snap-back threshold of the surrogate (docs/conventions.md section 5)
 
 
-# The exact SDFs and the grid queries run jitted (issue 20): one compiled program per jar and
+# The exact SDFs and the grid queries run jitted: one compiled program per jar and
 # point shape instead of dozens of op-by-op compiles per call (the same functions, the same
 # numbers). test_jit_and_vmap keeps the eager query as the reference of the jitted ones.
 _jar_sdf = jax.jit(jar_sdf)

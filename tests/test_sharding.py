@@ -5,7 +5,7 @@ The checks run in a fresh process with two host CPU devices
 (``XLA_FLAGS=--xla_force_host_platform_device_count=2``: the flag must be set before JAX
 starts), so that the rest of the suite keeps one device: tests/two_device_checks.py, whose
 ``ensemble`` and ``step`` checks the default run makes once per session in one process
-(conftest.py's ``two_device_results``). Both sets of tests are in this one file (issue 20): with
+(conftest.py's ``two_device_results``). Both sets of tests are in this one file: with
 ``--dist loadfile`` they run in one xdist worker, so the other worker never waits for the
 two-device process (it waited 15-18 s for it when they were two files).
 
@@ -79,7 +79,7 @@ def test_the_sharded_step_gives_the_one_device_update_on_the_same_samples(result
         assert r["eval"][1] == pytest.approx(r["eval"][0], rel=1e-5)
 
 
-# Slow tier (issue 20): a second two-device process that trains through the whole loop. Its
+# Slow tier: a second two-device process that trains through the whole loop. Its
 # twin in the default run is the step check above (the loop calls that same sharded step and
 # packer) and test_more_devices_than_there_are_is_a_clear_error (the loop's device check).
 @pytest.mark.slow

@@ -95,7 +95,7 @@ def _assert_batches_match_single_windows(traj, spec, raw, stats, grid, idx, seed
     model = SGN(hidden=24)
     packer = BatchPacker(ds, 6, batch_edge_capacity(ds.edges_per_sample, 6))
     batch = packer.make(idx)
-    params = random_init_weights(model, batch.graph, seed)   # numpy: no eager init (issue 20)
+    params = random_init_weights(model, batch.graph, seed)   # numpy: no eager init
     accel_b, de_b = jax.jit(make_apply(model))(params, batch.graph)
     predict = jax.jit(make_predict(model))
     builder = make_graph_builder(None, spec)
@@ -159,7 +159,7 @@ def test_lr_schedule_is_exponential_between_the_ends():
 @pytest.fixture(scope="module")
 def tiny_batch(data):
     """One batch of 12 samples, for the two tests that train SGN(hidden=32) on it: their
-    weight-1 train steps are then the same program, compiled once (issue 20)."""
+    weight-1 train steps are then the same program, compiled once."""
     ds = data[4]
     sub = np.arange(0, 48, 4)  # 12 samples
     packer = BatchPacker(ds, 12, batch_edge_capacity(ds.edges_per_sample, 12))
@@ -185,7 +185,7 @@ def test_tiny_model_overfits_tiny_dataset(tiny_batch):
     for i in range(300):
         state, sums = step(state, batch, np.float32(lr_at(i / 300, 3e-3, 3e-4)), key)
         first = float(total(sums)) if first is None else first
-    # the final loss as one program, not ~100 eager op compiles of the forward pass (issue 20)
+    # the final loss as one program, not ~100 eager op compiles of the forward pass
     final = float(total(jax.jit(loss_sums, static_argnums=(0, 3))(apply, state.params, batch,
                                                                   2.0)))
     assert final < first / 10, (first, final)
@@ -309,7 +309,7 @@ def test_cli_train_on_trajectory_files(cfg, tmp_path):
                  "--out", str(out / "x")]) == 2
 
 
-# The slow tier (session 7): [graph] contact_features is arm C of the envelope study, an SGN
+# The slow tier: [graph] contact_features is arm C of the envelope study, an SGN
 # variant no shipped model uses (docs/envelope.md).
 @pytest.mark.slow
 def test_contact_features_train_batches_equal_the_single_window_path(data, grid):

@@ -6,7 +6,7 @@ suite keeps one device).
 ``python tests/two_device_checks.py CHECK [CHECK ...]`` runs the named checks in this one
 process and prints one JSON line ``{CHECK: result, ...}``; the tests assert on the results.
 The default run's checks (``ensemble``, ``step``) share one process per test session
-(conftest.py's ``two_device_results``: one JAX start, issue 20); the slow tier's
+(conftest.py's ``two_device_results``: one JAX start); the slow tier's
 (``ensemble_study``, ``loop``) run in processes of their own.
 
 Checks:

@@ -1,6 +1,7 @@
 """The analysis layer: what is computed and drawn from records.
 
-- :mod:`sgn_jax.analysis.metrics` - SPEC 6 metrics: a prediction against its DEM reference;
+- :mod:`sgn_jax.analysis.metrics` - docs/conventions.md section 6 metrics: a prediction against its
+  DEM reference;
 - :mod:`sgn_jax.analysis.plots` - the figures (matplotlib);
 - :mod:`sgn_jax.analysis.animation` - the DEM-vs-surrogate comparison GIF.
 

@@ -73,7 +73,8 @@ def jar_sections(mesh: Any) -> JarSections:
     side = np.asarray(mesh_plane(mesh, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]), np.float64)
     if top.size == 0 or side.size == 0:
         raise ValueError("the jar mesh has no section at mid-height or at z = 0; is the jar "
-                         "frame's origin at the centre of the jar floor (SPEC section 1)?")
+                         "frame's origin at the centre of the jar floor (docs/conventions.md "
+                         "section 1)?")
     return JarSections(top=top[..., [0, 2]], side=side[..., [0, 1]], lower=lower, upper=upper)
 
 

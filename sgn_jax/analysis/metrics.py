@@ -1,4 +1,6 @@
-"""Rollout metrics (SPEC sections 6 and 7): a surrogate prediction against a DEM reference.
+"""Rollout metrics: a surrogate prediction against a DEM reference.
+
+The metrics are those of docs/conventions.md sections 6 and 7.
 
 Pure numpy. The pieces (each usable alone):
 
@@ -18,7 +20,8 @@ Pure numpy. The pieces (each usable alone):
   ``n_pp_edges / 2``; it and :func:`deepest_pair_overlap` are defined in :mod:`sgn_jax.pairs`),
   :func:`kinetic_energy_fd` (from finite-difference velocities) and the mean dissipation power.
 - :func:`compare` -> :class:`Comparison` (full-length curves for plots and the summary),
-  :func:`evaluate` -> JSON-able dict, :func:`ensemble_summary` over runs (SPEC 7).
+  :func:`evaluate` -> JSON-able dict, :func:`ensemble_summary` over runs (docs/conventions.md
+  section 7).
 - motion checks (is the energy agreement right for the right reason?):
   :func:`deepest_pair_overlap`, :func:`motion_checks` (the DEM's value next to the surrogate's:
   jar-frame speed, snapped ball-steps, deepest ball-ball overlap, MSE_t plateau against the
@@ -26,10 +29,10 @@ Pure numpy. The pieces (each usable alone):
   range, thresholds in the ``MOTION_*`` constants) and :func:`motion_checks_of` (the checks
   of a :func:`compare` summary, which stores them as ``motion``).
 
-State classification (SPEC 7, "bed" vs "agitated"): the rules, their thresholds and where
-they come from live in :mod:`sgn_jax.regime` (:func:`classify_state`, :data:`AGITATED_SPEED_M_S`,
-:data:`BED_PAIRS_PER_BALL`); this module applies them to the prediction and to the reference at
-the same frame times. They are re-exported here under their old names.
+State classification (docs/conventions.md section 7, "bed" vs "agitated"): the rules, their
+thresholds and where they come from live in :mod:`sgn_jax.regime` (:func:`classify_state`,
+:data:`AGITATED_SPEED_M_S`, :data:`BED_PAIRS_PER_BALL`); this module applies them to the prediction
+and to the reference at the same frame times. They are re-exported here under the same names.
 """
 
 from __future__ import annotations
@@ -114,7 +117,8 @@ def position_mse(pred_pos: np.ndarray, ref_pos: np.ndarray) -> np.ndarray:
     """MSE_t = mean over balls of |x_pred - x_ref|^2 (paper Eq. 33), m^2.
 
     Args:
-        pred_pos, ref_pos: (P, N, 3) positions (m), balls matched by index.
+        pred_pos: (P, N, 3) predicted positions (m).
+        ref_pos: (P, N, 3) reference positions (m), balls matched by index.
     Returns:
         (P,) float64.
     """
@@ -174,8 +178,8 @@ def kinetic_energy_fd(t: np.ndarray, pos: np.ndarray, ball_mass: float
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Translational kinetic energy from finite-difference velocities between frames.
 
-    v = (x_{k+1} - x_k) / (t_{k+1} - t_k) (the SPEC 5 velocity when frames are dt apart; an
-    interval average, hence an underestimate, for coarser frames).
+    v = (x_{k+1} - x_k) / (t_{k+1} - t_k) (the velocity of docs/conventions.md section 5 when
+    frames are dt apart; an interval average, hence an underestimate, for coarser frames).
 
     Args:
         t: (P,) frame times (s), strictly increasing; pos: (P, N, 3) m; ball_mass: kg.
@@ -410,12 +414,14 @@ def _count_stats(counts: np.ndarray, t_step: np.ndarray, unit: str) -> dict[str,
 
 def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
             threshold: float | None = None) -> Comparison:
-    """Align a prediction with its DEM reference and compute every SPEC 6/7 metric.
+    """Align a prediction with its DEM reference and compute every metric of docs/conventions.md
+    sections 6 and 7.
 
     Args:
-        prediction: ``Prediction`` or path; reference: ``Trajectory`` or path.
-        classify_by, threshold: the state rule, see :func:`classify_state` (threshold default
-            :func:`default_threshold`).
+        prediction: ``Prediction`` or path.
+        reference: ``Trajectory`` or path.
+        classify_by: the state rule, see :func:`classify_state`.
+        threshold: the state rule's threshold (default :func:`default_threshold`).
     Returns:
         :class:`Comparison`; its ``summary`` keys: prediction, reference, overlap, position,
         energy, outside, overflow, snapped, regime, motion (:func:`motion_checks` and
@@ -435,7 +441,7 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
     pp_skin = float(prediction.config.graph.pp_skin)
     cutoff = 2.0 * ball_radius + pp_skin
 
-    # ---- cumulative energy (SPEC 6)
+    # ---- cumulative energy (docs/conventions.md section 6)
     cum_ref = np.asarray(reference.cumulative_dissipation("normal+tangential", "pp+pw"))
     energy_cum = np.asarray(prediction.energy_cum, dtype=np.float64)
     s_idx, r_idx = al.step_index, al.step_ref_index
@@ -465,7 +471,7 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
         "E_pred_full_J": _num(energy_cum[-1]),
     }
 
-    # ---- positions (SPEC 6, Eq. 33)
+    # ---- positions (docs/conventions.md section 6, Eq. 33)
     mse = np.full(n_frames, np.nan)
     f_idx, fr_idx = al.frame_index, al.frame_ref_index
     pred_pos = np.asarray(prediction.pos)
@@ -489,7 +495,7 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
         position = None
         offset_diff = None
 
-    # ---- regime indicators (SPEC 7), on the compared interval
+    # ---- regime indicators (docs/conventions.md section 7), on the compared interval
     pred_pairs = np.asarray(prediction.n_pp_edges, dtype=np.float64) / 2.0
     ref_pos_steps = reference.pos[r_idx]
     ref_within = pairs_within(ref_pos_steps, cutoff)
@@ -586,7 +592,8 @@ def compare(prediction: Any, reference: Any, *, classify_by: str = "speed",
 
 def evaluate(prediction: Any, reference: Any, *, classify_by: str = "speed",
              threshold: float | None = None) -> dict[str, Any]:
-    """JSON-able summary of every SPEC 6/7 metric of one run (see :func:`compare`)."""
+    """JSON-able summary of every metric (docs/conventions.md sections 6 and 7) of one run (see
+    :func:`compare`)."""
     return compare(prediction, reference, classify_by=classify_by, threshold=threshold).summary
 
 
@@ -624,12 +631,14 @@ def motion_checks(*, jar_speed_dem_m_s: float | None, jar_speed_sgn_m_s: float |
     """The motion checks of one run: the DEM's value next to the surrogate's (pure function).
 
     Args:
-        jar_speed_dem_m_s, jar_speed_sgn_m_s: mean ball speed in the jar frame (m/s) at the
-            same frame times (:func:`jar_frame_speed`).
-        snapped_ball_steps: the surrogate's ball-steps moved by the snap-back; ball_steps:
-            steps x balls of the rollout.
-        overlap_dem_m, overlap_sgn_m: deepest ball-ball overlap over the run (m, >= 0;
+        jar_speed_dem_m_s: the DEM's mean ball speed in the jar frame (m/s)
+            (:func:`jar_frame_speed`).
+        jar_speed_sgn_m_s: the surrogate's, at the same frame times (m/s).
+        snapped_ball_steps: the surrogate's ball-steps moved by the snap-back.
+        ball_steps: steps x balls of the rollout.
+        overlap_dem_m: the DEM's deepest ball-ball overlap over the run (m, >= 0;
             :func:`deepest_pair_overlap`).
+        overlap_sgn_m: the surrogate's (m, >= 0).
         mse_plateau_m2: the surrogate's MSE_t plateau (m^2).
     Returns:
         one JSON-able dict per check, in a fixed order (jar_speed, snapped, overlap,
@@ -722,7 +731,7 @@ def motion_checks_of(summary: Mapping[str, Any]) -> list[dict[str, Any]]:
 
 
 # --------------------------------------------------------------------------------------------
-# Ensembles (SPEC 7)
+# Ensembles (docs/conventions.md section 7)
 
 
 def _spread(values: Sequence[float | None]) -> dict[str, Any]:
@@ -740,14 +749,16 @@ def _spread(values: Sequence[float | None]) -> dict[str, Any]:
     }
 
 
-MIN_ENSEMBLE_RUNS = 8  # SPEC 7: at least 8 initial packings per case
+MIN_ENSEMBLE_RUNS = 8  # docs/conventions.md section 7: at least 8 initial packings per case
 
 
 def ensemble_summary(runs: Sequence[Any], references: Sequence[Any] | None = None, *,
                      classify_by: str = "speed",
                      threshold: float | None = None,
                      labels: Sequence[str] | None = None) -> dict[str, Any]:
-    """Ensemble statistics over runs (SPEC 7): power spread, states, contact counts.
+    """Ensemble statistics over runs: power spread, states, contact counts.
+
+    The ensemble rules are those of docs/conventions.md section 7.
 
     Args:
         runs: per-run summaries (dicts from :func:`evaluate`), or predictions (objects or

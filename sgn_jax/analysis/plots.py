@@ -8,7 +8,7 @@ and returns the path.
 - :func:`plot_cumulative_energy`: predicted vs DEM cumulative dissipation, with the relative
   error in a second panel (Fig. 8); the prediction may run on past the reference.
 - :func:`plot_ensemble`: per-run dissipation power, predicted vs DEM, and power vs contact
-  count (the two SPEC 7 states).
+  count (the two docs/conventions.md section 7 states).
 - :func:`plot_trajectory_xz`: a top view (x-z) of the balls at one frame, with the jar outline
   and a legend (SGN balls, DEM balls, the line joining the same ball of both, the jar).
 - :func:`plot_run`: all single-run figures from a ``sgn_jax.analysis.metrics.Comparison``.

@@ -1,4 +1,5 @@
-"""Hertz-Mindlin DEM in JAX (SPEC sections 3-4): contact laws, engine, placement, walls."""
+"""Hertz-Mindlin DEM in JAX (docs/conventions.md sections 3-4): contact laws, engine, placement,
+walls."""
 
 from sgn_jax.dem.contact import (
     ContactLaw,

@@ -1,8 +1,8 @@
 """Hertz-Mindlin contact law with tangential history, Coulomb limit and rolling friction.
 
-Pure, vectorised per-contact math (SPEC section 3, paper Eqs. 3-18 with the typos fixed). Every
-function works on K contacts at once (leading axis K) and knows nothing about balls, pairs or
-walls: the engine gathers the contact kinematics, calls :func:`contact_forces`, scatters the
+Pure, vectorised per-contact math (docs/conventions.md section 3, paper Eqs. 3-18 with the typos
+fixed). Every function works on K contacts at once (leading axis K) and knows nothing about balls,
+pairs or walls: the engine gathers the contact kinematics, calls :func:`contact_forces`, scatters the
 forces and, after the velocity update, calls :func:`contact_dissipation` for the energy ledger.
 
 Sign conventions (per contact, "body i" is a ball, its partner j another ball or a wall patch):
@@ -32,7 +32,8 @@ import numpy as np
 
 @flax.struct.dataclass
 class ContactLaw:
-    """Effective parameters of one contact type (ball-ball or ball-wall), SPEC section 3.
+    """Effective parameters of one contact type (ball-ball or ball-wall), docs/conventions.md
+    section 3.
 
     Attributes:
         young_eff: Y* (Pa), 1/Y* = (1-nu1^2)/Y1 + (1-nu2^2)/Y2.
@@ -79,7 +80,7 @@ def make_contact_law(
     """Effective contact parameters of body 1 against body 2 (a wall: radius_2 = mass_2 = inf).
 
     Body 2 has the same material as body 1 unless ``young_2`` / ``poisson_2`` are given
-    (SPEC section 2: balls and wall share one material).
+    (docs/conventions.md section 2: balls and wall share one material).
     """
     young_2 = young if young_2 is None else young_2
     poisson_2 = poisson if poisson_2 is None else poisson_2
@@ -123,8 +124,8 @@ def hertz_energy(law: ContactLaw, overlap: jnp.ndarray) -> jnp.ndarray:
 
 def head_on_normal_force(law: ContactLaw, overlap: Any, approach_rate: Any) -> Any:
     """The normal force (N, repulsive positive) of :func:`contact_forces` for a head-on
-    contact: the Hertz spring plus its damping ``gamma_n v_n``, not clipped (SPEC section 3),
-    zero out of contact. numpy, for the host-side 1-D references of a contact
+    contact: the Hertz spring plus its damping ``gamma_n v_n``, not clipped
+    (docs/conventions.md section 3), zero out of contact. numpy, for the host-side 1-D references of a contact
     (:func:`sgn_jax.surrogate.contact_train.impact_stretches`,
     experiments/contact/impact_response.py); ``law``'s fields and the arguments may be floats
     or arrays of one shape."""
@@ -203,7 +204,7 @@ def contact_forces(
     dt: float,
     clip_attractive: bool = False,
 ) -> ContactForces:
-    """Hertz-Mindlin forces on body i for K contacts (SPEC section 3).
+    """Hertz-Mindlin forces on body i for K contacts (docs/conventions.md section 3).
 
     Args:
         law: effective parameters of this contact type.
@@ -214,7 +215,8 @@ def contact_forces(
         omega_rel: (K,3) rad/s, i's angular velocity relative to the partner (a wall: i's own).
         history: (K,3) m, tangential displacement stored at the previous step.
         dt: the DEM step (s), used to integrate the tangential displacement.
-        clip_attractive: clip the normal force at zero (off by default, SPEC section 3).
+        clip_attractive: clip the normal force at zero (off by default; docs/conventions.md,
+            section 3).
 
     Steps, per contact:
 

@@ -12,13 +12,14 @@ Time integration: symplectic (semi-implicit) Euler,
     v_{n+1} = v_n + dt (F(x_n, v_n, w_n, d_t) / m + g),   w_{n+1} = w_n + dt tau / I,
     x_{n+1} = x_n + dt v_{n+1},
 
-one force evaluation per step (the same integrator the surrogate uses, SPEC 5). The velocity
-dependent damping forces take the velocity of the start of the step. See docs/dem.md for why.
+one force evaluation per step (the same integrator the surrogate uses,
+docs/conventions.md section 5). The velocity dependent damping forces take the velocity of the start of the step. See
+docs/dem.md for why.
 
 Time is the integer ``state.step`` counting DEM steps since the start of motion (negative while
 settling); t = step * dt_dem in float64, so 10 s of motion accumulate no rounding drift. For
 step < 0 the jar rests at ``offset(motion, 0)`` with zero velocity; at step 0 its velocity jumps
-to ``velocity(motion, 0)`` (SPEC 2).
+to ``velocity(motion, 0)`` (docs/conventions.md section 2).
 
 Energy ledger (cumulative, float64 whatever the state dtype): per contact type (pp, pw) the
 dissipation by normal damping, tangential damping, Coulomb slip, rolling friction and the
@@ -71,7 +72,8 @@ class DEMSpec:
         n_patches: P, number of wall patches returned by ``wall_fn`` (each its own contact).
         dt_dem: solver step (s).
         dtype: "float64" or "float32" for positions, velocities and forces.
-        clip_attractive: clip attractive normal forces to zero (SPEC 3: off by default).
+        clip_attractive: clip attractive normal forces to zero (off by default;
+            docs/conventions.md section 3).
         pair_mode: how ball-ball contacts are formed:
             "nxn" (dense N x N arrays, every pair computed from both sides, per-ball sums by
             reductions; no gathers or scatters: the fast path for small N),
@@ -633,7 +635,8 @@ def observe(
     pp_capacity: int,
     velocity_fn: MotionFn | None = None,
 ) -> dict[str, jnp.ndarray]:
-    """One sample of the dataset (SPEC 4) from a state; cumulative ledger values.
+    """One sample of the dataset (docs/conventions.md section 4) from a state; cumulative ledger
+    values.
 
     Returns pos, vel, omega (N,3); offset, offset_vel (3,); energies; the cumulative
     ``diss_pp`` / ``diss_pw`` (5,) and ``work_wall``; ``pp_pairs`` (pp_capacity, 2) int32

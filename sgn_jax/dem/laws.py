@@ -103,7 +103,7 @@ class ContactModel(Protocol):
 @dataclasses.dataclass(frozen=True)
 class HertzMindlin:
     """Hertz normal spring, Mindlin tangential spring, restitution-based damping, Coulomb and
-    rolling friction (:mod:`sgn_jax.dem.contact`, SPEC section 3). Parameters:
+    rolling friction (:mod:`sgn_jax.dem.contact`, docs/conventions.md section 3). Parameters:
     :class:`sgn_jax.dem.contact.ContactLaw`."""
 
     name: str = "hertz_mindlin"

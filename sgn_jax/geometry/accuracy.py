@@ -20,8 +20,8 @@ import numpy as np
 from sgn_jax.geometry.jar import JarParams, jar_sdf
 from sgn_jax.geometry.sdf_grid import grid_sdf
 
-# The exact SDF as one program per shape: op by op it is ~60 small compilations per call shape
-# (issue 20). The same function, so the same distances up to float rounding of the fusion.
+# The exact SDF as one program per shape: op by op it is ~60 small compilations per call shape.
+# The same function, so the same distances up to float rounding of the fusion.
 _jar_sdf = jax.jit(jar_sdf)
 
 FLOOR, LID, WALL_ZPLUS, WALL_ZMINUS, ARC_RIGHT, ARC_LEFT, POST, CORNER = range(8)

@@ -1,4 +1,6 @@
-"""The Emax-like milling jar (SPEC section 2): parameters, analytic SDFs, wall patches, mesh.
+"""The Emax-like milling jar: parameters, analytic SDFs, wall patches, mesh.
+
+The standard jar and its modified variant are those of docs/conventions.md section 2.
 
 Jar frame: the origin is the centre of the jar floor, y points up. The cavity (the region where
 the balls are) is a vertical prism over a *stadium*: two semicircles of radius ``radius`` centred
@@ -8,11 +10,11 @@ along x; the floor is y = 0 and the lid y = ``height``. Optionally a solid cylin
 
 Three views of the same parameters:
 
-- :func:`jar_sdf` -- the exact signed distance (SPEC sign: negative inside the cavity), in jax,
-  differentiable in the points and in the parameters;
+- :func:`jar_sdf` -- the exact signed distance (negative inside the cavity, the SDF sign convention
+  of docs/conventions.md section 1), in jax, differentiable in the points and in the parameters;
 - :func:`jar_patch_sdf_and_normal` -- one SDF per wall patch (floor, lid, side[, post]), the
-  signed distance to that patch's own infinite surface, for the DEM (SPEC section 3: a ball in a
-  concave edge must feel both walls);
+  signed distance to that patch's own infinite surface, for the DEM (docs/conventions.md section 3:
+  a ball in a concave edge must feel both walls);
 - :func:`jar_mesh` -- a watertight triangle mesh of the cavity for STL export and for sampling
   the SDF grid from a mesh.
 """
@@ -32,7 +34,7 @@ from sgn_jax.geometry.common import GeometryError, safe_norm, safe_normalize
 
 @flax.struct.dataclass
 class JarParams:
-    """Emax-like stadium cavity (SPEC section 2), all lengths in m, jar frame.
+    """Emax-like stadium cavity (docs/conventions.md section 2), all lengths in m, jar frame.
 
     The float fields are pytree leaves (so ``jax.grad`` can differentiate with respect to the
     jar's dimensions); ``has_post`` is static (it changes the number of wall patches).
@@ -110,8 +112,8 @@ def jar_patch_sdf_and_normal(params: JarParams, x: jax.Array) -> tuple[jax.Array
 
     Each patch's phi is the signed distance to that patch's own *infinite* surface (floor plane
     y = 0, lid plane y = H, the infinite stadium cylinder, the infinite post cylinder), negative on
-    the cavity side, so that a ball in a concave edge sees both walls (SPEC section 3). Inside the
-    cavity ``max`` over the patches equals :func:`jar_sdf`.
+    the cavity side, so that a ball in a concave edge sees both walls
+    (docs/conventions.md section 3). Inside the cavity ``max`` over the patches equals :func:`jar_sdf`.
 
     Args:
         params: the jar.

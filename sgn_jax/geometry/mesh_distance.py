@@ -1,6 +1,7 @@
 """Exact signed distance from points, or from the nodes of a regular grid, to a closed mesh.
 
-The result is in SPEC sign: negative inside the mesh (inside the cavity), positive outside.
+The result follows the SDF sign convention (docs/conventions.md section 1): negative inside the mesh
+(inside the cavity), positive outside.
 
 Distance. For a point p and a triangle the squared distance is the squared distance to the
 triangle's plane if p projects inside the triangle, else to the nearest of its three edges

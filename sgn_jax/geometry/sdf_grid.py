@@ -1,7 +1,8 @@
 """Signed distance sampled on a regular grid, and its trilinear interpolation in jax.
 
 The surrogate reads phi and grad(phi) of the jar from an :class:`SDFGrid` (one combined SDF, as
-the paper's model sees it); the DEM uses the analytic wall patches instead (SPEC section 3).
+the paper's model sees it); the DEM uses the analytic wall patches instead (docs/conventions.md
+section 3).
 
 A grid holds either one SDF, values (nx, ny, nz) (an STL jar), or one SDF per wall patch,
 values (P, nx, ny, nz) (the parametric jar, the default of :func:`sdf_grid_from_jar`). The
@@ -40,7 +41,8 @@ _EVAL_CHUNK = 1 << 18  # points per jitted evaluation of an analytic SDF
 
 @flax.struct.dataclass
 class SDFGrid:
-    """phi sampled on a regular grid (jar frame, SPEC sign: negative inside the cavity).
+    """phi sampled on a regular grid (jar frame, negative inside the cavity: docs/conventions.md
+    section 1).
 
     values: (nx, ny, nz) phi at the nodes (m), one combined SDF; or (P, nx, ny, nz), one SDF per
         wall patch, phi = max over the P interpolated patches (see :func:`query_sdf_grid`).

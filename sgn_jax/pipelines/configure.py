@@ -181,7 +181,8 @@ def sdf_grid_from_mesh(
     dtype: Any = jnp.float32,
     cache_dir: str | Path | None = None,
 ) -> SDFGrid:
-    """Grid of the signed distance to a closed cavity mesh (SPEC sign: negative inside).
+    """Grid of the signed distance to a closed cavity mesh (negative inside; docs/conventions.md
+    section 1).
 
     The mesh's bounding box grown by ``margin`` is sampled with
     :func:`sgn_jax.geometry.mesh_distance.signed_distance_grid` (exact distances by
@@ -263,7 +264,8 @@ def geometry_from_config(cfg: Any) -> JarGeometry:
     The parametric jar gives one contact per wall patch (floor, lid, side[, post]), each its own
     analytic SDF. An STL jar is a single patch read from an SDF grid (float64, ``[sdf]``
     spacing): a ball in a concave edge of an STL jar then feels only the nearer wall, and the
-    wall is only as smooth as the trilinear grid (documented limitation, SPEC 3).
+    wall is only as smooth as the trilinear grid (documented limitation,
+    docs/conventions.md section 3).
     """
     if cfg.jar.kind == "emax":
         return parametric_jar(jar_params_from_config(cfg.jar))

@@ -15,10 +15,11 @@
   the next spin (ulps of the ball's contact moments R sum|J| / I: dw = R n x J / I cancels where
   J is nearly normal). A snap-back moves a ball's whole window unseen by the frames: each
   snapping step is replayed first and its shift recomputed as the rollout does. Without the
-  shifts the check fails by 1e7 ulps; with them, contact_t16_lim100 on 24 runs (1.5 s, 1665
-  snapped ball-steps): positions within 0.003 ulp, spins within 1.3. Graph and model run fused
-  per window (``lax.map``): vmapped, XLA rounded the float32 centre distance by an ulp (1 nm),
-  which the fine gap input tanh(gap / 5 um) turned into du_n differences of up to 0.2 %.
+  shifts the check fails by 1e7 ulps; with them, a spin model with a 0.1-mm overlap limit on 24
+  runs (1.5 s, 1665 snapped ball-steps): positions within 0.003 ulp, spins within 1.3. Graph
+  and model run fused per window (``lax.map``): vmapped, XLA rounded the float32 centre
+  distance by an ulp (1 nm), which the fine gap input tanh(gap / 5 um) turned into du_n
+  differences of up to 0.2 %.
 - :func:`derive_contact_model`: a trained model's parameters under a changed ``[model]``
   section (e.g. the overlap limit switched on without retraining), saved as a new checkpoint
   whose meta says where it came from.
@@ -187,7 +188,7 @@ def derive_contact_model(checkpoint: str, out: str, **model_changes: Any) -> str
     changed by ``model_changes`` (e.g. ``overlap_limit=1e-4``) as a new run directory ``out``
     (``out/checkpoints/best``), the same parameters; its meta's ``derived_from`` names the
     source and the change, and a source without the envelope its ``[train]`` section names
-    (contact runs before 2026-11-26 did not record it) gets it. Refuses an existing ``out`` and
+    (older contact runs did not record it) gets it. Refuses an existing ``out`` and
     a model that is not a contact model. Returns ``out``."""
     if os.path.exists(out):
         raise FileExistsError(f"{out} exists: choose a new directory")

@@ -1,4 +1,5 @@
-"""DEM driver: placement, settling, chunked sampling with checkpoints, the SPEC-4 dataset.
+"""DEM driver: placement, settling, chunked sampling with checkpoints, the trajectory record
+(docs/conventions.md section 4).
 
 ``run_dem(cfg, duration, out_path)``:
 
@@ -13,9 +14,9 @@
    ``OUT.partial/``.
 
 Sample 0 is the settled state at t = 0. The per-interval dissipation arrays are differences of
-the engine's cumulative ledger (first sample 0). Besides the SPEC-4 arrays the file holds
+the engine's cumulative ledger (first sample 0). Besides the required arrays the file holds
 ``diss_pp_stiffness`` / ``diss_pw_stiffness`` (the tangential-stiffness ledger term, see
-docs/dem.md) and ``n_pp_contacts`` (the regime indicator of SPEC 7).
+docs/dem.md) and ``n_pp_contacts`` (the regime indicator of docs/conventions.md section 7).
 """
 
 from __future__ import annotations
@@ -106,7 +107,8 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
     """Build spec, params and jar of a config.
 
     ``dt_dem`` (optional) overrides ``[dem] dt_dem_max``: the step used is dt / k with the
-    smallest integer k such that dt / k <= dt_dem, so every sample falls on a step (SPEC 2).
+    smallest integer k such that dt / k <= dt_dem, so every sample falls on a step
+    (docs/conventions.md section 2).
     """
     if dt_dem is not None:
         if not dt_dem > 0:
@@ -308,7 +310,7 @@ def run_dem(
     check: bool = True,
     settle_cache: bool = True,
 ) -> DEMRun:
-    """Settle and run the DEM of ``cfg``; write the SPEC-4 dataset to ``out_path`` if given.
+    """Settle and run the DEM of ``cfg``; write the trajectory record to ``out_path`` if given.
 
     Args:
         cfg: a ``sgn_jax.config.Config``.
@@ -576,7 +578,7 @@ def _stop_invalid(setup: DEMSetup, chunks: list[dict[str, np.ndarray]], samples:
 
 
 def assemble_arrays(setup: DEMSetup, chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
-    """The SPEC-4 arrays from the cumulative per-sample observations."""
+    """The trajectory record's arrays from the cumulative per-sample observations."""
     cat = {name: np.concatenate([c[name] for c in chunks]) for name in chunks[0]}
     n_samples = cat["pos"].shape[0]
     arrays: dict[str, np.ndarray] = {

@@ -32,8 +32,8 @@ ball-ball overlap and the MSE_t plateau against the DEM's chaos floor. Each chec
 DEM's range prints a ``WARNING:`` line, followed by one saying that the energy agreement alone
 should not be trusted (docs/rollout.md, "The demo's honesty lines").
 
-One trajectory is one sample of a multistable system (SPEC section 7): the demo shows the
-method working; accuracy claims about dissipation belong to ensembles (``sgn-jax evaluate``
+One trajectory is one sample of a multistable system (docs/conventions.md section 7): the demo shows
+the method working; accuracy claims about dissipation belong to ensembles (``sgn-jax evaluate``
 with several runs).
 
 The shipped models live in ``sgn_jax/data/models/<name>/`` (orbax checkpoint directories as
@@ -494,7 +494,7 @@ def format_report(summary: dict[str, Any]) -> str:
         f"{_fmt(r['jar_speed_sgn_m_s'], '.3f')} m/s ({r['state_sgn']}); ball pairs within the "
         f"edge skin per ball: DEM {_fmt(r['pairs_within_skin_per_ball_dem'], '.2f')}, SGN "
         f"{_fmt(r['pairs_per_ball_sgn'], '.2f')}; one trajectory of a multistable charge: "
-        "judge dissipation on ensembles (SPEC 7)",
+        "judge dissipation on ensembles (docs/conventions.md section 7)",
         f"  wrote      {out}/: summary.json, {names}",
         f"  total      {summary['wall_time_s']:.1f} s",
     ]

@@ -2,7 +2,7 @@
 
 - :mod:`sgn_jax.records.base` - what the ``.npz`` record files share (array specs, meta,
   validated atomic write and read);
-- :mod:`sgn_jax.records.trajectory` - the DEM trajectory file (SPEC section 4);
+- :mod:`sgn_jax.records.trajectory` - the DEM trajectory file (docs/conventions.md section 4);
 - :mod:`sgn_jax.records.prediction` - the rollout prediction file;
 - :mod:`sgn_jax.records.checkpoint` - orbax checkpoints of a trained surrogate, with digests,
   and the shipped models;

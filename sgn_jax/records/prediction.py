@@ -9,24 +9,18 @@ problem, and says how to fix it.
 
 Arrays (S surrogate steps, P saved position frames, N balls), SI units:
 
-=================================  =========  =======  ==============================================
-name                               shape      dtype    meaning
-=================================  =========  =======  ==============================================
-``t_step``                         (S,)       float    s since the start of motion at the END of each
-                                                       surrogate step; uniformly spaced by meta dt
-``dE``                             (S,)       float    J, predicted dissipation of each step
-``energy_cum``                     (S,)       float    J, cumulative predicted dissipation since the
-                                                       rollout's start (= cumsum(dE))
-``n_pp_edges``, ``n_pw_edges``     (S,)       int      directed edge counts of the step's graph
-                                                       (n_pp_edges / 2 = ball-ball pairs)
-``overflow``                       (S,)       int      edges dropped by the static capacity
-``n_outside``                      (S,)       int      balls with phi > 0 after the step
-``n_snapped``                      (S,)       int      balls moved by the snap-back
-``t_pos``                          (P,)       float    s, times of the saved frames (strictly
-                                                       increasing, on the step grid)
-``pos``                            (P, N, 3)  float64  ball positions (m, lab frame)
-``offset``                         (P, 3)     float    jar offset at those times (m)
-=================================  =========  =======  ==============================================
+| name | shape | dtype | meaning |
+|---|---|---|---|
+| ``t_step`` | (S,) | float | s since the start of motion at the END of each surrogate step; uniformly spaced by meta dt |
+| ``dE`` | (S,) | float | J, predicted dissipation of each step |
+| ``energy_cum`` | (S,) | float | J, cumulative predicted dissipation since the rollout's start (= cumsum(dE)) |
+| ``n_pp_edges``, ``n_pw_edges`` | (S,) | int | directed edge counts of the step's graph (n_pp_edges / 2 = ball-ball pairs) |
+| ``overflow`` | (S,) | int | edges dropped by the static capacity |
+| ``n_outside`` | (S,) | int | balls with phi > 0 after the step |
+| ``n_snapped`` | (S,) | int | balls moved by the snap-back |
+| ``t_pos`` | (P,) | float | s, times of the saved frames (strictly increasing, on the step grid) |
+| ``pos`` | (P, N, 3) | float64 | ball positions (m, lab frame) |
+| ``offset`` | (P, 3) | float | jar offset at those times (m) |
 
 Optional extra arrays, written for a model kind that reports its own energy ledger (the
 contact model, :mod:`sgn_jax.surrogate.contact`): ``diss_pp_model``, ``diss_pw_model`` (S,) J, what its
@@ -221,7 +215,7 @@ def save_prediction(path: str | Path, arrays: Mapping[str, Any], meta: Mapping[s
     config; ``compress``: write with ``np.savez_compressed``.
 
     Raises:
-        PredictionError on any problem, before anything is written.
+        PredictionError: on any problem, before anything is written.
     """
     records.write_npz_record(path, arrays, meta, _FORMAT, validate_prediction, compress=compress)
 
@@ -259,7 +253,8 @@ def load_prediction(path: str | Path) -> Prediction:
     arrays, meta = records.read_npz_record(path, _FORMAT)
     if isinstance(meta, Mapping) and "t_step" not in arrays and "pos" in arrays \
             and "pp_pairs" in arrays:
-        raise PredictionError(f"{_FORMAT.where(path)} is a DEM trajectory file (SPEC 4), not a "
+        raise PredictionError(f"{_FORMAT.where(path)} is a DEM trajectory file "
+                              "(docs/conventions.md section 4), not a "
                               "rollout prediction; pass it as --reference instead")
     validate_prediction(arrays, meta, path)
     _FORMAT.config_from_meta(meta, path)

@@ -1,4 +1,5 @@
-"""The trajectory file (SPEC section 4): one ``.npz`` per DEM trajectory, sampled every ``dt``.
+"""The trajectory file (docs/conventions.md section 4): one ``.npz`` per DEM trajectory, sampled
+every ``dt``.
 
 The DEM writes it with :func:`save_trajectory`; everything else reads it with
 :func:`load_trajectory`, which returns a read-only :class:`Trajectory`. Both run the same checks
@@ -7,21 +8,16 @@ with a :class:`DatasetError` that names the file, the array and the problem, and
 
 Arrays (T samples, N balls, K ball-ball contact slots), SI units:
 
-==========================================  ===========  ========  ==============================
-name                                        shape        dtype     meaning
-==========================================  ===========  ========  ==============================
-``t``                                       (T,)         float64   s since the start of motion,
-                                                                   uniformly spaced by meta dt
-``pos``, ``vel``, ``omega``                 (T, N, 3)    float64   ball state (m, m/s, rad/s)
-``offset``, ``offset_vel``                  (T, 3)       float     jar offset (m), velocity (m/s)
-``diss_{pp,pw}_{normal,tangential,          (T,)         float     J dissipated over the interval
-slip,rolling}``                                                    ending at each sample; [0] = 0
-``ke_trans``, ``ke_rot``, ``pe_grav``,      (T,)         float     J at the sample
-``e_elastic``
-``work_wall``                               (T,)         float     J, cumulative since t = 0
-``pp_pairs``                                (T, K, 2)    int       ball indices, padded with -1
-``pw_contact``                              (T, N)       bool      ball touches a wall
-==========================================  ===========  ========  ==============================
+| name | shape | dtype | meaning |
+|---|---|---|---|
+| ``t`` | (T,) | float64 | s since the start of motion, uniformly spaced by meta dt |
+| ``pos``, ``vel``, ``omega`` | (T, N, 3) | float64 | ball state (m, m/s, rad/s) |
+| ``offset``, ``offset_vel`` | (T, 3) | float | jar offset (m), velocity (m/s) |
+| ``diss_{pp,pw}_{normal,tangential,slip,rolling}`` | (T,) | float | J dissipated over the interval ending at each sample; [0] = 0 |
+| ``ke_trans``, ``ke_rot``, ``pe_grav``, ``e_elastic`` | (T,) | float | J at the sample |
+| ``work_wall`` | (T,) | float | J, cumulative since t = 0 |
+| ``pp_pairs`` | (T, K, 2) | int | ball indices, padded with -1 |
+| ``pw_contact`` | (T, N) | bool | ball touches a wall |
 
 Extra arrays are allowed and kept. ``meta`` is stored as a 0-d unicode array holding a JSON
 object with at least :data:`REQUIRED_META` (``config`` is ``sgn_jax.config.config_to_dict`` of
@@ -92,7 +88,7 @@ _FORMAT = RecordFormat(
     error=DatasetError,
     arrays=REQUIRED_ARRAYS,
     meta_keys=REQUIRED_META,
-    documented_in="SPEC section 4",
+    documented_in="docs/conventions.md section 4",
     size_sources="T from 't', N from 'pos', K from 'pp_pairs'",
     float64_hint=("positions and velocities must be float64 (the surrogate's finite "
                   "differences need them); cast with .astype(np.float64) before saving"),
@@ -131,8 +127,8 @@ def validate_trajectory(arrays: Mapping[str, Any], meta: Mapping[str, Any],
     """Check names, shapes, dtypes, finiteness, time spacing, consistency and meta.
 
     Raises:
-        DatasetError naming ``path`` (if given), the offending array or meta key, what was
-        expected and what was found.
+        DatasetError: naming ``path`` (if given), the offending array or meta key, what was
+            expected and what was found.
     """
     where, arrays = records.check_names_and_meta(arrays, meta, path, _FORMAT, _check_meta)
 
@@ -228,7 +224,7 @@ def save_trajectory(path: str | Path, arrays: Mapping[str, Any], meta: Mapping[s
     positions compress poorly).
 
     Raises:
-        DatasetError saying what is wrong; nothing is written then.
+        DatasetError: saying what is wrong; nothing is written then.
     """
     records.write_npz_record(path, arrays, meta, _FORMAT, validate_trajectory,
                              compress=compress)
@@ -282,13 +278,14 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
         """Cumulative dissipated energy since the first sample (T,) J; [0] = 0.
 
         The default (normal + tangential damping, ball-ball + ball-wall) is the surrogate's dE
-        target (SPEC section 3); ``kind="all"`` adds Coulomb slip and rolling friction.
+        target (docs/conventions.md section 3); ``kind="all"`` adds Coulomb slip and rolling
+        friction.
         """
         return np.cumsum(self.dissipation(kind, which))
 
     def energy_balance(self) -> np.ndarray:
         """``ke_trans + ke_rot + pe_grav + e_elastic + all dissipation - work_wall`` minus its
-        first value, (T,) J: zero up to the integrator's error (SPEC section 4)."""
+        first value, (T,) J: zero up to the integrator's error (docs/conventions.md section 4)."""
         a = self.arrays
         total = (a["ke_trans"] + a["ke_rot"] + a["pe_grav"] + a["e_elastic"]
                  + self.cumulative_dissipation("all", "all") - a["work_wall"])
@@ -299,8 +296,8 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
 
         Required arrays and extra arrays whose first dimension is T are sliced; other extra
         arrays are kept whole. The dissipation arrays of the first kept sample are set to 0
-        (the interval before it is not part of the slice), so the SPEC's "first sample 0" still
-        holds and ``cumulative_dissipation`` starts at 0. ``work_wall`` stays cumulative since
+        (the interval before it is not part of the slice), so the record format's "first sample 0"
+        still holds and ``cumulative_dissipation`` starts at 0. ``work_wall`` stays cumulative since
         t = 0 of the original run.
         """
         first, last, _ = slice(start, stop).indices(self.n_samples)

@@ -1,4 +1,4 @@
-"""The contact-impulse surrogate (model kind "contact", issue 19): contact physics built in.
+"""The contact-impulse surrogate (model kind "contact"): contact physics built in.
 
 The SGN (:mod:`sgn_jax.surrogate.model`) maps raw displacement vectors, velocity histories and the jar's
 global state through MLPs and must learn from data rotation invariance, Newton's third law,
@@ -34,9 +34,9 @@ velocities ``vbar = (v_n + v_{n+1}) / 2`` of the integrator::
                                                W_grav = sum m g . vbar dt)
 
 so the surrogate's energy ledger closes by construction (tests/test_contact.py). The paper's
-target (normal + tangential damping, SPEC 3) is reported as ``share_pp D_pp + share_pw D_pw``;
-the two shares (the part of all losses that is damping, not slip or rolling) are the only
-energy quantities fitted from data (``fit_dissipation_shares``), never a second energy.
+target (normal + tangential damping, docs/conventions.md section 3) is reported as ``share_pp D_pp +
+share_pw D_pw``; the two shares (the part of all losses that is damping, not slip or rolling) are
+the only energy quantities fitted from data (``fit_dissipation_shares``), never a second energy.
 
 Properties by construction (and tested): total ball-ball momentum conserved to rounding;
 rotating the scene (positions, velocities, the jar and gravity) rotates the accelerations;
@@ -810,4 +810,4 @@ def make_contact_net(cfg: Any) -> ContactNet:
 
 register_model("contact", make_contact_net, builds_from="config", node_walls=False,
                description="contact-impulse model: invariant edge inputs, equal and opposite "
-                           "impulses, dissipation from its own impulses (issue 19)")
+                           "impulses, dissipation from its own impulses")

@@ -275,7 +275,8 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
     spring plus its damping, not clipped), integrated at ``integration_dt``.
 
     Args:
-        law_pw, law_pp: :class:`sgn_jax.dem.contact.ContactLaw` of ball-wall and ball-ball.
+        law_pw: :class:`sgn_jax.dem.contact.ContactLaw` of ball-wall contacts.
+        law_pp: :class:`sgn_jax.dem.contact.ContactLaw` of ball-ball contacts.
     Returns:
         an :class:`UnrollBatch` (positions (n_impacts, window + 1 + unroll, 2, 3), zero jar
         offsets and velocities, scale 1, zero spins).

@@ -1,4 +1,5 @@
-"""The SGN graph featurizer: a window of states -> a padded ``jraph.GraphsTuple`` (SPEC 5).
+"""The SGN graph featurizer: a window of states -> a padded ``jraph.GraphsTuple``
+(docs/conventions.md section 5).
 
 One function, :func:`build_graph`, is used for training (vmapped over windows of a DEM
 trajectory) and for the rollout (inside ``lax.scan``): same rules, same features, static shapes.
@@ -15,9 +16,10 @@ semi-implicit Euler integrator of the rollout::
 
 The rollout step ``v_{n+1} = v_n + a_n dt``, ``x_{n+1} = x_n + v_{n+1} dt``,
 ``E_{n+1} = E_n + dE_n`` then reproduces ``x_{n+1}`` and the cumulative dissipation
-``E(t_{n+1})`` exactly (to rounding) when fed the true targets. In the dataset format (SPEC 4)
-``diss_*[k]`` is the dissipation over ``(t_{k-1}, t_k]``, so ``dE_n`` is the sum of the normal and
-tangential, ball-ball and ball-wall entries at index ``n + 1``.
+``E(t_{n+1})`` exactly (to rounding) when fed the true targets. In the dataset format
+(docs/conventions.md section 4) ``diss_*[k]`` is the dissipation over ``(t_{k-1}, t_k]``, so
+``dE_n`` is the sum of the normal and tangential, ball-ball and ball-wall entries at index
+``n + 1``.
 
 Graph layout of one window (jraph "padded with graphs" convention, n_graph = 2)
 -------------------------------------------------------------------------------
@@ -73,8 +75,8 @@ class GraphSpec:
         pp_skin: surface-gap skin s_pp (m): ball-ball edge if ``|x_j - x_i| <= 2 R + s_pp``.
         phi_pw: ball-wall edge if ``phi >= phi_pw`` (m).
         pp_pair_capacity: unordered ball pairs kept per graph (2 directed edges each).
-        contact_features: two more edge columns that make a contact visible to the network
-            (issue 10): ball-ball ``[|x_j - x_i| - 2 R, max(0, 2 R - |x_j - x_i|)]`` (surface
+        contact_features: two more edge columns that make a contact visible to the network:
+            ball-ball ``[|x_j - x_i| - 2 R, max(0, 2 R - |x_j - x_i|)]`` (surface
             gap and overlap, m), ball-wall ``[-phi - R, max(0, phi + R)]`` (the same for the
             wall). Off: the paper's 3 columns.
         wall_patches: 0 (the paper): one ball-wall edge per ball, to the nearest wall. P > 0:
@@ -409,7 +411,8 @@ def dissipation_per_interval(traj: Any) -> np.ndarray:
     """(T,) J: normal + tangential damping, ball-ball + ball-wall, over ``(t_{k-1}, t_k]``."""
     missing = [f for f in DISSIPATION_TARGET_FIELDS if getattr(traj, f, None) is None]
     if missing:
-        raise GraphError(f"trajectory lacks dissipation array(s) {missing} (SPEC section 4)")
+        raise GraphError(f"trajectory lacks dissipation array(s) {missing} "
+                         "(docs/conventions.md section 4)")
     return np.sum([np.asarray(getattr(traj, f), np.float64) for f in DISSIPATION_TARGET_FIELDS],
                   axis=0)
 

@@ -1,4 +1,4 @@
-"""Normalisation statistics of the SGN inputs and targets (SPEC section 5).
+"""Normalisation statistics of the SGN inputs and targets (docs/conventions.md section 5).
 
 Mean and standard deviation per feature column, from the training split only, kept separately
 for the ball nodes, the wall node, ball-ball edges, ball-wall edges, the acceleration targets and
