@@ -1,4 +1,4 @@
-"""Benchmark: the surrogate against our DEM on the same physical work, in one run (issue 12).
+"""Benchmark: the surrogate against our DEM on the same physical work, in one run.
 
 One command, ratios side by side on the same machine, compile time apart:
 

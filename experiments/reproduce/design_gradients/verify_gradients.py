@@ -271,6 +271,27 @@ def _verdict(g: float | None, g_dem: float, se_dem: float) -> tuple[bool | None,
             bool(abs(g - g_dem) <= max(BAR * abs(g_dem), 2 * se_dem)))
 
 
+def cmd_merge(parts: Sequence[Path]) -> None:
+    """Merge the surrogate.json of several ``surrogate`` runs (each of some parameters of a
+    point, e.g. with another start) into OUT/surrogate.json: per point the union of their
+    difference estimates, and under ``runs`` which run gave which parameters."""
+    merged: dict = {}
+    for part in parts:
+        for point, res in json.loads((part / "surrogate.json").read_text()).items():
+            into = merged.setdefault(point, {"theta0": res.get("theta0"), "names": [],
+                                             "estimate": {}, "surrogate_fd": {}, "runs": []})
+            if not into["estimate"]:   # the first run's (its centre power; no horizon estimate)
+                into["estimate"] = {k: v for k, v in res.get("estimate", {}).items()
+                                    if not k.startswith("gradient")}
+            into["names"] += [n for n in res.get("names", []) if n not in into["names"]]
+            into["surrogate_fd"].update(res.get("surrogate_fd", {}))
+            into["runs"].append({"file": str(part / "surrogate.json"),
+                                 **{k: res.get(k) for k in ("names", "start", "seeds",
+                                                            "checkpoint", "separation")}})
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "surrogate.json").write_text(json.dumps(merged, indent=1))
+
+
 def cmd_report() -> None:
     import matplotlib  # deferred: plotting only
 
@@ -394,6 +415,8 @@ def main() -> None:
     sp = sub.add_parser("surrogate-paired")
     sp.add_argument("--checkpoint", default=None)
     sp.add_argument("--separation", choices=("config", "on", "off"), default="config")
+    mg = sub.add_parser("merge", help="merge the surrogate.json of other --out folders")
+    mg.add_argument("parts", nargs="+", type=Path)
     sub.add_parser("report")
     args = p.parse_args()
     OUT = args.out
@@ -415,6 +438,8 @@ def main() -> None:
     elif args.cmd == "surrogate-paired":
         cmd_surrogate_paired(args.checkpoint,
                              {"config": None, "on": True, "off": False}[args.separation])
+    elif args.cmd == "merge":
+        cmd_merge(args.parts)
     else:
         cmd_report()
 
