@@ -269,8 +269,8 @@ def bench(args) -> dict:
         ens = {"packings": n, "seconds": secs}
         ens["dem_processes"] = dem_processes(n, secs, args.dem_ensemble_packings)
         # The vmapped DEM of the whole ensemble would take as long as the processes or longer
-        # (vmap barely raises its throughput on a CPU: docs/benchmarks.md, "DEM throughput"); it is extrapolated from the
-        # largest measured batch on two cores instead of run.
+        # (vmap barely raises its throughput on a CPU: docs/benchmarks.md, "DEM throughput");
+        # it is extrapolated from the largest measured batch on two cores instead of run.
         rows = [r for r in out["batches"] if r["cores"] == "0,1"]
         if rows:
             row = max(rows, key=lambda r: r["batch"])
