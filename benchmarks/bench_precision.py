@@ -1,4 +1,4 @@
-"""Benchmark: float32 against bfloat16 matmuls for the fast tier's MLP shapes (issue 12).
+"""Benchmark: float32 against bfloat16 matmuls for the fast tier's MLP shapes.
 
 The SGN's cost is its MLPs: a 4-layer MLP of width H applied to every edge slot (240 per graph
 at the standard capacities) and node (25). This times that block, jitted, in float32 and with

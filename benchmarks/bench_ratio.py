@@ -1,4 +1,4 @@
-"""Benchmark: the surrogate against our DEM on the same physical work, in one run (issue 12).
+"""Benchmark: the surrogate against our DEM on the same physical work, in one run.
 
 One command, ratios side by side on the same machine, compile time apart:
 
@@ -11,11 +11,11 @@ One command, ratios side by side on the same machine, compile time apart:
   process, and one pinned process per core running its share of the packings one after another.
 
 Every measurement runs in a fresh subprocess pinned with ``taskset`` (JAX's thread settings do
-not limit its threads; ``taskset`` does, ../shared/NOTES-jax-stack.md), so "one core" is one
+not limit its threads; ``taskset`` does), so "one core" is one
 core. The packings are 8 real settled DEM packings of the standard case (seeds 4-11), tiled to
 the batch size (a vmapped step costs the same for any packing: static shapes, no tiers under
-vmap). The surrogate's accuracy is not measured here: the model's held-out errors are in
-docs/results.md (section 11) and docs/benchmarks.md states them beside the ratios.
+vmap). The surrogate's accuracy is not measured here: the models' held-out errors are in
+docs/results.md and docs/benchmarks.md states them beside the ratios.
 
     python benchmarks/bench_ratio.py                      # prints JSON
     python benchmarks/bench_ratio.py --append             # and adds a section to docs/benchmarks.md
@@ -269,8 +269,8 @@ def bench(args) -> dict:
         ens = {"packings": n, "seconds": secs}
         ens["dem_processes"] = dem_processes(n, secs, args.dem_ensemble_packings)
         # The vmapped DEM of the whole ensemble would take as long as the processes or longer
-        # (NOTES-jax-stack: vmap barely raises its throughput); it is extrapolated from the
-        # largest measured batch on two cores instead of run.
+        # (vmap barely raises its throughput on a CPU: docs/benchmarks.md, "DEM throughput");
+        # it is extrapolated from the largest measured batch on two cores instead of run.
         rows = [r for r in out["batches"] if r["cores"] == "0,1"]
         if rows:
             row = max(rows, key=lambda r: r["batch"])

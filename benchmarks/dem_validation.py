@@ -1,4 +1,4 @@
-"""Numbers for the DEM validation table of docs/dem.md (the known-answer cases of issue 3).
+"""Numbers for the DEM validation table of docs/dem.md (its known-answer cases).
 
 Prints markdown rows: normal impacts (restitution, contact duration vs an ODE solution of the
 same law and vs Hertz for e = 1) and the incline cases. The assertions live in

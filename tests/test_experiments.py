@@ -1,6 +1,8 @@
-"""experiments/run_experiments.py, results_table.py and sensitivity.py: the rollout length a
-DEM file covers, the sensitivity configs, and an end-to-end run of the shipped model on a tiny
-two-packing ensemble (DEM -> rollouts -> evaluation -> results.json -> markdown table)."""
+"""The tools of experiments/tools/ (run_experiments.py, results_table.py, evaluate_contact.py,
+generate_data.py's prefixes) and the reproduce folders: the rollout length a DEM file covers, an
+end-to-end run of the shipped model on a tiny two-packing ensemble (DEM -> rollouts -> evaluation
+-> results.json -> markdown table), the contact evaluation's bars, and that every reproduce
+folder states its command, its expected numbers and its time."""
 
 from __future__ import annotations
 
@@ -18,10 +20,12 @@ from sgn_jax.config import builtin_config_path, load_config, replace_section, sa
 from sgn_jax.pipelines.demo import shipped_model_dir
 
 ROOT = Path(__file__).resolve().parents[1]
+TOOLS = ROOT / "experiments" / "tools"
+REPRODUCE = ROOT / "experiments" / "reproduce"
 
 
 def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
@@ -31,7 +35,7 @@ def _load(name: str):
 gd = _load("generate_data")
 rx = _load("run_experiments")
 rt = _load("results_table")
-sens = _load("sensitivity")
+ec = _load("evaluate_contact")
 
 
 def test_rollout_duration_is_whole_blocks_the_reference_covers(tmp_path):
@@ -45,29 +49,83 @@ def test_rollout_duration_is_whole_blocks_the_reference_covers(tmp_path):
         rx.rollout_duration(path, 7, 1e-4, 10)
 
 
-def test_sensitivity_variants_change_only_what_they_declare(tmp_path):
-    base = ROOT / "experiments" / "configs" / "emax_300rpm.toml"
-    reference = load_config(sens.variant_config("baseline", base, tmp_path, 3))
-    assert reference.train.epochs == 3
-    for name, changes in sens.VARIANTS.items():
-        cfg = load_config(sens.variant_config(name, base, tmp_path, 3))
-        for section in ("graph", "model", "train", "rollout", "jar", "motion"):
-            got, want = getattr(cfg, section), getattr(reference, section)
-            declared = changes.get(section, {})
-            for field, value in declared.items():
-                assert getattr(got, field) == value, (name, section, field)
-            for field in type(want).__dataclass_fields__:
-                if field not in declared:
-                    assert getattr(got, field) == getattr(want, field), (name, section, field)
-        assert name in sens.PAPER
-    # the phi_pw variants keep phi_sb 0.3 mm above phi_pw, as the paper did
-    for name in ("phi_pw_-0.0049", "phi_pw_-0.0055"):
-        g = sens.VARIANTS[name]["graph"]
-        assert g["phi_sb"] - g["phi_pw"] == pytest.approx(0.0003)
+def test_prefix_commands_cover_only_the_missing_evaluation_runs(tmp_path):
+    """``generate_data.py --prefix``: one ``sgn-jax dem`` of the prefix's duration per evaluation
+    seed (training seeds are never evaluated), none for a file already there."""
+    ensembles = tmp_path / "ensembles.toml"
+    ensembles.write_text('[cases.tiny]\nconfig = "tiny.toml"\nduration = 1.0\n'
+                         "seeds = [0, 5, 6]\ntrain_seeds = [0]\n")
+    save_config(load_config(builtin_config_path("emax_300rpm")), tmp_path / "tiny.toml")
+    cases = gd.load_ensembles(ensembles)
+    out = tmp_path / "prefix"
+    out.mkdir()
+    (out / "tiny_seed6.npz").write_bytes(b"")
+    commands = gd.prefix_commands(cases.values(), out, 0.002)
+    assert len(commands) == 1
+    cmd = commands[0]
+    assert cmd[cmd.index("--seed") + 1] == "5"
+    assert cmd[cmd.index("--duration") + 1] == "0.002"
+    assert cmd[cmd.index("--out") + 1] == str(out / "tiny_seed5.npz")
+    with pytest.raises(gd.EnsembleError, match="prefix"):
+        gd.run_prefixes(list(cases.values()), out, 1.0, 1)
 
 
-# The slow tier (the default run's 6-minute budget: 32-34 s of subprocesses). The default
-# run keeps generate_data's records, skips and redos (tests/test_generate_data.py) and
+def _summary(case, **changes):
+    base = {"case": case, "power_error": 0.0, "power_bar": 0.10, "speed_error": 0.0,
+            "pp_touching_error": 0.0, "pw_touching_error": 0.0, "deepest_pp_overlap_m": 1e-4,
+            "snapped_fraction": 0.0, "outside_ball_steps": 0, "non_finite_runs": 0}
+    return base | changes
+
+
+def test_contact_bars_name_each_miss():
+    """The bars of ``evaluate_contact.py``: the case's power bar (15 % Motion 1 and 2, 20 % the
+    post jar, max(5 %, 2 SE) the standard case, the summary's max(10 %, 2 SE) elsewhere), speed
+    15 %, contacts 25 %, overlap 0.5 mm, snapped 1 %, nothing outside."""
+    assert ec.power_bar("motion2", 0.3) == 0.15
+    assert ec.power_bar("post_motion1", 0.1) == 0.20
+    assert ec.power_bar("standard", 0.03) == 0.05 and ec.power_bar("standard", 0.2) == 0.2
+    assert ec.power_bar("heldout_c00", 0.13) == 0.13
+    assert ec.misses(_summary("heldout_c00")) == []
+    assert ec.misses(_summary("motion1", power_error=0.14)) == []
+    assert ec.misses(_summary("motion1", power_error=-0.16)) == ["power -16.0% (bar 15%)"]
+    missed = ec.misses(_summary("heldout_h01", speed_error=0.2, pw_touching_error=-0.3,
+                                deepest_pp_overlap_m=6e-4, outside_ball_steps=3))
+    assert missed == ["speed +20.0%", "pw contacts -30.0%", "overlap 0.60 mm",
+                      "outside or non-finite"]
+    table = ec.bars_table([_summary("fresh_h46", power_error=0.2)])
+    assert "| fresh_h46 | +20.0% (10%) |" in table and "power +20.0% (bar 10%)" in table
+
+
+def test_the_shipped_contact_models_expected_numbers_meet_its_bars():
+    """The committed held-out results of the shipped contact model (the expected numbers of
+    experiments/reproduce/contact_heldout) meet every bar, as docs/results.md states."""
+    expected = REPRODUCE / "contact_heldout" / "expected"
+    for part in ("heldout", "unseen", "standard", "fresh", "heldout_sepon", "unseen_sepon"):
+        summaries = json.loads((expected / f"{part}.json").read_text())["summaries"]
+        assert summaries, part
+        for summary in summaries:
+            assert ec.misses(summary) == [], (part, summary["case"])
+
+
+def test_every_reproduce_folder_states_command_expected_numbers_and_time():
+    """Each folder of experiments/reproduce has a README.md with one command (a fenced block),
+    the expected numbers and the time it takes; the scripts and files it names exist."""
+    folders = sorted(p for p in REPRODUCE.iterdir() if p.is_dir())
+    assert len(folders) >= 5
+    for folder in folders:
+        readme = (folder / "README.md").read_text()
+        assert "```" in readme and "## Expected" in readme and "## Time" in readme, folder.name
+        for token in readme.replace("`", " ").split():
+            if token.startswith("experiments/") and token.endswith((".py", ".sh", ".toml")):
+                assert (ROOT / token).is_file(), (folder.name, token)
+        run = folder / "run.sh"
+        if run.exists():
+            for token in run.read_text().split():
+                if token.startswith("experiments/") and token.endswith((".py", ".toml", ".jsonl")):
+                    assert (ROOT / token.strip("\"'")).is_file(), (folder.name, token)
+
+
+# The slow tier (32-34 s of subprocesses, too long for the default run). The default run keeps generate_data's records, skips and redos (tests/test_generate_data.py) and
 # run_experiments' scheduler with its logs and exit statuses (below); the rollouts, results
 # and report of a whole run are checked here only.
 @pytest.mark.slow

@@ -1,5 +1,5 @@
-"""experiments/generate_data.py: the ensembles file, the plan, and an end-to-end run of a tiny
-ensemble (2 seeds, 5 ms of motion, 2 ms of settling): files, manifest, skip, redo."""
+"""experiments/tools/generate_data.py: the ensembles files, the plan, and an end-to-end run of a
+tiny ensemble (2 seeds, 5 ms of motion, 2 ms of settling): files, manifest, skip, redo."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ DURATION = 0.005  # s of motion: 51 samples
 
 def _load_generator():
     spec = importlib.util.spec_from_file_location(
-        "generate_data", ROOT / "experiments" / "generate_data.py")
+        "generate_data", ROOT / "experiments" / "tools" / "generate_data.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules["generate_data"] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
@@ -39,7 +39,25 @@ gd = _load_generator()
 # The shipped ensembles file
 
 
-def test_shipped_ensembles_meet_issue_6():
+def test_the_contact_models_training_ensembles_write_the_files_its_config_reads(tmp_path):
+    """The training records of the shipped contact model: experiments/contact/training_runs.toml
+    (55 envelope runs), experiments/contact/kicks.toml (12 kicked beds) and
+    experiments/envelope/corners.toml (12 corner runs) write, with ``--split train``, exactly the
+    files that sgn_jax/configs/contact_train.toml's record globs name."""
+    import fnmatch
+
+    globs = {"training_runs": ("contact", "envelope", "train_*.npz", 55),
+             "kicks": ("contact", "kicks", "kick_still_*_seed3[012]0[0-3].npz", 12),
+             "corners": ("envelope", "corners", "corner_*.npz", 12)}
+    for name, (folder, out, pattern, count) in globs.items():
+        cases = gd.load_ensembles(ROOT / "experiments" / folder / f"{name}.toml")
+        runs = gd.plan_runs(cases.values(), tmp_path / out, "train")
+        assert len(runs) == count, name
+        assert all(fnmatch.fnmatch(run.file_name, pattern) for run in runs), name
+        assert all(run.case.config_path.is_file() for run in runs), name
+
+
+def test_the_paper_ensembles_hold_the_cases_and_splits_of_the_protocol():
     cases = gd.load_ensembles(ROOT / "experiments" / "ensembles.toml")
     assert list(cases) == ["standard", "motion1", "motion2", "post_motion1"]
     standard = cases["standard"]
