@@ -162,15 +162,16 @@ def test_impact_stretches_answer_with_the_configs_restitution():
 
 
 def test_warm_start_takes_the_matching_submodules_and_refuses_a_foreign_checkpoint():
-    """``train_contact(init_from=...)``: a 2-pass model starts its first pass from a trained
-    1-pass model (same names and shapes), its correction pass and the data's dissipation
-    shares fresh; a checkpoint with nothing in common is an error, not a silent fresh start."""
+    """``train_contact(init_from=...)``: a model takes the submodules of a trained one that
+    have the same names and shapes; the others (one the donor lacks, one of another width) and
+    the data's dissipation shares start fresh; a checkpoint with nothing in common is an
+    error, not a silent fresh start."""
     from sgn_jax.pipelines.contact_train_run import _warm_start
     from sgn_jax.surrogate.train import TrainingError
 
     fresh = {"pp_net": {"dense_0": {"kernel": np.zeros((4, 8))}},
              "pw_net": {"dense_0": {"kernel": np.zeros((4, 8))}},
-             "pp_refine_0": {"dense_0": {"kernel": np.zeros((8, 8))}},
+             "extra_net": {"dense_0": {"kernel": np.zeros((8, 8))}},
              "share_logit": np.zeros(2)}
     donor = {"pp_net": {"dense_0": {"kernel": np.ones((4, 8))}},
              "pw_net": {"dense_0": {"kernel": np.ones((4, 16))}},   # another width: not taken
