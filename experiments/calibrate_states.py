@@ -33,7 +33,8 @@ FRAME_STRIDE = 10  # samples between the frames the speed is computed from (1 ms
 def indicators(path: Path, window_s: float | None = None) -> dict:
     """Per-run and per-window indicators (windows of ``window_s``, default
     ``sgn_jax.regime.REGIME_WINDOW_S`` = 1 s)."""
-    from sgn_jax.api import REGIME_WINDOW_S, jar_frame_speed, load_trajectory, pp_contact_counts
+    from sgn_jax.api import load_trajectory
+    from sgn_jax.experiment_tools import REGIME_WINDOW_S, jar_frame_speed, pp_contact_counts
 
     window_s = REGIME_WINDOW_S if window_s is None else window_s
 
@@ -63,7 +64,7 @@ def indicators(path: Path, window_s: float | None = None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.api import (
+    from sgn_jax.experiment_tools import (
         AGITATED_SPEED_M_S,
         REGIME_PP_CONTACTS_PER_BALL,
         git_commit,

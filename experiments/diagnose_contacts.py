@@ -49,14 +49,8 @@ def one_step(model_dir: str, data: str, train_time: float = 4.5, stride: int = 7
              limit: int = 600) -> dict:
     import jax
 
-    from sgn_jax.api import (
-        build_graph,
-        graph_spec_from_config,
-        load_trained_model,
-        load_trajectory,
-        sdf_grid_from_config,
-        windows_from_trajectory,
-    )
+    from sgn_jax.api import graph_spec_from_config, load_trajectory, sdf_grid_from_config
+    from sgn_jax.experiment_tools import build_graph, load_trained_model, windows_from_trajectory
 
     trained = load_trained_model(model_dir)
     cfg = trained.config
@@ -102,7 +96,8 @@ def one_step(model_dir: str, data: str, train_time: float = 4.5, stride: int = 7
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.api import align, load_prediction, load_trajectory, write_json
+    from sgn_jax.api import load_prediction, load_trajectory
+    from sgn_jax.experiment_tools import align, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", required=True)

@@ -30,7 +30,7 @@ import sys
 import time
 from pathlib import Path
 
-from sgn_jax.api import sgn_jax_command
+from sgn_jax.experiment_tools import sgn_jax_command
 
 HERE = Path(__file__).resolve().parent
 
@@ -63,7 +63,8 @@ PAPER: dict[str, str] = {
 
 
 def variant_config(name: str, base: Path, out: Path, epochs: int) -> Path:
-    from sgn_jax.api import load_config, replace_section, save_config
+    from sgn_jax.api import load_config, replace_section
+    from sgn_jax.experiment_tools import save_config
 
     cfg = load_config(base)
     for section, changes in VARIANTS[name].items():
@@ -84,7 +85,7 @@ def _run(argv: list[str], log: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.api import git_commit, machine_info, write_json
+    from sgn_jax.experiment_tools import git_commit, machine_info, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--variants", default=",".join(VARIANTS),
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
 def _plot(summary: dict, path: Path) -> None:
     import numpy as np
 
-    from sgn_jax.api import new_figure, save_figure
+    from sgn_jax.experiment_tools import new_figure, save_figure
 
     rows = summary.get("variants", {})
     if not rows:

@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.api import (
-        SGNJaxError,
+    from sgn_jax.api import SGNJaxError
+    from sgn_jax.experiment_tools import (
         best_checkpoint_step,
         git_commit,
         sha256_file,

@@ -1,21 +1,23 @@
-"""The public Python API: configs, the shipped surrogate, packings, ensembles, design sensitivities.
+"""The public Python API: configs, the shipped surrogates, the DEM, rollouts, ensembles, design
+studies, metrics and the package's errors (docs/api.md).
 
-A design study in five lines (docs/design.md, README)::
+``import sgn_jax as sj`` gives the same names. A design study in five lines::
 
-    import jax, sgn_jax.api as sj
+    import jax, sgn_jax as sj
     model = sj.load_surrogate()                       # the shipped default (contact) model
     cfg = sj.at_surrogate_step(sj.load_config("emax_300rpm"), model)  # at the model's step
     packings = sj.make_packings(cfg, seeds=range(8))  # DEM settle + first window, per seed
     study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=1.5, burn_in=0.5)
     power, grad = jax.value_and_grad(study.power)(study.theta0)   # W, W/rpm
 
-``study.power`` is a jitted function of the flat parameter vector alone; its gradient is the
-truncated-horizon ensemble estimator of :mod:`sgn_jax.design`. ``study.estimate(theta)``
-returns the same with standard errors; ``study.powers(theta)`` the per-packing powers without
-gradient work (for curves and finite differences).
+``study.power`` is a jitted function of the flat parameter vector alone; its gradient is, by
+default, the ensemble central difference with common packings (:func:`design_study`'s
+``estimator``). ``study.estimate(theta)`` returns the same with standard errors;
+``study.powers(theta)`` the per-packing powers without gradient work.
 
 This module is the layer where configs and files meet the core (:mod:`sgn_jax.design`,
-:mod:`sgn_jax.surrogate.rollout`, :mod:`sgn_jax.dem`); the CLI and the experiments call it.
+:mod:`sgn_jax.surrogate.rollout`, :mod:`sgn_jax.dem`). What the experiment and benchmark scripts
+use beyond it is gathered in :mod:`sgn_jax.experiment_tools`.
 """
 
 from __future__ import annotations
@@ -33,33 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.analysis.metrics import (
-    align,
-    compare,
-    contact_census,
-    ensemble_summary,
-    evaluate,
-    headline,
-    jar_frame_speed,
-    mse_plateau,
-    position_mse,
-    pp_contact_counts,
-)
-from sgn_jax.config import (
-    Config,
-    ConfigError,
-    config_from_dict,
-    config_to_dict,
-    config_to_toml,
-    replace_section,
-    resolve_config,
-    save_config,
-)
-from sgn_jax.dem.contact import head_on_normal_force
+from sgn_jax.analysis.metrics import ensemble_summary, evaluate
+from sgn_jax.config import Config, ConfigError, replace_section, resolve_config
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.dem.placement import placement_candidates
 from sgn_jax.design import (
-    PARAMETER_UNITS,
     DesignError,
     EnsemblePower,
     PackingStart,
@@ -78,98 +58,36 @@ from sgn_jax.design import (
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError, SGNJaxWarning
 from sgn_jax.geometry import JarParams
 from sgn_jax.motion import Motion, frequency_hz, motion_kind, offset
-from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
     motion_from_config,
     sdf_grid_from_config,
-    surrogate_walls_from_config,
 )
-from sgn_jax.pipelines.configure import (
-    params_from_config as dem_params_from_config,
-)
-from sgn_jax.pipelines.contact_replay import (
-    derive_contact_model,
-    floor_activity_run,
-    make_floor_replay,
-)
-from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.dem_run import (
     DEMRun,
     initial_state,
     load_settled,
-    partial_dir,
     run_dem,
     save_settled,
     settle_sample_count,
     setup_from_config,
 )
-from sgn_jax.pipelines.demo import (
-    SHIPPED_MODELS_DIR,
-    best_checkpoint_step,
-    resolve_checkpoint,
-    ship_checkpoint,
-    shipped_model_dir,
-)
-from sgn_jax.pipelines.experiments import (
-    ExperimentError,
-    case_config,
-    case_result,
-    last_json_line,
-    parse_rollout_settings,
-    prediction_ok,
-    rollout_duration,
-    sgn_jax_command,
-    usable_cores,
-)
-from sgn_jax.pipelines.features import windows_from_trajectory
 from sgn_jax.pipelines.rollout_run import config_at_model_step, initial_window, run_rollout
 from sgn_jax.pipelines.validation import check_dem_config, check_duration, warn_outside_envelope
 from sgn_jax.records.cache import enable_compilation_cache
-from sgn_jax.records.checkpoint import (
-    DIGEST_FILE,
-    CheckpointError,
-    TrainedModel,
-    load_trained_model,
-    write_checkpoint_digest,
-)
-from sgn_jax.records.ensembles import Case, EnsembleError, load_ensembles, select_cases
-from sgn_jax.records.envelope import latin_hypercube_motions, load_envelope, motion_label
-from sgn_jax.records.io_utils import (
-    append_jsonl,
-    atomic_write,
-    git_commit,
-    machine_info,
-    read_jsonl,
-    sha256_file,
-    write_json,
-)
+from sgn_jax.records.checkpoint import CheckpointError, TrainedModel, load_trained_model
 from sgn_jax.records.prediction import Prediction, PredictionError, load_prediction, save_prediction
+from sgn_jax.records.shipped_models import resolve_checkpoint
 from sgn_jax.records.trajectory import DatasetError, Trajectory, load_trajectory, save_trajectory
-from sgn_jax.regime import (
-    AGITATED_SPEED_M_S,
-    BED_PAIRS_PER_BALL,
-    CLASSIFIERS,
-    REGIME_PP_CONTACTS_PER_BALL,
-    REGIME_WINDOW_S,
-    classify_state,
-    default_threshold,
-    regime_of,
-    regime_windows,
-)
-from sgn_jax.scene import Scene, WallQuery
-from sgn_jax.surrogate.contact_train import UnrollSpec, impact_stretches
-from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
+from sgn_jax.scene import Scene, analytic_jar_query
+from sgn_jax.surrogate.graph import GraphSpec, Window
 from sgn_jax.surrogate.rollout import (
     RolloutError,
-    RolloutOptions,
     RolloutResult,
     RolloutState,
-    analytic_jar_query,
     init_state,
     make_rollout,
-    make_rollout_advance,
     make_rollout_step,
     model_predictor,
     single_rollout_model,
@@ -206,32 +124,6 @@ def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool 
     cumulative dissipation per kind, ...; docs/dem.md). :func:`run_dem` is the same run with its
     metadata and summary, and with ``out_path=`` it writes the dataset file (resumable)."""
     return run_dem(cfg, duration=duration, seed=seed, progress=progress).arrays
-
-
-def new_figure(width: float, height: float, **kwargs: Any) -> Any:
-    """:func:`sgn_jax.analysis.plots.new_figure`: a matplotlib ``Figure`` on the Agg canvas (no
-    pyplot).
-
-    matplotlib is imported on the first call only (``sgn-jax --help`` does not load it)."""
-    from sgn_jax.analysis import plots
-
-    return plots.new_figure(width, height, **kwargs)
-
-
-def save_figure(fig: Any, path: str | Path) -> Path:
-    """:func:`sgn_jax.analysis.plots.save_figure`: write ``fig`` to a ``.png`` atomically."""
-    from sgn_jax.analysis import plots  # deferred: matplotlib loads on the first figure only
-
-    return plots.save_figure(fig, path)
-
-
-def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str | Path],
-                     labels: Sequence[str], path: str | Path) -> Path:
-    """:func:`sgn_jax.analysis.plots.plot_case_curves`: every run of an ensemble case in one figure
-    (cumulative dissipated energy, SGN solid and DEM dashed; MSE_t)."""
-    from sgn_jax.analysis import plots  # deferred: matplotlib loads on the first figure only
-
-    return plots.plot_case_curves(title, preds, refs, labels, path)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -933,18 +825,21 @@ def ensemble_mean(values: Sequence[float]) -> tuple[float, float]:
     return float(arr.mean()), se
 
 
-# The public API: the first list is the small one that the package root also exports
-# (``import sgn_jax as sj``; ``sgn_jax.__all__``, docs/api.md); the second is what the experiment
-# scripts (experiments/) need beyond it, since they import nothing from the package but
-# ``sgn_jax`` and ``sgn_jax.api`` (tests/test_architecture.py).
 __all__ = [
-    # configs and the trained model
+    # configs and the trained models
     "Config",
     "load_config",
     "replace_section",
     "TrainedModel",
     "load_surrogate",
-    # the DEM
+    "at_surrogate_step",
+    # the scene both simulators share, and its parts from a config
+    "Scene",
+    "motion_from_config",
+    "jar_params_from_config",
+    "graph_spec_from_config",
+    "sdf_grid_from_config",
+    # the DEM: in memory, to a file, packings, ensembles at design points
     "simulate_dem",
     "run_dem",
     "DEMRun",
@@ -952,20 +847,13 @@ __all__ = [
     "seed_packings",
     "Packings",
     "DEMEnsemble",
-    # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
+    # the surrogate rollout: the init/step pair, the whole scan, ensembles, sweeps, files
     "init_state",
-    "make_rollout_advance",
     "make_rollout_step",
-    "RolloutOptions",
-    "Scene",
-    "WallQuery",
     "make_rollout",
-    "model_predictor",
     "RolloutState",
     "RolloutResult",
     "rollout_ensemble",
-    "over_packings",
-    "at_surrogate_step",
     "rollout_sweep",
     "shard_packings",
     "run_rollout",
@@ -978,8 +866,6 @@ __all__ = [
     "save_prediction",
     # design studies: the power function and its gradient
     "design_study",
-    "resolve_start",
-    "STARTS",
     "DesignStudy",
     "sensitivity",
     "design_config",
@@ -989,106 +875,15 @@ __all__ = [
     "ensemble_mean",
     # metrics
     "evaluate",
-    "compare",
     "ensemble_summary",
-    # the regime (bed / agitated)
-    "classify_state",
-    "default_threshold",
-    "regime_of",
-    "regime_windows",
-    "CLASSIFIERS",
-    "AGITATED_SPEED_M_S",
-    "BED_PAIRS_PER_BALL",
-    "REGIME_PP_CONTACTS_PER_BALL",
-    "REGIME_WINDOW_S",
-    # errors
+    # errors and warnings
     "SGNJaxError",
     "SGNJaxWarning",
     "EnvelopeWarning",
-] + [
-    # training the contact-impulse surrogate (issue 19) and judging how balls touch
-    "train_contact",
-    "UnrollSpec",
-    "contact_census",
-    "impact_stretches",
-    "dem_params_from_config",
-    "head_on_normal_force",
-    # configs, checkpoints and the shipped models
     "ConfigError",
-    "config_from_dict",
-    "config_to_dict",
-    "config_to_toml",
-    "resolve_config",
-    "save_config",
     "CheckpointError",
-    "load_trained_model",
-    "DIGEST_FILE",
-    "write_checkpoint_digest",
-    "SHIPPED_MODELS_DIR",
-    "best_checkpoint_step",
-    "ship_checkpoint",
-    "shipped_model_dir",
-    "resolve_checkpoint",
-    "enable_compilation_cache",
-    # the pieces of a rollout and of a design study
-    "GraphSpec",
-    "Window",
-    "build_graph",
-    "windows_from_trajectory",
-    "initial_window",
-    "graph_spec_from_config",
-    "jar_params_from_config",
-    "motion_from_config",
-    "sdf_grid_from_config",
-    "surrogate_walls_from_config",
-    "analytic_jar_query",
-    "anchored_window",
-    "apply_parameters",
-    "PARAMETER_UNITS",
-    "DesignError",
-    "RolloutError",
-    "partial_dir",
-    # records and metrics
     "DatasetError",
     "PredictionError",
-    "align",
-    "headline",
-    "jar_frame_speed",
-    "mse_plateau",
-    "pairs_within",
-    "position_mse",
-    "pp_contact_counts",
-    # the motion envelope
-    "load_envelope",
-    "latin_hypercube_motions",
-    "motion_label",
-    # ensembles files and the experiment runner
-    "Case",
-    "EnsembleError",
-    "load_ensembles",
-    "select_cases",
-    # the contact model's overlap limit (docs/contact.md)
-    "derive_contact_model",
-    "make_floor_replay",
-    "floor_activity_run",
-    "ExperimentError",
-    "case_config",
-    "case_result",
-    "last_json_line",
-    "parse_rollout_settings",
-    "prediction_ok",
-    "rollout_duration",
-    "sgn_jax_command",
-    "usable_cores",
-    # files, provenance and figures
-    "atomic_write",
-    "write_json",
-    "append_jsonl",
-    "read_jsonl",
-    "sha256_file",
-    "git_commit",
-    "machine_info",
-    "new_figure",
-    "save_figure",
-    "plot_case_curves",
+    "DesignError",
+    "RolloutError",
 ]

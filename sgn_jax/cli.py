@@ -28,7 +28,7 @@ from sgn_jax.config import resolve_config
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.pipelines.configure import jar_mesh_from_config, mesh_report
 from sgn_jax.pipelines.dem_run import run_dem
-from sgn_jax.pipelines.demo import format_report, resolve_checkpoint, run_demo
+from sgn_jax.pipelines.demo import format_report, run_demo
 from sgn_jax.pipelines.rollout_run import run_rollout
 from sgn_jax.pipelines.train_run import train
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
@@ -36,6 +36,7 @@ from sgn_jax.records.cache import enable_compilation_cache
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.io_utils import atomic_write, write_json
 from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.shipped_models import resolve_checkpoint
 from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.regime import CLASSIFIERS
 

@@ -14,6 +14,7 @@ import pytest
 import sgn_jax.api as sj
 from sgn_jax.config import replace_section
 from sgn_jax.design import DesignError
+from sgn_jax.scene import analytic_jar_query
 
 
 def test_the_traced_placement_is_the_dems_placement_in_any_jar():
@@ -60,7 +61,7 @@ def _settled_start(model, cfg, n_settle):
     return make_settled_start(
         spec, model_predictor(single_rollout_model(model.model)[0]), n_settle,
         snap_back=cfg.rollout.snap_back, phi_sb=model.config.graph.phi_sb,
-        snap_velocity=cfg.rollout.snap_velocity, query=sj.analytic_jar_query, jit=False)
+        snap_velocity=cfg.rollout.snap_velocity, query=analytic_jar_query, jit=False)
 
 
 @pytest.fixture(scope="module")

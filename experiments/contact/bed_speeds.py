@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9, 0.99)
 SLOW = (0.05, 0.1, 0.2)
@@ -34,7 +35,7 @@ def touching_wall(pos, offsets, jar, radius):
     """(S, N) bool: ball centres within R + 20 um of a wall."""
     flat = jnp.asarray(pos.reshape(-1, 3))
     off = jnp.asarray(np.repeat(offsets, pos.shape[1], axis=0))
-    phi, _ = sj.analytic_jar_query(jar, flat, off)
+    phi, _ = tools.analytic_jar_query(jar, flat, off)
     return np.asarray(phi).reshape(pos.shape[:2]) > -radius - 2e-5
 
 
@@ -47,7 +48,7 @@ def main() -> None:
     ap.add_argument("--physics", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
 
-    model = sj.load_trained_model(sj.resolve_checkpoint(args.model))
+    model = tools.load_trained_model(tools.resolve_checkpoint(args.model))
     if args.physics:
         changes = {k: type(getattr(model.model.physics, k))(float(v))
                    for k, v in (item.split("=", 1) for item in args.physics)}

@@ -22,12 +22,12 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 
 def jobs_of(ensembles: str, cases: str | None, out: Path, duration: float) -> list[list[str]]:
     jobs = []
-    for case in sj.select_cases(sj.load_ensembles(ensembles), cases):
+    for case in tools.select_cases(tools.load_ensembles(ensembles), cases):
         for seed in (s for s in case.seeds if s not in case.train_seeds):
             path = out / f"{case.name}_seed{seed}.npz"
             if path.exists():

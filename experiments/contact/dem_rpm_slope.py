@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 DURATION, BURN_IN = 1.5, 0.5
 
@@ -29,7 +30,7 @@ def main() -> None:
     args = ap.parse_args()
     lo, hi = (int(x) for x in args.seeds.split("-"))
     out = Path(args.out)
-    done = {(r["seed"], r["rpm"]) for r in sj.read_jsonl(out)}   # a line cut by a kill: redone
+    done = {(r["seed"], r["rpm"]) for r in tools.read_jsonl(out)}   # a line cut by a kill: redone
     base = sj.load_config("emax_300rpm")
     ensemble = sj.DEMEnsemble()
     for seed in range(lo, hi + 1):
@@ -40,7 +41,7 @@ def main() -> None:
             t0 = time.perf_counter()
             result = ensemble.power(cfg, seed, DURATION, BURN_IN)
             result.update(seed=seed, rpm=rpm, wall_s=time.perf_counter() - t0)
-            sj.append_jsonl(out, result)   # one line per run: a kill loses at most that run
+            tools.append_jsonl(out, result)   # one line per run: a kill loses at most that run
             print(f"seed {seed} rpm {rpm:g}: {result['power_W']:.4f} W "
                   f"({result['wall_s']:.0f} s)", flush=True)
 

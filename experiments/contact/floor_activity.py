@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 KINDS = ("pp", "pw")
 
@@ -47,24 +48,24 @@ def main() -> None:
     args = ap.parse_args()
 
     t_all = time.perf_counter()
-    sj.enable_compilation_cache()
-    trained = sj.load_trained_model(sj.resolve_checkpoint(args.model))
+    tools.enable_compilation_cache()
+    trained = tools.load_trained_model(tools.resolve_checkpoint(args.model))
     phys = getattr(trained.model, "physics", None)
     if getattr(trained.config.model, "kind", "sgn") != "contact":
         raise SystemExit(f"{args.model} is not a contact model")
     settings = {"pp_separation": False}               # as evaluate_contact.py
     runs, summaries, compiled = {}, [], {}
-    for case in sj.select_cases(sj.load_ensembles(args.ensembles), args.cases):
+    for case in tools.select_cases(tools.load_ensembles(args.ensembles), args.cases):
         case_cfg = sj.replace_section(sj.load_config(case.config_path), "rollout", **settings)
         # one compilation for all cases of one graph; each case its own config and motion
-        replay = sj.make_floor_replay(trained, case_cfg, compiled)
+        replay = tools.make_floor_replay(trained, case_cfg, compiled)
         rows = []
         for seed in (s for s in case.seeds if s not in case.train_seeds):
             run = f"{case.name}_seed{seed}"
             if not (path := Path(args.data) / f"{run}.npz").exists():
                 print(f"missing {path}; skipped")
                 continue
-            rows.append(sj.floor_activity_run(trained, replay, sj.load_trajectory(path),
+            rows.append(tools.floor_activity_run(trained, replay, sj.load_trajectory(path),
                                               args.duration, args.every))
             runs[run] = rows[-1]
             print({"run": run, **{k: round(v, 4) for k, v in rows[-1].items()}}, flush=True)
@@ -85,8 +86,8 @@ def main() -> None:
               "overlap_law_factor": phys.overlap_law_factor, "runs": runs,
               "duration_s": args.duration, "every": args.every, "settings": settings,
               "summaries": summaries, "wall_s": time.perf_counter() - t_all}
-    sj.write_json(Path(args.out) / f"floor_{args.name}.json", result)
-    with sj.atomic_write(Path(args.out) / f"floor_{args.name}.md", "w") as fh:
+    tools.write_json(Path(args.out) / f"floor_{args.name}.json", result)
+    with tools.atomic_write(Path(args.out) / f"floor_{args.name}.md", "w") as fh:
         fh.write(table(summaries, header))
     print(table(summaries, header))
     print(f"wall {result['wall_s']:.1f} s")

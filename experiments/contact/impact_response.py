@@ -33,7 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.api import GraphSpec, Window, make_rollout, model_predictor
+import sgn_jax.experiment_tools as tools
+from sgn_jax.api import make_rollout
+from sgn_jax.experiment_tools import GraphSpec, Window, model_predictor
 
 SPEEDS = (0.05, 0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)
 
@@ -41,12 +43,12 @@ SPEEDS = (0.05, 0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)
 def dem_impact(cfg, speed: float, wall: bool) -> tuple[float, float]:
     """(restitution, deepest overlap m) of a 1-D head-on contact with the DEM's normal force
     (``sj.head_on_normal_force``: Hertz spring and damping, not clipped), explicit at 1e-7 s."""
-    laws = sj.dem_params_from_config(cfg)
+    laws = tools.dem_params_from_config(cfg)
     law = jax.tree_util.tree_map(float, laws.pw if wall else laws.pp)
     m, dt = law.mass_eff, 1e-7
     d, v, deepest = 0.0, speed, 0.0          # overlap and its rate (approach > 0)
     while True:
-        v -= float(sj.head_on_normal_force(law, d, v)) / m * dt
+        v -= float(tools.head_on_normal_force(law, d, v)) / m * dt
         d += v * dt
         deepest = max(deepest, d)
         if d < 0:
@@ -77,7 +79,7 @@ def model_impact(model, speed: float, wall: bool, steps: int = 400) -> tuple[flo
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((w, 3)),
                     offset_velocities=jnp.zeros((w, 3)), frequency_hz=jnp.asarray(5.0))
     run = make_rollout(spec, model_predictor(model.model), steps, 1, snap_back=False,
-                       query=sj.analytic_jar_query)
+                       query=tools.analytic_jar_query)
     res = run(model.params, model.norm_stats, window, sj.motion_from_config(still.motion),
               sj.jar_params_from_config(cfg.jar), 0.0)
     traj = np.concatenate([pos, np.asarray(res.positions)])

@@ -21,6 +21,7 @@ import json
 import numpy as np
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 DEM_FILES = ("experiments/contact/results/dem_rpm_slope_seeds100-107.jsonl",
              "experiments/design/results/dem_powers.jsonl")
@@ -30,9 +31,9 @@ STEP_RPM = 50.0
 def dem_slopes() -> dict[int, float]:
     """Per seed: (P(300 + h) - P(300 - h)) / 2h of the DEM, h = 50 rpm."""
     sides: dict[int, dict[int, float]] = {}
-    for line in sj.read_jsonl(DEM_FILES[0]):
+    for line in tools.read_jsonl(DEM_FILES[0]):
         sides.setdefault(line["seed"], {})[1 if line["rpm"] > 300 else -1] = line["power_W"]
-    for line in sj.read_jsonl(DEM_FILES[1]):
+    for line in tools.read_jsonl(DEM_FILES[1]):
         if line.get("point") == "standard" and line.get("param") == "motion.rpm":
             sides.setdefault(line["seed"], {})[int(line["side"])] = line["power_W"]
     return {seed: (s[1] - s[-1]) / (2 * STEP_RPM) for seed, s in sides.items() if len(s) == 2}

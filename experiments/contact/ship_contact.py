@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
 
     run = Path(args.run)
     try:
-        step_dir = sj.best_checkpoint_step(run)
+        step_dir = tools.best_checkpoint_step(run)
     except sj.SGNJaxError as exc:
         print(f"ship_contact: {exc}", file=sys.stderr)
         return 2
@@ -54,9 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     provenance = {
         "what": args.what,
         "train_command": args.train_command,
-        "datasets": [{"file": str(f), "sha256": sj.sha256_file(f)} for f in files],
+        "datasets": [{"file": str(f), "sha256": tools.sha256_file(f)} for f in files],
         "code_commit_at_training": info.get("git_commit"),
-        "code_commit_at_shipping": sj.git_commit(),
+        "code_commit_at_shipping": tools.git_commit(),
         "checkpoint_step": int(step_dir.name),
         "run_info": info,
         "steps_done": summary["steps_done"],
@@ -66,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                               "summaries": json.loads(Path(r).read_text()).get("summaries")}
                              for r in args.report],
     }
-    target = sj.ship_checkpoint(step_dir, args.name, provenance,
+    target = tools.ship_checkpoint(step_dir, args.name, provenance,
                                 extra_files=[run / "metrics.csv"])
     print(json.dumps({"shipped": str(target), "step": step_dir.name}))
     return 0

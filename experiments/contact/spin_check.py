@@ -16,6 +16,7 @@ import argparse
 import numpy as np
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 
 def main() -> None:
@@ -25,7 +26,7 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=10, help="steps between compared frames")
     ap.add_argument("records", nargs="+")
     args = ap.parse_args()
-    model = sj.load_trained_model(args.model, which="best")
+    model = tools.load_trained_model(args.model, which="best")
     if not getattr(model.model, "spin", False):
         raise SystemExit(f"{args.model} has no spin state ([model] spin = false)")
     radius = float(model.config.balls.radius)

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.api import append_jsonl, read_jsonl
+from sgn_jax.experiment_tools import append_jsonl, read_jsonl
 
 OUT = Path("runs/spinless")
 SEEDS = tuple(range(20, 28))   # issue 11's DEM ensemble (experiments/design/verify_gradients.py)

@@ -27,7 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.api import Window, build_graph, graph_spec_from_config, surrogate_walls_from_config
+import sgn_jax.experiment_tools as tools
+from sgn_jax.api import graph_spec_from_config
+from sgn_jax.experiment_tools import Window, build_graph, surrogate_walls_from_config
 
 CLASSES = ("neither", "wall_only", "ball_only", "wall_and_ball")
 DAMPING = ("diss_pp_normal", "diss_pp_tangential", "diss_pw_normal", "diss_pw_tangential")
@@ -40,7 +42,7 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=10, help="samples between windows")
     args = ap.parse_args()
 
-    sur = sj.load_trained_model(sj.resolve_checkpoint(args.model))
+    sur = tools.load_trained_model(tools.resolve_checkpoint(args.model))
     cfg, net, params = sur.config, sur.model, sur.params
     if not getattr(net, "spin", False):
         raise SystemExit(f"{args.model} is not a contact model with spin state")

@@ -17,6 +17,7 @@ import glob
 import os
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -95,9 +96,9 @@ def main() -> None:
     print(f"{len(files)} training files")
     trajs = [sj.load_trajectory(f) for f in files]
     val = [sj.load_trajectory(f) for f in args.val.split(",") if f]
-    summary = sj.train_contact(
+    summary = tools.train_contact(
         cfg, trajs, args.out, val_trajectories=val, steps=args.steps, batch_size=args.batch,
-        unroll=sj.UnrollSpec(unroll=args.unroll, pushforward=args.pushforward,
+        unroll=tools.UnrollSpec(unroll=args.unroll, pushforward=args.pushforward,
                              position_noise=args.noise,
                              relative_floor=args.relative_floor,
                              spin_weight=args.spin_weight),

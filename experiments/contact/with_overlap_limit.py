@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 
 def main() -> None:
@@ -24,7 +24,7 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="a new run directory")
     args = ap.parse_args()
     try:
-        sj.derive_contact_model(args.model, args.out, overlap_limit=args.limit,
+        tools.derive_contact_model(args.model, args.out, overlap_limit=args.limit,
                                 overlap_law_factor=args.law_factor)
     except (FileExistsError, ValueError) as exc:
         raise SystemExit(str(exc)) from None

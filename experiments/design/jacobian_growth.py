@@ -29,15 +29,17 @@ import numpy as np
 import sgn_jax.api as sj
 from sgn_jax.api import (
     RolloutState,
+    graph_spec_from_config,
+    jar_params_from_config,
+    motion_from_config,
+)
+from sgn_jax.experiment_tools import (
     analytic_jar_query,
     anchored_window,
     apply_parameters,
     atomic_write,
-    graph_spec_from_config,
-    jar_params_from_config,
     make_rollout_advance,
     model_predictor,
-    motion_from_config,
 )
 
 OUT = Path("runs/design")

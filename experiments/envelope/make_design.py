@@ -26,13 +26,13 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from sgn_jax.api import (
+from sgn_jax.api import replace_section
+from sgn_jax.experiment_tools import (
     atomic_write,
     config_to_toml,
     latin_hypercube_motions,
     load_envelope,
     motion_label,
-    replace_section,
     resolve_config,
 )
 
