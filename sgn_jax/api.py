@@ -93,8 +93,8 @@ from sgn_jax.surrogate.rollout import (
     single_rollout_model,
 )
 
-# A second session of a design study reuses the compiled programs (sgn_jax.records.cache; off with
-# SGN_JAX_NO_CACHE=1).
+# A design study in a new process reuses the programs compiled by an earlier one
+# (sgn_jax.records.cache; off with SGN_JAX_NO_CACHE=1).
 enable_compilation_cache()
 
 
@@ -339,18 +339,17 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
             jar the study evaluates, as :func:`make_packings` makes one (the seed's placement,
             ``[dem] settle_time`` with the jar at rest, a window of motion;
             :func:`sgn_jax.design.make_dem_start`): the start the DEM's own runs in that jar
-            have, at the price of a DEM settle per packing and jar (3-6.5 min of one core
-            for a 3-parameter study over 8 packings, docs/design.md); a motion parameter's
-            sides share the design point's packings. ``"settle"``: the same
-            placement settled by the surrogate instead (cheap; its jar-length gradients were
-            biased low, docs/design.md). ``"auto"`` (default): ``"dem"`` when a jar-shape
+            have, at the price of a DEM settle per packing and jar (docs/design.md gives the
+            cost); a motion parameter's sides share the design point's packings. ``"settle"``:
+            the same placement settled by the surrogate instead (cheap; docs/design.md compares
+            its jar-length gradients with the DEM's). ``"auto"`` (default): ``"dem"`` when a jar-shape
             parameter is studied, else ``"packing"``. With ``"dem"`` and ``"settle"`` only the
             packings' seeds are used (:func:`seed_packings` skips the DEM's packings).
 
     With the difference estimator and no sharding, a model with a single-rollout form (the
     contact kind) runs its packings one after another in it (``make_ensemble_power``'s
-    ``batching="map"``; 1.9x faster than vmapped for contact_t21 on one core); the SGN, the
-    horizon estimator and sharded studies run the plain model vmapped.
+    ``batching="map"``, the faster form on CPU cores: docs/benchmarks.md); the SGN, the horizon
+    estimator and sharded studies run the plain model vmapped.
     """
     check_study_sizes(duration, burn_in)
     start = resolve_start(start, names)
@@ -376,9 +375,9 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     fd_steps = [float((steps or {}).get(n, default_step(n, v))) for n, v in zip(names, theta0,
                                                                                   strict=True)]
     # The difference estimator only runs rollouts forward: a model with a single-rollout form
-    # (the contact kind) runs its packings one after another in it, about twice as fast per
-    # packing on CPU cores as vmapped; under sharding, or to differentiate (the horizon
-    # estimator), the plain model vmapped.
+    # (the contact kind) runs its packings one after another in it, the faster form per
+    # packing on CPU cores; under sharding, or to differentiate (the horizon estimator), the
+    # plain model vmapped.
     single = (estimator == "difference" and not shard
               and getattr(surrogate.model, "for_single_rollout", None) is not None)
     module = single_rollout_model(surrogate.model)[0] if single else surrogate.model

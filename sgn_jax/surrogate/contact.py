@@ -395,14 +395,12 @@ class ContactNet(nn.Module):
     takes_raw_graph = True
 
     def for_single_rollout(self) -> ContactNet:
-        """This model as one rollout (no vmap) runs fastest: each MLP on its own kind's rows
-        (``rows_by_kind``; with the config's ``wall_patches``), and no pair-capacity tiers
-        (``capacity_tiers_help``). Measured on one core, 0.2 s of the standard case:
-        1.84 s per simulated second with both MLPs on every row, 1.26 s with each on its
-        own rows (tiers: 1.6-1.75 s). Vmapped over packings (ensembles, design studies,
-        training) the per-packing row offset turns the slices into a gather and a scatter
-        and the plain model is faster (batch 32 on two cores: 1.57 against 1.83-1.93 s/s),
-        so only the single-rollout drivers ask for this
+        """This model in the form that runs fastest as one rollout (no vmap): each MLP on its
+        own kind's rows (``rows_by_kind``; with the config's ``wall_patches``), and no
+        pair-capacity tiers (``capacity_tiers_help``). Vmapped over packings (ensembles,
+        design studies, training) the per-packing row offset turns the slices into a gather
+        and a scatter and the plain model is the faster one (docs/benchmarks.md), so only the
+        single-rollout drivers ask for this
         (:func:`sgn_jax.surrogate.rollout.single_rollout_model`).
 
         Each MLP also runs only on its kind's ACTING contacts (``acting_per_ball``: a block of
