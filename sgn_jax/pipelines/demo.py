@@ -145,8 +145,8 @@ def run_demo(
     if animation_frames < 2:
         raise DemoError(f"animation_frames must be >= 2, got {animation_frames}")
     case_cfg = resolve_config(config)
-    ckpt = resolve_checkpoint(checkpoint)
     try:
+        ckpt = resolve_checkpoint(checkpoint)
         trained = load_trained_model(ckpt, which=which)
     except CheckpointError as exc:
         raise DemoError(str(exc)) from exc
