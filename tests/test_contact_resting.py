@@ -1,4 +1,4 @@
-"""A trained contact model holds a resting ball at rest (issue 19): on the floor of a still jar,
+"""A trained contact model holds a resting ball at rest: on the floor of a still jar,
 and on top of another ball. These are properties of the SHIPPED contact model's training, not
 of its construction: a model that hovers, sinks or jitters fails them.
 

@@ -63,9 +63,8 @@ def test_a_resumed_run_equals_an_unbroken_one(tmp_path, unbroken_run):
     assert a.model.__class__.__name__ == "ContactNet"
 
 
-# The slow tier (session 7, the default run's 6 minutes): warm-starting a spin model from a
-# spinless one is the migration path of contact_t9 (docs/contact.md); the shipped model trains
-# with spin from its first step. The default run keeps a spin model's training (the resume
+# The slow tier: warm-starting a spin model from a spinless one (docs/contact.md); the shipped
+# model trains with spin from its first step. The default run keeps a spin model's training (the resume
 # test's model) and its rollout (tests/test_contact.py, the spins integrated).
 @pytest.mark.slow
 def test_a_spin_model_trains_warm_started_from_a_spinless_one(tmp_path, unbroken_run):

@@ -60,8 +60,8 @@ def tiny(tmp_path_factory):
     spec = graph_spec_from_config(model_cfg)
     synthetic = synthetic_trajectory(WINDOW + 2, cfg.balls.count, seed=0)
     window0 = initial_window(synthetic, WINDOW, WINDOW)
-    # The graph and the weights' shapes without running the model's init (issue 20: eager,
-    # hundreds of op compiles; jitted, a 3.7 s compile of its random number generation): the
+    # The graph and the weights' shapes without running the model's init (eager, hundreds of
+    # op compiles; jitted, a compile of its random number generation): the
     # weights are drawn here as flax's defaults draw them (LeCun-normal kernels, truncated at
     # 2 std; zero biases), random either way.
     graph = jax.eval_shape(lambda w, grid: build_graph(w, grid, spec)[0], window0,

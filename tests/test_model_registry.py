@@ -133,7 +133,7 @@ def test_a_registered_kind_trains_saves_and_loads_through_the_same_path(cfg, nod
     spec = graph_spec_from_config(cfg)
     wins, _, _ = windows_from_trajectory(trajs[0], spec.window)
     # (The graph and the module's side each one jitted program of their own, not hundreds of
-    # eager op compiles, issue 20.)
+    # eager op compiles.)
     graph, _ = jax.jit(build_graph, static_argnums=2)(
         jax.tree_util.tree_map(lambda a: a[5], wins), grid, spec)
     accel, de = jax.jit(trained.predict_fn())(trained.params, trained.norm_stats, graph)
