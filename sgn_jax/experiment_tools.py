@@ -28,7 +28,6 @@ from sgn_jax.analysis.metrics import (
     position_mse,
     pp_contact_counts,
 )
-from sgn_jax.api import over_packings, resolve_start
 from sgn_jax.config import (
     config_from_dict,
     config_to_dict,
@@ -60,6 +59,7 @@ from sgn_jax.pipelines.experiments import (
     usable_cores,
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
+from sgn_jax.pipelines.studies import over_packings, resolve_start
 from sgn_jax.records.cache import enable_compilation_cache
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.ensembles import Case, EnsembleError, load_ensembles, select_cases

@@ -25,6 +25,7 @@ from sgn_jax.config import read_toml
 from sgn_jax.records.checkpoint import (
     DIGEST_FILE,
     CheckpointError,
+    TrainedModel,
     latest_step,
     load_trained_model,
     write_checkpoint_digest,
@@ -138,6 +139,13 @@ def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
         "--out DIR` (its checkpoints/best is used) or a checkpoint directory")
 
 
+def load_surrogate(checkpoint: str | Path | None = None, which: str = "best") -> TrainedModel:
+    """The trained surrogate that ``checkpoint`` names (:func:`resolve_checkpoint`: the shipped
+    default model, a shipped model's name, a training run or a checkpoint directory); ``which``
+    is "best" or "latest" for a training run."""
+    return load_trained_model(resolve_checkpoint(checkpoint), which=which)
+
+
 def best_checkpoint_step(run: str | Path) -> Path:
     """The one step directory of a training run's ``checkpoints/best`` (what is shipped)."""
     best = Path(run) / "checkpoints" / "best"
@@ -190,6 +198,7 @@ __all__ = [
     "ShippedModelError",
     "best_checkpoint_step",
     "has_checkpoint",
+    "load_surrogate",
     "registry",
     "resolve_checkpoint",
     "ship_checkpoint",
