@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="benchmarks/results/bench_precision.json")
     p.add_argument("--append", action="store_true")
     args = p.parse_args(argv)
-    from sgn_jax.api import machine_info, write_json
+    from sgn_jax.experiment_tools import machine_info, write_json
 
     rows = []
     for hidden in args.hidden:

@@ -117,7 +117,8 @@ def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int
     import jax
     import jax.numpy as jnp
 
-    from sgn_jax.api import make_rollout, model_predictor, over_packings
+    from sgn_jax.api import make_rollout
+    from sgn_jax.experiment_tools import model_predictor, over_packings
     from sgn_jax.motion import offset, velocity
     from sgn_jax.pipelines.configure import (
         graph_spec_from_config,
@@ -369,7 +370,7 @@ def main(argv=None) -> int:
     if args.worker:
         print(json.dumps(WORKERS[args.worker](**json.loads(args.worker_args))))
         return 0
-    from sgn_jax.api import machine_info, write_json
+    from sgn_jax.experiment_tools import machine_info, write_json
 
     t = time.perf_counter()
     res = bench(args)

@@ -8,11 +8,10 @@ The public API (docs/api.md)::
     packings = sj.make_packings(cfg, seeds=range(8))
     study = sj.design_study(model, cfg, ["motion.rpm"], packings)
 
-Its names (``__all__``, small on purpose) come from :mod:`sgn_jax.api`, loaded on first use (PEP
-562 module ``__getattr__``): ``import sgn_jax`` itself imports no package module, so the pure
-core (:mod:`sgn_jax.motion`, :mod:`sgn_jax.dem`, ...) imports nothing through the root and
-``import sgn_jax.motion`` stays light. :mod:`sgn_jax.api` holds these and the helpers the
-experiment scripts use.
+Its names (``__all__``) are those of :mod:`sgn_jax.api`, loaded on first use (PEP 562 module
+``__getattr__``): ``import sgn_jax`` itself imports no package module, so the pure core
+(:mod:`sgn_jax.motion`, :mod:`sgn_jax.dem`, ...) imports nothing through the root and
+``import sgn_jax.motion`` stays light.
 
 Importing the package enables 64-bit floats in JAX (``jax_enable_x64``): the DEM runs in
 float64 by default and the surrogate's finite-difference features need float64 positions.
@@ -31,31 +30,42 @@ __version__ = "0.1.0"
 
 __all__ = [
     "__version__",
-    # configs and the trained model
+    # configs and the trained models
+    "Config",
     "load_config",
     "replace_section",
+    "TrainedModel",
     "load_surrogate",
     "at_surrogate_step",
-    # the scene both simulators share
+    # the scene both simulators share, and its parts from a config
     "Scene",
+    "motion_from_config",
+    "jar_params_from_config",
+    "graph_spec_from_config",
+    "sdf_grid_from_config",
     # the DEM: in memory, to a file, packings, ensembles at design points
     "simulate_dem",
     "run_dem",
+    "DEMRun",
     "make_packings",
     "seed_packings",
     "Packings",
     "DEMEnsemble",
-    # the surrogate rollout: the init/step pair, the whole scan, ensembles, files
+    # the surrogate rollout: the init/step pair, the whole scan, ensembles, sweeps, files
     "init_state",
     "make_rollout_step",
     "make_rollout",
+    "RolloutState",
+    "RolloutResult",
     "rollout_ensemble",
     "rollout_sweep",
     "shard_packings",
     "run_rollout",
     # records
+    "Trajectory",
     "load_trajectory",
     "save_trajectory",
+    "Prediction",
     "load_prediction",
     "save_prediction",
     # design studies: the power function and its gradient
@@ -70,9 +80,16 @@ __all__ = [
     # metrics
     "evaluate",
     "ensemble_summary",
-    # errors
+    # errors and warnings
     "SGNJaxError",
     "SGNJaxWarning",
+    "EnvelopeWarning",
+    "ConfigError",
+    "CheckpointError",
+    "DatasetError",
+    "PredictionError",
+    "DesignError",
+    "RolloutError",
 ]
 
 _API_MODULE = "sgn_jax.api"

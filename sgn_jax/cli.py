@@ -29,14 +29,16 @@ from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.pipelines.configure import jar_mesh_from_config, mesh_report
 from sgn_jax.pipelines.contact_train_run import train_stages
 from sgn_jax.pipelines.dem_run import run_dem
-from sgn_jax.pipelines.demo import format_report, resolve_checkpoint, run_demo
+from sgn_jax.pipelines.demo import format_report, run_demo
 from sgn_jax.pipelines.rollout_run import run_rollout
+from sgn_jax.pipelines.studies import check_study_sizes, resolve_start
 from sgn_jax.pipelines.train_run import train
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
 from sgn_jax.records.cache import enable_compilation_cache
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.io_utils import atomic_write, write_json
 from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.shipped_models import resolve_checkpoint
 from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.regime import CLASSIFIERS
 
@@ -418,7 +420,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
     # deferred: sgn_jax.analysis.plots imports matplotlib, which the other commands do not need
     from sgn_jax.analysis.plots import plot_sensitivity
 
-    api.check_study_sizes(args.duration, args.burn_in, args.packings)
+    check_study_sizes(args.duration, args.burn_in, args.packings)
     steps = {}
     for item in args.step:
         name, _, value = item.partition("=")
@@ -428,7 +430,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
             raise UserError(f"--step {item!r}: use NAME=H, e.g. motion.rpm=30") from None
     cfg = api.load_config(args.config)
     extra_curves = args.estimator == "horizon" and not args.no_curve
-    start = api.resolve_start(args.start, args.param)
+    start = resolve_start(args.start, args.param)
     total = ((args.packings if start == "packing" else 0) + 1
              + (2 * len(args.param) if extra_curves else 0))
     separation = {"config": None, "on": True, "off": False}[args.separation]

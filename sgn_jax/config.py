@@ -392,16 +392,18 @@ class ModelConfig:
     faster; see docs/sgn.md and ``sgn_jax.surrogate.normalization.encode_velocities``).
 
     ``kind`` names the surrogate in the model registry
-    (:func:`sgn_jax.surrogate.model.register_model`; "sgn" is the paper's SGN, the only built-in
-    kind); the other keys are its hyperparameters.
+    (:func:`sgn_jax.surrogate.model.register_model`; the built-in kinds are "sgn", the paper's
+    SGN, and "contact", the contact-impulse model of docs/contact.md); the other keys are its
+    hyperparameters. A config of kind "contact" that sets a key the contact kind does not read
+    (``interaction_layers``, ``velocity_encoding``: the SGN's) is refused, naming the key.
 
     Attributes:
-        kind: registered surrogate kind ("sgn"; others after
+        kind: registered surrogate kind ("sgn" or "contact"; others after
             sgn_jax.surrogate.model.register_model).
         hidden: width of the MLPs' hidden layers and of the node and edge embeddings.
         mlp_layers: linear layers per MLP (>= 2).
-        interaction_layers: message-passing (interaction) layers (>= 1).
-        velocity_encoding: "absolute" (the paper) or "differences" (see above).
+        interaction_layers: message-passing (interaction) layers (>= 1); kind "sgn" only.
+        velocity_encoding: "absolute" (the paper) or "differences" (see above); kind "sgn" only.
         spin: the balls' angular velocities as rollout state (kind "contact" only; the SGN has
             no spin and refuses it).
         overlap_limit: m, kind "contact" only; 0 = off. The rigid limit of the contact law:
@@ -432,7 +434,18 @@ class ModelConfig:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
 
+    # The keys a built-in kind reads, for a kind that does not read them all; a kind not listed
+    # (the SGN, a registered kind) reads every key or refuses a value it cannot use itself.
+    _KEYS_BY_KIND = {
+        "contact": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
+                    "overlap_law_factor", "overlap_sweeps", "friction_sweeps"},
+    }
+
     def __post_init__(self) -> None:
+        if self.kind == "contact" and self.interaction_layers != 1:
+            raise ConfigError(f"[model] interaction_layers = {self.interaction_layers}: kind "
+                              "'contact' has no message passing (one impulse per contact); the "
+                              "key is the SGN's (kind 'sgn'): remove it")
         if not (self.overlap_limit >= 0 and self.overlap_law_factor >= 0):
             raise ConfigError(f"[model] overlap_limit (m; 0 = off) and overlap_law_factor must "
                               f"be >= 0, got {self.overlap_limit} and {self.overlap_law_factor}")
@@ -462,6 +475,22 @@ class ModelConfig:
                 f"hidden={self.hidden}, mlp_layers={self.mlp_layers}, "
                 f"interaction_layers={self.interaction_layers}"
             )
+
+    @classmethod
+    def keys_read_by(cls, kind: str) -> set[str] | None:
+        """The [model] keys ``kind`` reads (None: all of them)."""
+        return cls._KEYS_BY_KIND.get(kind)
+
+    @classmethod
+    def check_keys_for_kind(cls, kind: str, keys: set[str]) -> None:
+        """Refuse [model] keys that ``kind`` does not read (they would be silently ignored)."""
+        read = cls.keys_read_by(kind)
+        unread = sorted(keys - read) if read is not None else []
+        if unread:
+            raise ConfigError(
+                f"[model] key(s) {unread} are not read by model kind {kind!r} (they are the "
+                f"SGN's, kind 'sgn'); remove them from [model]. Keys of kind {kind!r}: "
+                f"{sorted(read)}")
 
 
 @dataclass(frozen=True)
@@ -766,6 +795,8 @@ def _build_dataclass(cls: type, table: Any, where: str) -> Any:
     # An unknown kind is reported by MotionConfig itself (listing the kinds), not as foreign keys.
     if cls is MotionConfig and table.get("kind") in MOTION_KINDS:
         MotionConfig.check_keys_for_kind(table["kind"], set(table))
+    if cls is ModelConfig and isinstance(table.get("kind"), str):
+        ModelConfig.check_keys_for_kind(table["kind"], set(table))
     try:
         return cls(**kwargs)
     except ConfigError:
@@ -779,12 +810,29 @@ def config_from_dict(data: dict[str, Any], cls: type = Config) -> Any:
     return _build_dataclass(cls, data, "config" if cls is Config else cls.__name__)
 
 
+def saved_config_from_dict(data: dict[str, Any]) -> Config:
+    """:func:`config_from_dict` of a config saved in a record (a checkpoint's or a prediction's
+    metadata). A saved config lists every key; the [model] keys its kind does not read are
+    dropped (the writer, :func:`config_to_dict`, leaves them out), the rest is read strictly."""
+    model = data.get("model")
+    read = (ModelConfig.keys_read_by(model.get("kind"))
+            if isinstance(model, dict) and isinstance(model.get("kind"), str) else None)
+    if read is not None:
+        data = {**data, "model": {k: v for k, v in model.items() if k in read}}
+    return config_from_dict(data)
+
+
 def _to_plain(value: Any) -> Any:
     if isinstance(value, MotionConfig):
         # Only the keys of the motion's own kind: the others are unused and would be rejected.
         keys = MotionConfig._KEYS_BY_KIND[value.kind] | {"kind"}
         return {f.name: _to_plain(getattr(value, f.name))
                 for f in dataclasses.fields(value) if f.name in keys}
+    if isinstance(value, ModelConfig):
+        # Only the keys the model's kind reads: the others would be refused.
+        keys = ModelConfig.keys_read_by(value.kind)
+        return {f.name: _to_plain(getattr(value, f.name))
+                for f in dataclasses.fields(value) if keys is None or f.name in keys}
     if dataclasses.is_dataclass(value):
         return {f.name: _to_plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, tuple):

@@ -368,9 +368,8 @@ def make_dem_start(dem_spec: DEMSpec, wall_fn: Callable, dem_params: DEMParams, 
     rollout starts the balls not turning), as :func:`sgn_jax.api.make_packings`'s windows.
     ``dem_params`` gives the balls and the material (its geometry and motion are replaced).
     ``params`` and ``stats`` (the surrogate's) are not used. It costs a DEM settle per packing
-    and jar (a study of rpm, amplitude and straight length over 8 packings took 3-6.5 min of
-    one core against 1.2 min from given packings, docs/design.md): the price of the start the
-    DEM's own runs in that jar have.
+    and jar (docs/design.md gives the cost): the price of the start the DEM's own runs in that
+    jar have.
     """
     run = make_sampler(dem_spec, wall_fn, substeps, pp_capacity)
     n_balls, radius = dem_spec.n_balls, float(dem_params.radius)

@@ -7,8 +7,8 @@ example must print a finite power (W) and gradient (W/rpm). Two tiers:
 - the default run checks every block statically, in under a second: it compiles, every name
   it takes from sgn_jax exists, and every call of one binds to that name's signature (the
   regression that breaks an example while the API's own tests pass: a name or parameter
-  renamed or removed). Running the blocks in one process takes 76-90 s, too long for the
-  default run; the API's behaviour is what the API's own tests check;
+  renamed or removed). Running the blocks takes minutes; the API's behaviour is what the
+  API's own tests check;
 - the slow tier (``pytest -m slow``) runs each block in a fresh process of its own, cold: the
   caches off (``SGN_JAX_NO_CACHE=1``, set by conftest.py and inherited by the process, and no
   JAX compilation cache), exactly as a first-time user runs it.
@@ -86,8 +86,7 @@ def test_the_api_doc_has_an_example_per_public_entry_point():
     headings = " ".join(h for h, _ in API_BLOCKS)
     import sgn_jax
 
-    # The public API is the root's __all__ (sgn_jax.api.__all__ adds the experiment scripts'
-    # helpers, docs/api.md "Script support").
+    # The public API is the root's __all__, the same list as sgn_jax.api.__all__.
     for name in [n for n in sgn_jax.__all__ if n != "__version__"]:
         if name == "DesignStudy":  # documented with design_study, which returns it
             name = "design_study` and `DesignStudy"

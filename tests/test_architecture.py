@@ -30,9 +30,9 @@ DEFERRED_IMPORTS: dict[tuple[str, str], str] = {
         "`sgn-jax --help` and the other commands do not load it",
     ("sgn_jax.pipelines.demo", "sgn_jax.analysis.plots"):
         "demo is imported by sgn_jax.api and sgn_jax.cli; only run_demo plots (matplotlib)",
-    ("sgn_jax.api", "sgn_jax.analysis.plots"):
-        "sgn_jax.cli imports sgn_jax.api; only its figure helpers (new_figure, save_figure, "
-        "plot_case_curves) need matplotlib",
+    ("sgn_jax.experiment_tools", "sgn_jax.analysis.plots"):
+        "the experiment scripts import sgn_jax.experiment_tools; only its figure helpers "
+        "(new_figure, save_figure, plot_case_curves) need matplotlib",
 }
 
 
@@ -211,7 +211,8 @@ layer and of the layers below it, never above:
 - pipelines: where a config meets the core on a host; the drivers produce records and call the
   analysis (``demo`` writes the metrics, plots and GIF; ``experiments`` evaluates with the
   metrics); the analysis never drives a run;
-- user: ``sgn_jax.api`` and the CLI, on top of everything.
+- user: ``sgn_jax.api``, ``sgn_jax.experiment_tools`` (what the experiment scripts use beyond
+  the API) and the CLI, on top of everything.
 """
 
 MODULE_LAYERS = {
@@ -235,6 +236,7 @@ MODULE_LAYERS = {
     "sgn_jax.analysis": "analysis",
     "sgn_jax.pipelines": "pipelines",
     "sgn_jax.api": "user",
+    "sgn_jax.experiment_tools": "user",
     "sgn_jax.cli": "user",
 }
 """Module or package -> layer. A package's entry covers its modules (a new file in
@@ -419,14 +421,14 @@ def test_every_exception_class_of_the_package_derives_from_sgnjaxerror():
 
 
 EXPERIMENTS_DIR = PACKAGE_DIR.parent / "experiments"
-PUBLIC_MODULES = {PACKAGE, f"{PACKAGE}.api"}
+PUBLIC_MODULES = {PACKAGE, f"{PACKAGE}.api", f"{PACKAGE}.experiment_tools"}
 
 
 def test_experiments_import_only_the_public_api():
-    """Every script under experiments/ imports from the package only ``sgn_jax`` and
-    ``sgn_jax.api`` (at any depth, inside functions too), and never another experiment script
-    through ``sys.path.insert``: what several scripts share lives in the package. benchmarks/ may
-    import deeper modules: they measure internals."""
+    """Every script under experiments/ imports from the package only ``sgn_jax``,
+    ``sgn_jax.api`` and ``sgn_jax.experiment_tools`` (at any depth, inside functions too), and
+    never another experiment script through ``sys.path.insert``: what several scripts share
+    lives in the package. benchmarks/ may import deeper modules: they measure internals."""
     scripts = sorted(EXPERIMENTS_DIR.rglob("*.py"))
     assert len(scripts) >= 10, "found too few experiment scripts: is EXPERIMENTS_DIR right?"
     local = {path.stem for path in scripts}
@@ -455,19 +457,20 @@ def test_experiments_import_only_the_public_api():
                 elif top in local:
                     problems.append(f"  {where}:{node.lineno}: imports the script {name}")
     if problems:
-        pytest.fail("experiments import only sgn_jax / sgn_jax.api (add what they need to "
-                    "sgn_jax.api):\n" + "\n".join(problems), pytrace=False)
+        pytest.fail("experiments import only sgn_jax / sgn_jax.api / sgn_jax.experiment_tools "
+                    "(add what they need to sgn_jax.experiment_tools):\n" + "\n".join(problems),
+                    pytrace=False)
 
 
 def test_the_package_data_paths_resolve_from_the_modules_folders():
     """Modules that find shipped files relative to their own file (``Path(__file__)``) still find
     them after a move between folders (records/ is one level below the package root)."""
     from sgn_jax.config import builtin_config_path
-    from sgn_jax.pipelines import demo
-    from sgn_jax.records import checkpoint, envelope
+    from sgn_jax.records import checkpoint, envelope, shipped_models
 
     data = PACKAGE_DIR / "data"
     assert envelope.ENVELOPE_PATH == data / "envelope.toml" and envelope.ENVELOPE_PATH.is_file()
     assert checkpoint._SHIPPED_MODELS_DIR == data / "models"
-    assert demo.SHIPPED_MODELS_DIR == data / "models" and (data / "models").is_dir()
+    assert shipped_models.SHIPPED_MODELS_DIR == data / "models"
+    assert (data / "models" / shipped_models.REGISTRY_FILE).is_file()
     assert builtin_config_path("emax_300rpm").is_file()

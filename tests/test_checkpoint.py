@@ -214,9 +214,9 @@ def test_intact_checkpoint_is_verified_and_loads(setup, saved, tmp_path):
 
 
 def test_shipped_model_verifies():
-    from sgn_jax.pipelines.demo import shipped_model_dir
+    from sgn_jax.records.shipped_models import shipped_model_dir
 
-    ck = Path(shipped_model_dir())
+    ck = Path(shipped_model_dir("emax_300rpm"))
     steps = [p for p in ck.iterdir() if p.is_dir() and p.name.isdigit()]
     assert len(steps) == 1 and (steps[0] / DIGEST_FILE).is_file()
     assert verify_checkpoint_digest(steps[0]) is True

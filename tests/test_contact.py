@@ -12,7 +12,6 @@ and arbitrary): these properties hold by construction, whatever the parameters.
 """
 
 import dataclasses
-import itertools
 
 import jax
 import jax.numpy as jnp
@@ -70,16 +69,16 @@ def random_params(net, graph, seed=0):
     return jax.tree_util.tree_map_with_path(perturb, params)
 
 
-def net_with(gravity, passes=1, spin=False):
+def net_with(gravity, spin=False):
     phys = ContactPhysics(**{**PHYS.__dict__, "gravity": tuple(float(g) for g in gravity),
                              "rolling_friction": 0.045})
-    return ContactNet(physics=phys, hidden=32, mlp_layers=3, passes=passes, spin=spin)
+    return ContactNet(physics=phys, hidden=32, mlp_layers=3, spin=spin)
 
 
-def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, passes=1,
-             spin=False, friction_sweeps=0):
+def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, spin=False,
+             friction_sweeps=0):
     graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query(up))
-    net = net_with(gravity, passes, spin)
+    net = net_with(gravity, spin)
     if friction_sweeps:
         net = net.clone(physics=dataclasses.replace(net.physics, friction_sweeps=friction_sweeps))
     params = random_params(net, graph) if params is None else params
@@ -97,9 +96,56 @@ def test_contact_kind_is_registered_and_builds_from_the_whole_config():
     assert model.physics.ball_mass == pytest.approx(4.0317e-3, rel=1e-4)
 
 
-# The slow tier (the default run's 6-minute budget): a speed-up's equality (the graphs
-# without the node-wall queries give the same step); every contact-model test of the default
-# run builds its graphs without them.
+@pytest.mark.parametrize("line", ['velocity_encoding = "differences"', "interaction_layers = 1",
+                                  "interaction_layers = 2"])
+def test_a_contact_config_that_sets_a_key_of_the_sgn_is_refused(tmp_path, line):
+    """``[model] kind = "contact"`` reads neither ``velocity_encoding`` nor
+    ``interaction_layers``: a TOML that sets one (even to its default) is refused, naming it."""
+    from sgn_jax.config import ConfigError, builtin_config_path, load_config
+
+    text = builtin_config_path("emax_300rpm").read_text()
+    model = text[text.index("[model]"):text.index("[", text.index("[model]") + 1)]
+    path = tmp_path / "contact.toml"
+    path.write_text(text.replace(model, f'[model]\nkind = "contact"\nhidden = 16\n{line}\n\n'))
+    key = line.split()[0]
+    with pytest.raises(ConfigError, match=rf"\['{key}'\] are not read by model kind 'contact'"
+                                          r".*remove them"):
+        load_config(path)
+    path.write_text(text.replace(model, '[model]\nkind = "contact"\nhidden = 16\n\n'))
+    assert load_config(path).model.hidden == 16
+
+
+def test_a_contact_config_is_written_and_read_back_without_the_sgn_keys():
+    """The writer leaves the keys the contact kind does not read out; a saved record's config
+    that lists them (every key of [model]) reads back with them dropped; a contact model with
+    more than one interaction layer does not exist."""
+    from sgn_jax.config import (
+        ConfigError,
+        config_from_dict,
+        config_to_dict,
+        replace_section,
+        resolve_config,
+        saved_config_from_dict,
+    )
+
+    sgn = resolve_config("emax_300rpm")
+    contact = replace_section(sgn, "model", kind="contact", hidden=16)
+    written = config_to_dict(contact)
+    assert "velocity_encoding" not in written["model"] and "interaction_layers" not in written[
+        "model"]
+    assert config_from_dict(written).model.hidden == 16
+    assert {"velocity_encoding", "interaction_layers"} <= set(config_to_dict(sgn)["model"])
+    saved = {**written, "model": {**written["model"], "velocity_encoding": "differences",
+                                  "interaction_layers": 1}}
+    with pytest.raises(ConfigError, match="velocity_encoding"):
+        config_from_dict(saved)
+    assert saved_config_from_dict(saved).model == config_from_dict(written).model
+    with pytest.raises(ConfigError, match="interaction_layers = 2.*kind 'contact'"):
+        replace_section(contact, "model", interaction_layers=2)
+
+
+# The slow tier: a speed-up's equality (the graphs without the node-wall queries give the same
+# step); every contact-model test of the default run builds its graphs without them.
 @pytest.mark.slow
 def test_its_graphs_skip_the_node_wall_columns_it_never_reads():
     """Kind "contact" reads only the nodes' velocities (its walls are its ball-wall edges), so
@@ -130,9 +176,9 @@ def test_its_graphs_skip_the_node_wall_columns_it_never_reads():
     np.testing.assert_array_equal(dv[0], dv[1])
 
 
-def test_ball_ball_momentum_is_conserved_to_rounding(passes=1):
+def test_ball_ball_momentum_is_conserved_to_rounding():
     window, _ = scene(np.random.default_rng(0))
-    terms, _, graph = terms_of(window, passes=passes)
+    terms, _, graph = terms_of(window)
     geo = edge_geometry(graph, PHYS)
     assert float(jnp.sum(geo["gate"] * geo["is_pp"])) >= 4  # two touching pairs act
     # The floor ball (index 4) alone touches a wall: the other balls' momentum change is
@@ -173,64 +219,42 @@ def rotation_matrix(rng):
     return q if np.linalg.det(q) > 0 else -q
 
 
-def test_rotated_scene_gives_rotated_accelerations(passes=1):
+def test_rotated_scene_gives_rotated_accelerations():
     rng = np.random.default_rng(1)
     window, _ = scene(np.random.default_rng(2))
-    terms, params, _ = terms_of(window, passes=passes)
+    terms, params, _ = terms_of(window)
     rot = rotation_matrix(rng)
     window_r, _ = scene(np.random.default_rng(2), rot)
     up_r = rot @ np.array([0.0, 1.0, 0.0])
     g_r = rot @ np.array([0.0, -9.81, 0.0])
-    terms_r, _, _ = terms_of(window_r, up=up_r, gravity=g_r, params=params, passes=passes)
+    terms_r, _, _ = terms_of(window_r, up=up_r, gravity=g_r, params=params)
     dv, dv_r = np.asarray(terms["dv"][:5]), np.asarray(terms_r["dv"][:5])
     np.testing.assert_allclose(dv_r, dv @ rot.T, atol=1e-5 * np.abs(dv).max())
     for name in ("diss_pp", "diss_pw", "work_wall"):
         np.testing.assert_allclose(terms_r[name][0], terms[name][0], rtol=1e-4, atol=1e-12)
 
 
-def test_permuted_balls_give_permuted_accelerations(passes=1):
+def test_permuted_balls_give_permuted_accelerations():
     window, _ = scene(np.random.default_rng(3))
-    terms, params, _ = terms_of(window, passes=passes)
+    terms, params, _ = terms_of(window)
     perm = np.array([3, 0, 4, 1, 2])
     window_p = window.replace(positions=window.positions[:, perm])
-    terms_p, _, _ = terms_of(window_p, params=params, passes=passes)
+    terms_p, _, _ = terms_of(window_p, params=params)
     np.testing.assert_allclose(np.asarray(terms_p["dv"][:5]), np.asarray(terms["dv"][:5])[perm],
                                rtol=1e-5, atol=1e-9)
     np.testing.assert_allclose(terms_p["diss_pp"][0], terms["diss_pp"][0], rtol=1e-5)
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(seed, passes=1):
+def test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(seed):
     window, _ = scene(np.random.default_rng(10 + seed))
-    terms, _, _ = terms_of(window, passes=passes)
+    terms, _, _ = terms_of(window)
     du_n, du_t = np.asarray(terms["du_n"]), np.asarray(terms["du_t"])
     assert (du_n >= 0).all() and du_n.max() > 0
     assert (np.abs(du_t) <= PHYS.friction * du_n + 1e-12).all()
     # Out of reach (gated off): no impulse at all.
     gate = np.asarray(terms["gate"])
     assert (du_n[gate == 0] == 0).all()
-
-
-def test_two_passes_keep_the_built_in_physics_and_start_as_one_pass():
-    """The learned Jacobi pass (``passes`` = 2) sees every contact's tentative impulses; the
-    impulse is still per contact, equal and opposite, repulsive and in the cone: momentum,
-    rotation, permutation and the cone hold as for one pass. Its corrections start at zero:
-    a freshly initialised 2-pass model with the first pass's parameters IS the 1-pass model."""
-    test_ball_ball_momentum_is_conserved_to_rounding(passes=2)
-    test_rotated_scene_gives_rotated_accelerations(passes=2)
-    test_permuted_balls_give_permuted_accelerations(passes=2)
-    test_normal_impulses_repel_and_tangential_ones_stay_in_the_cone(0, passes=2)
-
-    window, _ = scene(np.random.default_rng(0))
-    one, params_one, graph = terms_of(window)
-    fresh = net_with((0.0, -9.81, 0.0), passes=2).init(jax.random.PRNGKey(9), graph)["params"]
-    assert set(fresh) == {*params_one, "pp_refine_0", "pw_refine_0"}
-    two, params_two, _ = terms_of(window, params={**fresh, **params_one}, passes=2)
-    np.testing.assert_array_equal(np.asarray(two["dv"]), np.asarray(one["dv"]))
-    # ...and a trained correction changes it
-    perturbed = random_params(net_with((0.0, -9.81, 0.0), passes=2), graph, seed=3)
-    moved, _, _ = terms_of(window, params={**perturbed, **params_one}, passes=2)
-    assert float(jnp.abs(moved["dv"] - one["dv"]).max()) > 1e-4
 
 
 def test_energy_ledger_closes_over_a_rollout():
@@ -315,7 +339,7 @@ def test_wall_patches_give_a_corner_ball_one_edge_per_wall():
     assert counts == {0: 1, 4: 2}
 
 
-# patches = 4 in the slow tier (the default run's 6-minute budget): the same rows split
+# patches = 4 in the slow tier: the same rows split
 # with the wall-patch edges of a jar with four patches; patches = 0 runs by default.
 @pytest.mark.parametrize("patches", [0, pytest.param(4, marks=pytest.mark.slow)])
 def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
@@ -347,21 +371,17 @@ def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
     forms = {"rows by kind": {"acting_per_ball": 0.0}, "acting": {},
              "acting, block too small": {"acting_per_ball": 0.2}}   # a block of 1 row
 
-    def step_terms(known, passes, **form):
+    def step_terms(known, **form):
         net = ContactNet(physics=dataclasses.replace(PHYS, wall_patches=known), hidden=32,
-                         mlp_layers=3, passes=passes)
+                         mlp_layers=3)
         params = random_params(net, graph, seed=11)
         # rows by kind where the patches are known
         single = net.for_single_rollout().clone(**form)
         return single.apply({"params": params}, graph, method=ContactNet.step_terms)
 
-    out = {}
-    for passes in (1, 2):
-        out[None, passes, "both"] = step_terms(None, passes, acting_per_ball=0.0)
-        for form, change in forms.items():
-            out[patches, passes, form] = step_terms(patches, passes, **change)
-    for passes, form in itertools.product((1, 2), forms):
-        both, own = out[None, passes, "both"], out[patches, passes, form]
+    both = step_terms(None, acting_per_ball=0.0)
+    for change in forms.values():
+        own = step_terms(patches, **change)
         gate = np.asarray(both["gate"]) > 0
         geo = edge_geometry(graph, PHYS, primary_only=True)
         assert np.asarray(geo["is_pp"])[gate].any() and np.asarray(geo["is_pw"])[gate].any()
@@ -385,14 +405,14 @@ def spinning_scene(seed, rotation=None):
     return window.replace(spins=jnp.asarray(spins @ rot.T)), rot
 
 
-@pytest.mark.parametrize("passes, friction_sweeps", [(1, 0), (2, 3)])
-def test_spin_conserves_the_pairs_linear_and_angular_momentum(passes, friction_sweeps):
+@pytest.mark.parametrize("friction_sweeps", [0, 3])
+def test_spin_conserves_the_pairs_linear_and_angular_momentum(friction_sweeps):
     """The tangential impulse acts at the contact point (the midpoint of a pair) and turns
     both balls, rolling friction is an internal torque: the ball-ball contacts change neither
     the total momentum nor the total angular momentum (about any point) of the balls; nor do
     the friction sweeps' impulses and torques."""
     window, _ = spinning_scene(0)
-    terms, _, _ = terms_of(window, passes=passes, spin=True, friction_sweeps=friction_sweeps)
+    terms, _, _ = terms_of(window, spin=True, friction_sweeps=friction_sweeps)
     m, inertia = PHYS.ball_mass, 0.4 * PHYS.ball_mass * R ** 2
     g_dv = np.array([0.0, -9.81 * DT, 0.0])
     # balls 0-3 touch one another, not a wall (ball 4 alone is on the floor)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import sgn_jax.api as sj
+from sgn_jax.scene import analytic_jar_query
 from sgn_jax.surrogate.graph import GraphSpec, Window
 from sgn_jax.surrogate.rollout import make_rollout, model_predictor
 
@@ -37,7 +38,7 @@ def rollout(model, centres):
                     offsets=jnp.zeros((w, 3)), offset_velocities=jnp.zeros((w, 3)),
                     frequency_hz=jnp.asarray(5.0))
     run = make_rollout(spec, model_predictor(model.model), STEPS, 10, snap_back=False,
-                       query=sj.analytic_jar_query)
+                       query=analytic_jar_query)
     res = run(model.params, model.norm_stats, window, motion, jar, 0.0)
     return np.asarray(res.positions), res
 

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 import sgn_jax.api as sj
+from sgn_jax.pipelines.contact_replay import derive_contact_model
 from sgn_jax.pipelines.contact_train_run import train_contact
+from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.surrogate.contact_train import UnrollSpec, dissipation_shares
 from sgn_jax.testing import synthetic_trajectory
 
@@ -49,8 +51,8 @@ def test_a_resumed_run_equals_an_unbroken_one(tmp_path, unbroken_run):
     resumed = train_contact(cfg, trajs, tmp_path / "broken", resume=True, log=lambda _: None,
                             **kwargs)
     assert resumed["steps_done"] == whole["steps_done"] == 2
-    a = sj.load_trained_model(tmp_path / "broken", which="latest")
-    b = sj.load_trained_model(whole_dir, which="latest")
+    a = load_trained_model(tmp_path / "broken", which="latest")
+    b = load_trained_model(whole_dir, which="latest")
     for x, y in zip(np.concatenate([np.ravel(v) for v in _leaves(a.params)]),
                     np.concatenate([np.ravel(v) for v in _leaves(b.params)]), strict=True):
         assert x == y
@@ -61,10 +63,9 @@ def test_a_resumed_run_equals_an_unbroken_one(tmp_path, unbroken_run):
     assert a.model.__class__.__name__ == "ContactNet"
 
 
-# The slow tier (the default run's 6-minute budget): warm-starting a spin model from a
-# spinless one is how a spinless contact model migrates to spin (docs/contact.md); the shipped
-# model trains with spin from its first step. The default run keeps a spin model's training (the
-# resume test's model) and its rollout (tests/test_contact.py, the spins integrated).
+# The slow tier: warm-starting a spin model from a spinless one (docs/contact.md); the shipped
+# model trains with spin from its first step. The default run keeps a spin model's training (the resume
+# test's model) and its rollout (tests/test_contact.py, the spins integrated).
 @pytest.mark.slow
 def test_a_spin_model_trains_warm_started_from_a_spinless_one(tmp_path, unbroken_run):
     """``[model] spin = true`` trains on the records' spins (``omega``): warm-started from a
@@ -83,8 +84,8 @@ def test_a_spin_model_trains_warm_started_from_a_spinless_one(tmp_path, unbroken
                             / "latest", log=lines.append, **{**TRAIN_KWARGS, "steps": 1})
     assert any("warm start" in line and "pp_net" in line and "pw_net" in line for line in lines)
     assert summary["spin"] is True and np.isfinite(summary["best_loss"])
-    spin_model = sj.load_trained_model(tmp_path / "spin", which="latest")
-    donor = sj.load_trained_model(donor_dir, which="latest")
+    spin_model = load_trained_model(tmp_path / "spin", which="latest")
+    donor = load_trained_model(donor_dir, which="latest")
     assert spin_model.model.spin
     k_spin = spin_model.params["pp_net"]["dense_0"]["kernel"]
     k_donor = donor.params["pp_net"]["dense_0"]["kernel"]
@@ -162,15 +163,16 @@ def test_impact_stretches_answer_with_the_configs_restitution():
 
 
 def test_warm_start_takes_the_matching_submodules_and_refuses_a_foreign_checkpoint():
-    """``train_contact(init_from=...)``: a 2-pass model starts its first pass from a trained
-    1-pass model (same names and shapes), its correction pass and the data's dissipation
-    shares fresh; a checkpoint with nothing in common is an error, not a silent fresh start."""
+    """``train_contact(init_from=...)``: a model takes the submodules of a trained one that
+    have the same names and shapes; the others (one the donor lacks, one of another width) and
+    the data's dissipation shares start fresh; a checkpoint with nothing in common is an
+    error, not a silent fresh start."""
     from sgn_jax.pipelines.contact_train_run import _warm_start
     from sgn_jax.surrogate.train import TrainingError
 
     fresh = {"pp_net": {"dense_0": {"kernel": np.zeros((4, 8))}},
              "pw_net": {"dense_0": {"kernel": np.zeros((4, 8))}},
-             "pp_refine_0": {"dense_0": {"kernel": np.zeros((8, 8))}},
+             "extra_net": {"dense_0": {"kernel": np.zeros((8, 8))}},
              "share_logit": np.zeros(2)}
     donor = {"pp_net": {"dense_0": {"kernel": np.ones((4, 8))}},
              "pw_net": {"dense_0": {"kernel": np.ones((4, 16))}},   # another width: not taken
@@ -200,15 +202,15 @@ def test_the_checkpoint_states_its_envelope_and_a_derived_model_keeps_it(tmp_pat
     from sgn_jax.pipelines.validation import model_envelope
 
     _, whole_dir = unbroken_run
-    source = sj.load_trained_model(whole_dir)
+    source = load_trained_model(whole_dir)
     assert model_envelope(source.config, source.meta).source == "the model's stated envelope"
-    out = sj.derive_contact_model(str(whole_dir), str(tmp_path / "limited"), overlap_limit=1e-4)
-    derived = sj.load_trained_model(out)
+    out = derive_contact_model(str(whole_dir), str(tmp_path / "limited"), overlap_limit=1e-4)
+    derived = load_trained_model(out)
     assert derived.model.physics.overlap_limit == 1e-4
     assert derived.meta["derived_from"]["change"] == {"overlap_limit": 1e-4}
     assert derived.meta["envelope"] == source.meta["envelope"]
     for x, y in zip(_leaves(derived.params), _leaves(source.params), strict=True):
         np.testing.assert_array_equal(x, y)
     with pytest.raises(FileExistsError):
-        sj.derive_contact_model(str(whole_dir), out, overlap_limit=2e-4)
+        derive_contact_model(str(whole_dir), out, overlap_limit=2e-4)
 

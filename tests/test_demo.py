@@ -60,8 +60,8 @@ def tiny(tmp_path_factory):
     spec = graph_spec_from_config(model_cfg)
     synthetic = synthetic_trajectory(WINDOW + 2, cfg.balls.count, seed=0)
     window0 = initial_window(synthetic, WINDOW, WINDOW)
-    # The graph and the weights' shapes without running the model's init (eager,
-    # hundreds of op compiles; jitted, a 3.7 s compile of its random number generation): the
+    # The graph and the weights' shapes without running the model's init (eager, hundreds of
+    # op compiles; jitted, a compile of its random number generation): the
     # weights are drawn here as flax's defaults draw them (LeCun-normal kernels, truncated at
     # 2 std; zero biases), random either way.
     graph = jax.eval_shape(lambda w, grid: build_graph(w, grid, spec)[0], window0,
@@ -223,10 +223,12 @@ def test_report_warns_when_the_motion_is_off(demo):
 
 
 def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, capsys):
-    import sgn_jax.pipelines.demo as demo_module
     from sgn_jax.cli import main
+    from sgn_jax.records import shipped_models
 
-    monkeypatch.setattr(demo_module, "SHIPPED_MODELS_DIR", tmp_path / "models")
+    registry_file = shipped_models.SHIPPED_MODELS_DIR / shipped_models.REGISTRY_FILE
+    models = tmp_path / "models"
+    monkeypatch.setattr(shipped_models, "SHIPPED_MODELS_DIR", models)
     out = tmp_path / "out"
     assert main(["demo", "--out", str(out), "--config", str(tiny["case"])]) == 2
     err = capsys.readouterr().err
@@ -234,29 +236,29 @@ def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, cap
     assert not out.exists()  # refused before the DEM ran
 
     # A shipped model is found (a checkpoint directory, as the package ships it).
-    (tmp_path / "models").mkdir()
-    (tmp_path / "models" / "emax_300rpm").symlink_to(tiny["run"] / "checkpoints" / "best")
-    assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "emax_300rpm"
+    models.mkdir()
+    (models / shipped_models.REGISTRY_FILE).write_bytes(registry_file.read_bytes())
+    (models / "emax_300rpm").symlink_to(tiny["run"] / "checkpoints" / "best")
+    assert shipped_models.resolve_checkpoint(None) == models / "emax_300rpm"
     # ... also when a whole checkpoints/ folder (best, latest) was copied there.
-    (tmp_path / "models" / "emax_300rpm").unlink()
-    (tmp_path / "models" / "emax_300rpm").symlink_to(tiny["run"] / "checkpoints")
-    assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "emax_300rpm" / "best"
-    assert demo_module.has_checkpoint(tiny["run"])
-    assert not demo_module.has_checkpoint(tmp_path / "models")
-    # The contact model is the default when it is shipped; the paper-setting one
-    # comes next, then the motion-general one; each is found by name.
-    assert demo_module.DEFAULT_MODEL == "contact"
-    (tmp_path / "models" / "envelope").symlink_to(tiny["run"] / "checkpoints" / "best")
-    assert (demo_module.resolve_checkpoint(None)
-            == tmp_path / "models" / "emax_300rpm" / "best")
-    (tmp_path / "models" / "contact").symlink_to(tiny["run"] / "checkpoints" / "best")
-    assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "contact"
-    assert demo_module.resolve_checkpoint("envelope") == tmp_path / "models" / "envelope"
-    (tmp_path / "models" / "contact").unlink()
-    (tmp_path / "models" / "emax_300rpm").unlink()
-    assert demo_module.resolve_checkpoint(None) == tmp_path / "models" / "envelope"
-    with pytest.raises(demo_module.DemoError, match="shipped model's name"):
-        demo_module.resolve_checkpoint("no_such_model")
+    (models / "emax_300rpm").unlink()
+    (models / "emax_300rpm").symlink_to(tiny["run"] / "checkpoints")
+    assert shipped_models.resolve_checkpoint(None) == models / "emax_300rpm" / "best"
+    assert shipped_models.has_checkpoint(tiny["run"])
+    assert not shipped_models.has_checkpoint(models)
+    # The registry's default (the contact model) is loaded when it is shipped; then the others
+    # in the registry's order; each is found by name.
+    assert shipped_models.registry().names == ("contact", "emax_300rpm", "envelope")
+    (models / "envelope").symlink_to(tiny["run"] / "checkpoints" / "best")
+    assert shipped_models.resolve_checkpoint(None) == models / "emax_300rpm" / "best"
+    (models / "contact").symlink_to(tiny["run"] / "checkpoints" / "best")
+    assert shipped_models.resolve_checkpoint(None) == models / "contact"
+    assert shipped_models.resolve_checkpoint("envelope") == models / "envelope"
+    (models / "contact").unlink()
+    (models / "emax_300rpm").unlink()
+    assert shipped_models.resolve_checkpoint(None) == models / "envelope"
+    with pytest.raises(shipped_models.ShippedModelError, match="shipped model's name"):
+        shipped_models.resolve_checkpoint("no_such_model")
 
 
 def test_bad_inputs_are_refused_before_the_dem(tiny, tmp_path):

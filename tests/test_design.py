@@ -15,6 +15,7 @@ import sgn_jax.api as sj
 from sgn_jax.cli import main
 from sgn_jax.config import replace_section, save_config
 from sgn_jax.design import DesignError, summarize_estimate
+from sgn_jax.scene import analytic_jar_query
 
 
 @pytest.fixture(scope="module")
@@ -222,14 +223,14 @@ def test_a_packing_is_fitted_into_a_shorter_jar_and_left_alone_in_its_own():
     window = Window(positions=jnp.asarray(centres[None] + steps), offsets=jnp.zeros((3, 3)),
                     offset_velocities=jnp.zeros((3, 3)), frequency_hz=jnp.asarray(5.0))
     fit = jax.jit(fit_packing_to_jar, static_argnums=2)
-    phi_short, _ = sj.analytic_jar_query(short, jnp.asarray(centres), jnp.zeros(3))
+    phi_short, _ = analytic_jar_query(short, jnp.asarray(centres), jnp.zeros(3))
     assert float(phi_short[0]) + radius > 2e-3                         # 2.5 mm inside the wall
 
     same = fit(window, base, radius)
     np.testing.assert_array_equal(np.asarray(same.positions), np.asarray(window.positions))
     moved = fit(window, short, radius)
     x = np.asarray(moved.positions[-1])
-    phi, _ = sj.analytic_jar_query(short, jnp.asarray(x), jnp.zeros(3))
+    phi, _ = analytic_jar_query(short, jnp.asarray(x), jnp.zeros(3))
     assert float(np.max(np.asarray(phi))) + radius < 1.5 * PACKING_FIT_TOLERANCE
     assert 2 * radius - np.linalg.norm(x[0] - x[1]) < 1.5 * PACKING_FIT_TOLERANCE
     np.testing.assert_allclose(np.diff(np.asarray(moved.positions), axis=0),

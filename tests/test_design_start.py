@@ -14,6 +14,8 @@ import pytest
 import sgn_jax.api as sj
 from sgn_jax.config import replace_section
 from sgn_jax.design import DesignError
+from sgn_jax.pipelines.studies import _packing_start, resolve_start
+from sgn_jax.scene import analytic_jar_query
 
 
 def test_the_traced_placement_is_the_dems_placement_in_any_jar():
@@ -60,7 +62,7 @@ def _settled_start(model, cfg, n_settle):
     return make_settled_start(
         spec, model_predictor(single_rollout_model(model.model)[0]), n_settle,
         snap_back=cfg.rollout.snap_back, phi_sb=model.config.graph.phi_sb,
-        snap_velocity=cfg.rollout.snap_velocity, query=sj.analytic_jar_query, jit=False)
+        snap_velocity=cfg.rollout.snap_velocity, query=analytic_jar_query, jit=False)
 
 
 @pytest.fixture(scope="module")
@@ -143,11 +145,11 @@ def test_a_jar_parameter_study_makes_its_packings_in_each_jar_by_default(contact
     seeds only (``seed_packings``) needs a start that makes its packings, and says so
     otherwise (the slow test below checks the DEM's start against ``make_packings``)."""
     model, cfg = contact_case
-    assert sj.resolve_start("auto", ["motion.rpm"]) == "packing"
-    assert sj.resolve_start("auto", ["motion.rpm", "jar.straight_length"]) == "dem"
-    assert sj.resolve_start("packing", ["jar.radius"]) == "packing"
+    assert resolve_start("auto", ["motion.rpm"]) == "packing"
+    assert resolve_start("auto", ["motion.rpm", "jar.straight_length"]) == "dem"
+    assert resolve_start("packing", ["jar.radius"]) == "packing"
     with pytest.raises(DesignError, match="start must be"):
-        sj.resolve_start("lid", ["motion.rpm"])
+        resolve_start("lid", ["motion.rpm"])
     seeds_only = sj.seed_packings(cfg, [0, 1])
     assert seeds_only.windows is None and seeds_only.seeds == (0, 1)
     with pytest.raises(DesignError, match="seeds only"):
@@ -156,7 +158,7 @@ def test_a_jar_parameter_study_makes_its_packings_in_each_jar_by_default(contact
     study = sj.design_study(model, cfg, ["jar.straight_length"], seeds_only, duration=0.016,
                             burn_in=0.0, n_segments=1)
     assert study.ensemble.start == "dem"
-    start = sj._packing_start("dem", model, cfg, sj.graph_spec_from_config(
+    start = _packing_start("dem", model, cfg, sj.graph_spec_from_config(
         replace_section(model.config, "dem", dt=cfg.dem.dt), n_particles=cfg.balls.count),
         model.model, False)
     assert start.name == "dem"
@@ -174,7 +176,7 @@ def test_the_dems_start_is_make_packings_packing_in_each_jar(contact_short_packi
     from sgn_jax.pipelines.configure import jar_params_from_config, motion_from_config
 
     model, cfg, packings = contact_short_packings
-    start = sj._packing_start("dem", model, cfg, sj.graph_spec_from_config(
+    start = _packing_start("dem", model, cfg, sj.graph_spec_from_config(
         replace_section(model.config, "dem", dt=cfg.dem.dt), n_particles=cfg.balls.count),
         model.model, False)
     assert start.t_start == pytest.approx(packings.t0, rel=1e-12)

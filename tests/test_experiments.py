@@ -17,7 +17,7 @@ import pytest
 
 import sgn_jax  # noqa: F401  (x64)
 from sgn_jax.config import builtin_config_path, load_config, replace_section, save_config
-from sgn_jax.pipelines.demo import shipped_model_dir
+from sgn_jax.records.shipped_models import shipped_model_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 TOOLS = ROOT / "experiments" / "tools"
@@ -129,7 +129,7 @@ def test_every_reproduce_folder_states_command_expected_numbers_and_time():
 # run_experiments' scheduler with its logs and exit statuses (below); the rollouts, results
 # and report of a whole run are checked here only.
 @pytest.mark.slow
-@pytest.mark.skipif(not (shipped_model_dir() / "PROVENANCE.json").is_file(),
+@pytest.mark.skipif(not (shipped_model_dir("emax_300rpm") / "PROVENANCE.json").is_file(),
                     reason="no shipped model")
 def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
     cfg = load_config(builtin_config_path("emax_300rpm"))
@@ -145,7 +145,7 @@ def test_experiments_end_to_end_on_a_tiny_ensemble(tmp_path, capsys):
     # and by test_run_pinned_runs_jobs_side_by_side_each_with_its_log below (run_experiments).
     assert gd.main(["--ensembles", str(ensembles), "--out", str(data), "--split", "eval",
                     "--jobs", "1", "--no-progress", "--no-pin"]) == 0
-    args = ["--model", str(shipped_model_dir()), "--name", "tiny_run", "--ensembles",
+    args = ["--model", str(shipped_model_dir("emax_300rpm")), "--name", "tiny_run", "--ensembles",
             str(ensembles), "--data", str(data), "--out-root", str(tmp_path / "runs"),
             "--jobs", "1", "--skip-runtime", "--no-pin"]
     assert rx.main(args) == 0

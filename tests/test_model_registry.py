@@ -1,7 +1,9 @@
-"""The model registry: ``[model] kind`` -> the flax module that training and checkpoints use.
+"""The registries of models: ``[model] kind`` -> the flax module that training and checkpoints
+use, and the shipped models' registry (``sgn_jax/data/models/registry.toml``).
 
 A second kind (a per-node MLP without message passing, registered here) trains through the same
-``train()`` loop and loads through the same ``load_trained_model`` as the SGN.
+``train()`` loop and loads through the same ``load_trained_model`` as the SGN. A shipped model is
+one registry entry beside its checkpoint folder.
 """
 
 from __future__ import annotations
@@ -158,3 +160,47 @@ def test_training_an_unregistered_kind_is_a_training_error(cfg, tmp_path):
         train(replace_section(cfg, "model", kind="nope"),
               [synthetic_trajectory(60, N, seed=0)], tmp_path / "x",
               sdf=sdf_grid_from_config(cfg), progress=False, log=lambda m: None)
+
+
+# ---------------------------------------------------------------------------------------------
+# The shipped models: sgn_jax/data/models/registry.toml, one entry per checkpoint folder beside it
+
+
+def test_the_registry_names_every_shipped_folder_and_the_default_loads():
+    from sgn_jax.records import shipped_models
+
+    reg = shipped_models.registry()
+    assert reg.default == "contact" and reg.names[0] == "contact"
+    folders = sorted(p.name for p in shipped_models.SHIPPED_MODELS_DIR.iterdir() if p.is_dir())
+    assert sorted(reg.names) == folders
+    assert all(m.description for m in reg.models)
+    assert shipped_models.resolve_checkpoint(None) == shipped_models.shipped_model_dir("contact")
+    for name in reg.names:
+        assert shipped_models.resolve_checkpoint(name) == shipped_models.shipped_model_dir(name)
+
+
+def test_a_shipped_model_is_one_registry_entry_beside_its_folder(tmp_path, monkeypatch):
+    from sgn_jax.records import shipped_models
+
+    real = shipped_models.SHIPPED_MODELS_DIR
+    models = tmp_path / "models"
+    models.mkdir()
+    monkeypatch.setattr(shipped_models, "SHIPPED_MODELS_DIR", models)
+    (models / "mine").symlink_to(real / "contact")   # a checkpoint folder
+    registry = models / shipped_models.REGISTRY_FILE
+    registry.write_text('default = "mine"\n')
+    with pytest.raises(shipped_models.ShippedModelError, match="default = 'mine' is not one"):
+        shipped_models.resolve_checkpoint(None)
+    registry.write_text('default = "mine"\n\n[[model]]\nname = "mine"\n'
+                        'description = "a test model"\n')
+    assert shipped_models.resolve_checkpoint(None) == models / "mine"
+    assert shipped_models.resolve_checkpoint("mine") == models / "mine"
+    with pytest.raises(shipped_models.ShippedModelError, match=r"shipped model's name \(mine\)"):
+        shipped_models.resolve_checkpoint("contact")
+    # shipping under a name without an entry is refused before anything is copied
+    with pytest.raises(shipped_models.ShippedModelError, match="no entry in"):
+        shipped_models.ship_checkpoint(real / "contact" / "300", "other", {})
+    assert not (models / "other").exists()
+    registry.write_text('default = "mine"\n\n[[model]]\nname = "mine"\n')
+    with pytest.raises(shipped_models.ShippedModelError, match="entry 1 must have"):
+        shipped_models.registry()

@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as tools
 
 DAMPING = ("diss_pp_normal", "diss_pp_tangential", "diss_pw_normal", "diss_pw_tangential")
 ALL_LOSSES = DAMPING + ("diss_pp_slip", "diss_pp_rolling", "diss_pw_slip", "diss_pw_rolling")
@@ -101,7 +102,7 @@ def one_run(model, cfg, traj, duration, window, dem_ref=None):
         dem_target = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in DAMPING)
         dem_total = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in ALL_LOSSES)
         row.update({"dem_power_W": dem_target / span, "dem_total_power_W": dem_total / span,
-                    "dem_speed_m_s": float(np.mean(sj.jar_frame_speed(
+                    "dem_speed_m_s": float(np.mean(tools.jar_frame_speed(
                         np.asarray(traj.t[sl]), dem_pos, dem_off)))})
     else:
         row.update({k: v for k, v in dem_ref.items() if k.startswith("dem_")})
@@ -131,11 +132,11 @@ def one_run(model, cfg, traj, duration, window, dem_ref=None):
             row["dem_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
                 np.asarray(traj.omega[sl]), axis=-1)))
     if finite:
-        row["model_speed_m_s"] = float(np.mean(sj.jar_frame_speed(t_pos, pos, off)))
-        census_m = sj.contact_census(pos, off, jar, radius)
+        row["model_speed_m_s"] = float(np.mean(tools.jar_frame_speed(t_pos, pos, off)))
+        census_m = tools.contact_census(pos, off, jar, radius)
         row.update({f"model_{k}": v for k, v in census_m.items()})
         if dem_ref is None:
-            census_d = sj.contact_census(dem_pos, dem_off, jar, radius)
+            census_d = tools.contact_census(dem_pos, dem_off, jar, radius)
             row.update({f"dem_{k}": v for k, v in census_d.items()})
     return row
 
@@ -273,14 +274,14 @@ def main() -> None:
             ap.error("--duration with --dem-reference: the reference's steps set the duration")
         reference = json.loads(Path(args.dem_reference).read_text())["runs"]
 
-    sj.enable_compilation_cache()
-    model = sj.load_trained_model(sj.resolve_checkpoint(args.model))
+    tools.enable_compilation_cache()
+    model = tools.load_trained_model(tools.resolve_checkpoint(args.model))
     settings = {"pp_separation": False, **parse_settings(args.rollout)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / f"{args.name}.json"
     done = json.loads(json_path.read_text()) if json_path.exists() else {"runs": {}}
-    cases = sj.select_cases(sj.load_ensembles(args.ensembles), args.cases)
+    cases = tools.select_cases(tools.load_ensembles(args.ensembles), args.cases)
     summaries = []
     for case in cases:
         cfg = sj.replace_section(sj.load_config(case.config_path), "rollout", **settings)

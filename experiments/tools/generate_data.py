@@ -68,7 +68,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from sgn_jax.api import (
+from sgn_jax.experiment_tools import (
     Case,
     EnsembleError,
     last_json_line,
@@ -140,7 +140,7 @@ def plan_runs(cases: Iterable[Case], out_dir: str | Path, split: str = "all") ->
 
 def dem_relevant_config(cfg: Any) -> dict[str, Any]:
     """The parts of a config that determine a seed's DEM trajectory, as plain data."""
-    from sgn_jax.api import config_to_dict
+    from sgn_jax.experiment_tools import config_to_dict
 
     full = config_to_dict(cfg)
     out = {section: full[section] for section in _DEM_SECTIONS}
@@ -175,7 +175,7 @@ def partial_progress(run: Run, cfg: Any) -> float:
     The DEM driver writes chunk 0 (the settled state) after settling, then one chunk file per
     ``[dem] chunk_samples`` samples of motion.
     """
-    from sgn_jax.api import partial_dir
+    from sgn_jax.experiment_tools import partial_dir
 
     folder = partial_dir(run.out_path)
     if not folder.is_dir():
@@ -189,7 +189,8 @@ def partial_progress(run: Run, cfg: Any) -> float:
 
 def inspect_output(run: Run, cfg: Any) -> FileStatus:
     """Classify the run's output file; a valid one comes with its loaded Trajectory."""
-    from sgn_jax.api import DatasetError, config_from_dict, load_trajectory
+    from sgn_jax.api import DatasetError, load_trajectory
+    from sgn_jax.experiment_tools import config_from_dict
 
     path = run.out_path
     if not path.exists():
@@ -222,7 +223,7 @@ def file_record(run: Run, traj: Any, cfg: Any, sha256: str) -> dict[str, Any]:
     """The manifest entry of a valid file, from the file itself (wall times added by caller)."""
     import numpy as np
 
-    from sgn_jax.api import (
+    from sgn_jax.experiment_tools import (
         BED_PAIRS_PER_BALL,
         REGIME_PP_CONTACTS_PER_BALL,
         classify_state,
@@ -348,7 +349,7 @@ def case_summaries(cases: Iterable[Case], entries: dict[str, dict[str, Any]]
 def write_manifest(out_dir: Path, ensembles_path: Path, cases: Sequence[Case],
                    entries: dict[str, dict[str, Any]]) -> list[str]:
     """Rewrite ``out_dir/manifest.json`` atomically; returns the case warnings."""
-    from sgn_jax.api import git_commit, sha256_file, write_json
+    from sgn_jax.experiment_tools import git_commit, sha256_file, write_json
 
     summaries, warnings = case_summaries(cases, entries)
     write_json(out_dir / MANIFEST_NAME, {
@@ -434,7 +435,7 @@ class Generator:
     # ---- scan
     def scan(self, dry_run: bool) -> tuple[list[tuple[Run, FileStatus]], dict[str, Any]]:
         """Check every planned run's file; returns (runs to do with their status, entries)."""
-        from sgn_jax.api import sha256_file
+        from sgn_jax.experiment_tools import sha256_file
 
         entries = read_manifest(self.out_dir)
         todo = []
@@ -578,7 +579,7 @@ class Generator:
 
     def finish(self, item: Active, entries: dict[str, Any], write) -> bool:
         """Validate and record a finished process's file; False (with the log's tail) if not."""
-        from sgn_jax.api import sha256_file
+        from sgn_jax.experiment_tools import sha256_file
 
         run = item.run
         wall = time.perf_counter() - item.started

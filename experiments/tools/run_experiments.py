@@ -49,9 +49,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from sgn_jax.api import (
+from sgn_jax.api import CheckpointError
+from sgn_jax.experiment_tools import (
     CLASSIFIERS,
-    CheckpointError,
     EnsembleError,
     ExperimentError,
     case_config,

@@ -161,7 +161,7 @@ def _pair_distance_sq(p: tuple[jax.Array, ...], t: jax.Array) -> jax.Array:
 
     p: (x, y, z) coordinate arrays; t: (34, ...) packed triangle columns (see
     :func:`_triangle_pack`). Structure-of-arrays on purpose: XLA fuses this into one loop over
-    contiguous arrays, ~10-20x faster on CPU than (..., 3)-shaped vectors.
+    contiguous arrays, faster on CPU than (..., 3)-shaped vectors.
     """
 
     def vec(i: int) -> tuple[jax.Array, jax.Array, jax.Array]:

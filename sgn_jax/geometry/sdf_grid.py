@@ -253,7 +253,7 @@ def _interpolate(grid: SDFGrid, x: jax.Array, keep_patches: bool = False
     flat = values.reshape(values.shape[:-3] + (-1,))
     base = (i[..., 0] * ny + i[..., 1]) * nz + i[..., 2]
     sx, sy = ny * nz, nz
-    # All 8 corners in one gather (measured ~1.5x faster than 8 gathers), then converted:
+    # All 8 corners in one gather (faster than 8 gathers), then converted:
     # converting the whole grid first would copy it on every call.
     corner_offsets = jnp.asarray(
         [di * sx + dj * sy + dk for di in (0, 1) for dj in (0, 1) for dk in (0, 1)], jnp.int32

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.config import config_to_dict, replace_section
+from sgn_jax.config import Config, config_to_dict, replace_section
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import (
     DISSIPATION_KINDS,
@@ -635,3 +635,12 @@ def summarize(setup: DEMSetup, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
         "mean_pp_contacts": float(np.mean(arrays["n_pp_contacts"])),
         "mean_pw_contacts": float(np.mean(np.sum(arrays["pw_contact"], axis=1))),
     }
+
+
+def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool = False
+                 ) -> dict[str, np.ndarray]:
+    """The DEM in memory: settle the balls of ``cfg`` (placement ``seed``) and run ``duration``
+    s of its motion; returns the dataset arrays (``pos`` (T, N, 3) m, ``vel``, ``offset``, the
+    cumulative dissipation per kind, ...; docs/dem.md). :func:`run_dem` is the same run with its
+    metadata and summary, and with ``out_path=`` it writes the dataset file (resumable)."""
+    return run_dem(cfg, duration=duration, seed=seed, progress=progress).arrays

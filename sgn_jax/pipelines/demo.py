@@ -36,18 +36,16 @@ One trajectory is one sample of a multistable system (docs/conventions.md sectio
 the method working; accuracy claims about dissipation belong to ensembles (``sgn-jax evaluate``
 with several runs).
 
-The shipped models live in ``sgn_jax/data/models/<name>/`` (orbax checkpoint directories as
-written by ``checkpoints/best`` of a training run); :func:`shipped_model_dir` finds one and
-:data:`DEFAULT_MODEL` says which is the default.
+The model is the shipped default unless ``checkpoint`` names another
+(:mod:`sgn_jax.records.shipped_models`).
 """
 
 from __future__ import annotations
 
 import math
-import shutil
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -70,37 +68,13 @@ from sgn_jax.pipelines.configure import jar_mesh_from_config
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.rollout_run import config_at_model_step, run_rollout
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
-from sgn_jax.records.checkpoint import (
-    DIGEST_FILE,
-    CheckpointError,
-    latest_step,
-    load_trained_model,
-    write_checkpoint_digest,
-)
+from sgn_jax.records.checkpoint import CheckpointError, load_trained_model
 from sgn_jax.records.io_utils import machine_info, write_json
 from sgn_jax.records.prediction import load_prediction
+from sgn_jax.records.shipped_models import resolve_checkpoint
 from sgn_jax.records.trajectory import load_trajectory
 
 DEFAULT_CASE = "emax_300rpm"
-SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "data" / "models"
-"""Where the trained models shipped with the package live (one directory per model)."""
-PAPER_MODEL = "emax_300rpm"
-"""The paper-setting one-trajectory model of the reproduction (docs/results.md)."""
-ENVELOPE_MODEL = "envelope"
-"""The motion-general model trained over the motion envelope (issue 10, docs/envelope.md). It
-ranks motions by dissipation better than the paper-setting model but is not yet within the
-issue's accuracy bars (on the standard case +124 % with the ball-ball separation, +21 % without
-it but with coincident balls, against +11 %), so it is shipped by name
-only (docs/results.md section 11)."""
-CONTACT_MODEL = "contact"
-"""The contact-impulse surrogate (issue 19, docs/contact.md): contact physics built in, its
-dissipation from its own impulses, run with the ball-ball separation off, at 2e-4 s. It meets
-the issue's bars on held-out packings and motions (docs/results.md section 12): the default."""
-DEFAULT_MODEL = CONTACT_MODEL
-"""What ``--checkpoint`` defaults to: the contact model (since 2026-11-26; before, the
-paper-setting model, which stays shipped by name for the paper's experiments)."""
-SHIPPED_MODEL_ORDER = (DEFAULT_MODEL, PAPER_MODEL, ENVELOPE_MODEL)
-
 ANIMATION_FRAMES = 100
 
 
@@ -110,93 +84,6 @@ class DemoError(SGNJaxError, ValueError):
 
 # --------------------------------------------------------------------------------------------
 # Inputs
-
-
-def shipped_model_dir(case: str = DEFAULT_CASE) -> Path:
-    """The directory of the model shipped for ``case`` (may not exist)."""
-    return SHIPPED_MODELS_DIR / case
-
-
-def best_checkpoint_step(run: str | Path) -> Path:
-    """The one step directory of a training run's ``checkpoints/best`` (what is shipped)."""
-    best = Path(run) / "checkpoints" / "best"
-    steps = sorted(d for d in best.iterdir() if d.is_dir()) if best.is_dir() else []
-    if len(steps) != 1:
-        raise DemoError(f"expected one checkpoint under {best}, found {len(steps)}")
-    return steps[0]
-
-
-def ship_checkpoint(step_dir: str | Path, name: str, provenance: dict[str, Any],
-                    extra_files: Sequence[str | Path] = ()) -> Path:
-    """Install a checkpoint step as the shipped model ``name`` (``SHIPPED_MODELS_DIR/name``).
-
-    Copies ``step_dir`` (writing its file digests if it predates them), the ``extra_files``
-    that exist (loss plot, metrics) and ``PROVENANCE.json`` into a staging folder, loads the
-    staged model back (refusing to ship what does not load) and only then replaces the old
-    model, so a failed copy never leaves the package without one. Returns the model's folder.
-    """
-    step_dir = Path(step_dir)
-    target = shipped_model_dir(name)
-    staging = target.with_name(target.name + ".new")
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
-    shutil.copytree(step_dir, staging / step_dir.name)
-    if not (staging / step_dir.name / DIGEST_FILE).is_file():  # trained before the digests
-        write_checkpoint_digest(staging / step_dir.name)
-    for extra in map(Path, extra_files):
-        if extra.is_file():
-            shutil.copy2(extra, staging / extra.name)
-    write_json(staging / "PROVENANCE.json", provenance)
-    load_trained_model(staging)
-    if target.exists():
-        shutil.rmtree(target)
-    staging.rename(target)
-    return target
-
-
-def has_checkpoint(path: str | Path) -> bool:
-    """True if ``path`` is a training run directory (with ``checkpoints/``) or a checkpoint
-    directory holding at least one complete step."""
-    path = Path(path)
-    if (path / "checkpoints").is_dir():
-        return True
-    return path.is_dir() and latest_step(path) is not None
-
-
-def _shipped_checkpoint(name: str) -> Path | None:
-    shipped = shipped_model_dir(name)
-    # The checkpoint directory itself (the documented layout), or a copied checkpoints/ folder.
-    for candidate in (shipped, shipped / "best"):
-        if has_checkpoint(candidate):
-            return candidate
-    return None
-
-
-def resolve_checkpoint(checkpoint: str | Path | None) -> Path:
-    """``checkpoint`` itself (a path, or the name of a shipped model: ``"emax_300rpm"``,
-    ``"envelope"``), or the shipped default model if None (:data:`DEFAULT_MODEL`, else the
-    other shipped one); refused with a clear message if no model is shipped."""
-    if checkpoint is not None:
-        path = Path(checkpoint)
-        if not path.exists() and str(checkpoint) in SHIPPED_MODEL_ORDER:
-            found = _shipped_checkpoint(str(checkpoint))
-            if found is not None:
-                return found
-        if not path.exists():
-            raise DemoError(f"--checkpoint {str(path)!r} does not exist; pass a training run "
-                            "directory (written by `sgn-jax train --out DIR`), its "
-                            "checkpoints/best directory, or a shipped model's name "
-                            f"({', '.join(SHIPPED_MODEL_ORDER)})")
-        return path
-    for name in SHIPPED_MODEL_ORDER:
-        found = _shipped_checkpoint(name)
-        if found is not None:
-            return found
-    raise DemoError(
-        f"no trained model is shipped with this installation (looked in {SHIPPED_MODELS_DIR}); "
-        "pass one with --checkpoint DIR: a training run directory written by `sgn-jax train "
-        "--out DIR` (its checkpoints/best is used) or a checkpoint directory")
 
 
 def _check_compatible(case_cfg: Any, model_cfg: Any, checkpoint: Path) -> None:
@@ -258,8 +145,8 @@ def run_demo(
     if animation_frames < 2:
         raise DemoError(f"animation_frames must be >= 2, got {animation_frames}")
     case_cfg = resolve_config(config)
-    ckpt = resolve_checkpoint(checkpoint)
     try:
+        ckpt = resolve_checkpoint(checkpoint)
         trained = load_trained_model(ckpt, which=which)
     except CheckpointError as exc:
         raise DemoError(str(exc)) from exc
@@ -543,15 +430,7 @@ def _motion_check_lines(checks: list[dict[str, Any]]) -> list[str]:
 
 __all__ = [
     "DEFAULT_CASE",
-    "DEFAULT_MODEL",
-    "ENVELOPE_MODEL",
-    "PAPER_MODEL",
-    "SHIPPED_MODELS_DIR",
-    "SHIPPED_MODEL_ORDER",
     "DemoError",
     "format_report",
-    "has_checkpoint",
-    "resolve_checkpoint",
     "run_demo",
-    "shipped_model_dir",
 ]

@@ -3,7 +3,7 @@
 ``experiments/envelope/evaluate_model.py``): how to start the ``sgn-jax`` CLI in a subprocess
 and on which cores, how to read the JSON summary line it prints, and the planning and summary
 steps of a model's evaluation on an ensemble (rollout length, ``[rollout]`` overrides, the
-per-case result). Exposed through :mod:`sgn_jax.api`.
+per-case result). Exposed through :mod:`sgn_jax.experiment_tools`.
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from sgn_jax.config import ConfigError, config_from_dict
+from sgn_jax.config import ConfigError, saved_config_from_dict
 from sgn_jax.records.io_utils import atomic_write, json_default
 
 
@@ -83,7 +83,7 @@ class RecordFormat:
     def config_from_meta(self, meta: Mapping[str, Any], path: str | Path | None) -> Any:
         """The run's ``sgn_jax.config.Config`` rebuilt from ``meta['config']``."""
         try:
-            return config_from_dict(dict(meta["config"]))
+            return saved_config_from_dict(dict(meta["config"]))
         except ConfigError as exc:
             raise self.error(f"{self.where(path)}: meta['config'] is not a valid config: {exc}; "
                              "store sgn_jax.config.config_to_dict(cfg) of the run's config"

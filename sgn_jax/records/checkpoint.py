@@ -34,7 +34,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from sgn_jax.config import ConfigError, config_from_dict
+from sgn_jax.config import ConfigError, saved_config_from_dict
 from sgn_jax.errors import SGNJaxError, SGNJaxWarning
 from sgn_jax.surrogate.model import ModelKindError, make_predict, model_factory, model_kind
 from sgn_jax.surrogate.normalization import NormStats, stats_from_arrays, stats_to_arrays
@@ -363,7 +363,7 @@ def load_trained_model(path: str | Path, which: str = "best") -> TrainedModel:
     ckpt_dir = path / "checkpoints" / which if (path / "checkpoints").is_dir() else path
     restored = restore_checkpoint(ckpt_dir)
     try:
-        cfg = config_from_dict(restored.meta["config"])
+        cfg = saved_config_from_dict(restored.meta["config"])
     except (KeyError, ConfigError) as exc:
         raise CheckpointError(f"checkpoint {ckpt_dir} has no valid config: {exc}") from exc
     try:

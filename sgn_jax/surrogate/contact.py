@@ -368,17 +368,9 @@ class ContactNet(nn.Module):
     Takes the RAW graph of :func:`sgn_jax.surrogate.graph.build_graph` (``takes_raw_graph``): its inputs
     are scaled by fixed physical scales, not by normalisation statistics.
 
-    ``passes`` (``[model] interaction_layers`` of the config): with 1, every contact's impulse
-    is a function of its own invariants alone. A contact in a bed, though, shares each of its
-    balls with other contacts whose impulses act within the same step (a force chain), and a
-    per-contact function can only learn the average of "isolated impact" and "contact in a
-    chain". With ``passes`` = P > 1, pass p > 1 sees what the previous passes' impulses of ALL
-    contacts would do: the end-of-step gap rate and slip speed of its contact with every
-    ball's tentative velocity ``v_n + sum J / m + g dt`` (as one sweep of a projected
-    Gauss-Seidel/Jacobi contact solver does), and corrects the contact's impulse logits
-    (a learned Jacobi iteration). The corrections start at zero, so a model of P passes starts
-    as its first pass. Every pass is per contact, on invariant scalars, and the final impulse is
-    applied equal and opposite: the conservation and symmetry properties are unchanged.
+    Every contact's impulse is a function of its own invariants alone (one pass per contact);
+    the overlap and friction sweeps of :class:`ContactPhysics` then couple the contacts of a
+    ball.
 
     ``spin`` (``[model] spin = true``): the balls' angular velocities are rollout state (the
     window's ``spins``, the graph's ``nodes["spin"]``). The tangential impulse then acts along
@@ -397,21 +389,18 @@ class ContactNet(nn.Module):
     physics: ContactPhysics = ContactPhysics()
     hidden: int = 64
     mlp_layers: int = 3
-    passes: int = 1
     rows_by_kind: bool = False
     spin: bool = False
     acting_per_ball: float = 0.0
     takes_raw_graph = True
 
     def for_single_rollout(self) -> ContactNet:
-        """This model as one rollout (no vmap) runs fastest: each MLP on its own kind's rows
-        (``rows_by_kind``; with the config's ``wall_patches``), and no pair-capacity tiers
-        (``capacity_tiers_help``). Measured on one core, 0.2 s of the standard case:
-        1.84 s per simulated second with both MLPs on every row, 1.26 s with each on its
-        own rows (tiers: 1.6-1.75 s). Vmapped over packings (ensembles, design studies,
-        training) the per-packing row offset turns the slices into a gather and a scatter
-        and the plain model is faster (batch 32 on two cores: 1.57 against 1.83-1.93 s/s),
-        so only the single-rollout drivers ask for this
+        """This model in the form that runs fastest as one rollout (no vmap): each MLP on its
+        own kind's rows (``rows_by_kind``; with the config's ``wall_patches``), and no
+        pair-capacity tiers (``capacity_tiers_help``). Vmapped over packings (ensembles,
+        design studies, training) the per-packing row offset turns the slices into a gather
+        and a scatter and the plain model is the faster one (docs/benchmarks.md), so only the
+        single-rollout drivers ask for this
         (:func:`sgn_jax.surrogate.rollout.single_rollout_model`).
 
         Each MLP also runs only on its kind's ACTING contacts (``acting_per_ball``: a block of
@@ -426,14 +415,8 @@ class ContactNet(nn.Module):
     capacity_tiers_help = False
 
     def setup(self):
-        if self.passes < 1:
-            raise ContactModelError(f"passes must be >= 1, got {self.passes}")
         self.pp_net = ImpulseMLP(self.hidden, self.mlp_layers)
         self.pw_net = ImpulseMLP(self.hidden, self.mlp_layers)
-        self.pp_refine = [ImpulseMLP(self.hidden, self.mlp_layers)
-                          for _ in range(self.passes - 1)]
-        self.pw_refine = [ImpulseMLP(self.hidden, self.mlp_layers)
-                          for _ in range(self.passes - 1)]
         # Damping share of all losses per contact kind, as logits (fitted after training).
         self.share_logit = self.param("share_logit", nn.initializers.constant(2.0), (2,),
                                       DTYPE)
@@ -665,27 +648,6 @@ class ContactNet(nn.Module):
             dv, dw = dv + change[:, :3], dw + change[:, 3:]
         return impulse, _safe_norm(tangential) / m_star, dv, dw, (a_recv, a_send)
 
-    def _tentative_inputs(self, geo: dict[str, jax.Array], dv: jax.Array,
-                          dw: jax.Array | None = None) -> jax.Array:
-        """(E, 4) invariant scalars of each contact at the end of the step if every ball's
-        velocity changed by ``dv`` (and, with spin, its spin by ``dw``): the gap rate u' and the
-        slip speed |v_t'| (of the contact point with spin; clipped, and fine-scaled as the first
-        pass's inputs). The jar's velocity at the end of the step is estimated from its last
-        change (``jar_dv``; exact for a uniform acceleration)."""
-        v_end = geo["v_node"] + dv
-        receivers, senders = geo["receivers"], geo["senders"]
-        partner = jnp.where(geo["is_pw"][:, None], geo["u_wall"] + geo["jar_dv"], v_end[senders])
-        v_rel = partner - v_end[receivers]
-        u_end = jnp.einsum("ec,ec->e", v_rel, geo["normal"])
-        v_t = v_rel - u_end[:, None] * geo["normal"]
-        if dw is not None:
-            w_end = geo["w_node"] + dw
-            v_t = v_t - geo["arm"][:, None] * jnp.cross(w_end[receivers] + w_end[senders],
-                                                       geo["normal"])
-        slip = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + TANGENT_EPS ** 2) - TANGENT_EPS
-        return jnp.stack([jnp.clip(u_end, -10.0, 10.0), jnp.tanh(u_end / SPEED_SCALE_FINE),
-                          jnp.clip(slip, 0.0, 10.0), jnp.tanh(slip / SPEED_SCALE_FINE)], axis=-1)
-
     def step_terms(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
         """Everything of one step: per-node velocity change and per-graph energies (J)."""
         # One row per contact (the primary direction of each edge, half the slots): the MLPs run
@@ -704,10 +666,6 @@ class ContactNet(nn.Module):
             return impulse, du_n, du_t, dv, dw, (a_recv, a_send)
 
         logits = self._per_kind(self.pp_net, self.pw_net, geo, geo["inputs"], n_node - 2)
-        for pp_refine, pw_refine in zip(self.pp_refine, self.pw_refine, strict=True):
-            _, _, _, dv, dw, _ = kinematics(logits)
-            x = jnp.concatenate([geo["inputs"], self._tentative_inputs(geo, dv, dw)], axis=-1)
-            logits = logits + self._per_kind(pp_refine, pw_refine, geo, x, n_node - 2)
         impulse, du_n, du_t, dv, dw, angular = kinematics(logits)
         impulse, du_n, dv = self._project_overlaps(geo, impulse, du_n, dv, n_node, is_particle)
         if self.spin and self.physics.friction_sweeps > 0:
@@ -799,13 +757,11 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
 
 def make_contact_net(cfg: Any) -> ContactNet:
     """The factory of kind "contact": a :class:`ContactNet` of a whole experiment config
-    (``[model] hidden`` and ``mlp_layers`` size its impulse MLPs; ``interaction_layers`` is
-    its number of impulse ``passes``, 1 for a per-contact model; ``spin`` makes the balls'
-    angular velocities rollout state)."""
+    (``[model] hidden`` and ``mlp_layers`` size its impulse MLPs; ``spin`` makes the balls'
+    angular velocities rollout state; the other keys it reads are the overlap limit's and the
+    sweeps', :func:`physics_from_config`)."""
     return ContactNet(physics=physics_from_config(cfg), hidden=int(cfg.model.hidden),
-                      mlp_layers=int(cfg.model.mlp_layers),
-                      passes=int(cfg.model.interaction_layers),
-                      spin=bool(cfg.model.spin))
+                      mlp_layers=int(cfg.model.mlp_layers), spin=bool(cfg.model.spin))
 
 
 register_model("contact", make_contact_net, builds_from="config", node_walls=False,

@@ -73,8 +73,8 @@ def encode_velocities(features: Any, encoding: str) -> Any:
     (minus the acceleration of the next slot times dt), the newest slot keeps ``v_{W-1}``. The
     same information (an invertible linear map), but the acceleration history, which lives in
     differences of nearly equal velocities (0.01 m/s against 0.5 m/s), becomes a column of its
-    own after standardisation instead of a 1e-2 fraction of one: in our tests the acceleration
-    loss then falls about ten times faster (docs/sgn.md).
+    own after standardisation instead of a 1e-2 fraction of one, and the acceleration loss
+    falls faster (docs/sgn.md).
     """
     if encoding == "absolute":
         return features

@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.api import append_jsonl, read_jsonl
+import sgn_jax.experiment_tools as tools
+from sgn_jax.experiment_tools import append_jsonl, read_jsonl
 
 OUT = Path("runs/design")
 SEEDS = tuple(range(20, 28))  # never used for training (standard-case training used 0-3)
@@ -180,7 +181,7 @@ def cmd_surrogate(checkpoint: str | None, horizon: int, segments: int,
         t0 = time.perf_counter()
         # The study's start as a user's: with a jar parameter among the names ("auto") the DEM
         # makes the seeds' packings in every jar the study evaluates.
-        point_start = sj.resolve_start(start, names)
+        point_start = tools.resolve_start(start, names)
         # The DEM's seeds, or more of them (20, 21, ...): the surrogate's packings are cheap,
         # and its estimate's standard error shrinks with them (the DEM's ensemble stays 8).
         seeds = tuple(range(SEEDS[0], SEEDS[0] + packings))

@@ -33,7 +33,7 @@ import numpy as np
 import optax
 
 import sgn_jax.api as sj
-from sgn_jax.api import append_jsonl, read_jsonl
+from sgn_jax.experiment_tools import append_jsonl, read_jsonl
 
 OUT = Path("runs/design/optimize")
 NAMES = ("motion.rpm", "motion.amplitude")

@@ -28,23 +28,25 @@ from pathlib import Path
 
 from sgn_jax.api import (
     RolloutError,
+    ensemble_summary,
+    evaluate,
+    load_config,
+    load_trajectory,
+    run_rollout,
+)
+from sgn_jax.experiment_tools import (
     case_config,
     case_result,
     enable_compilation_cache,
-    ensemble_summary,
-    evaluate,
     git_commit,
-    load_config,
     load_ensembles,
     load_trained_model,
-    load_trajectory,
     machine_info,
     parse_rollout_settings,
     plot_case_curves,
     prediction_ok,
     resolve_checkpoint,
     rollout_duration,
-    run_rollout,
     select_cases,
     write_json,
 )

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import spearmanr
 
-from sgn_jax.api import write_json
+from sgn_jax.experiment_tools import write_json
 
 BARS = {"motion1": 0.15, "motion2": 0.15, "post_motion1": 0.20, "standard": 0.05}
 HELDOUT_BAR = 0.10

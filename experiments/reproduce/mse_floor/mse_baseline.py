@@ -30,7 +30,7 @@ DEFAULT_ENSEMBLES = Path(__file__).resolve().parents[2] / "ensembles.toml"
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sgn_jax.api import load_ensembles, mse_plateau, position_mse, write_json
+    from sgn_jax.experiment_tools import load_ensembles, mse_plateau, position_mse, write_json
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--case", default="standard")
