@@ -56,7 +56,7 @@ def test_stages_run_in_order_each_from_the_last(tmp_path, data_dir):
     assert first["init_from"] is None
     assert second["init_from"] == str(out / "first" / "checkpoints" / "best")
     assert (second["unroll"], second["pushforward"]) == (3, True)
-    model = sj.load_trained_model(summary["model"])
+    model = sj.load_surrogate(summary["model"])
     assert model.config.model.kind == "contact"
     assert json.loads((out / "summary.json").read_text())["model"] == summary["model"]
 

@@ -38,6 +38,7 @@ import sys
 from pathlib import Path
 
 import sgn_jax.api as sj
+import sgn_jax.experiment_tools as xt
 
 
 def sgn_provenance(run: Path, summary: dict) -> dict:
@@ -90,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
 
     run = Path(args.run)
     try:
-        step_dir = sj.best_checkpoint_step(run)
+        step_dir = xt.best_checkpoint_step(run)
     except sj.SGNJaxError as exc:
         print(f"ship_model: {exc}", file=sys.stderr)
         return 2
@@ -113,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     provenance = {
         "what": args.what or ("contact-impulse surrogate" if info is not None else "SGN"),
         "train_command": args.train_command,
-        "datasets": [{"file": str(f), "sha256": sj.sha256_file(f)} for f in files],
-        "code_commit_at_shipping": sj.git_commit(),
+        "datasets": [{"file": str(f), "sha256": xt.sha256_file(f)} for f in files],
+        "code_commit_at_shipping": xt.git_commit(),
     }
     if info is not None:
         provenance |= contact_provenance(run, summary, info, step_dir)
@@ -122,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         provenance |= sgn_provenance(run, summary)
     if args.manifest:
         provenance["data_manifest"] = {"file": args.manifest,
-                                       "sha256": sj.sha256_file(args.manifest)}
+                                       "sha256": xt.sha256_file(args.manifest)}
     config_file = run / "config.toml"
     if config_file.is_file():
         provenance["config"] = config_file.read_text()
@@ -143,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
                       for name, c in results["cases"].items()}}
 
     extra = [f for f in (run / "loss.png", run / "metrics.csv") if f.is_file()]
-    target = sj.ship_checkpoint(step_dir, args.name, provenance, extra_files=extra)
+    target = xt.ship_checkpoint(step_dir, args.name, provenance, extra_files=extra)
     print(json.dumps({"shipped": str(target), "step": step_dir.name}))
     return 0
 
