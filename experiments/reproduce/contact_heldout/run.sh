@@ -8,9 +8,16 @@
 # not depend on the model) and the rollouts start from the first 2 ms of each DEM run, which
 # equal the full runs' first samples bit for bit. DEM=full runs the whole DEM records instead
 # (~1.5 h of both cores) and computes the DEM's side from them. Resumable. JOBS=1 for one core.
+# MODEL=DIR evaluates another model (a training run's checkpoint, docs/training.md) into
+# OUT=DIR (default runs/contact_eval); SEPON=0 leaves out the runs with the separation on;
+# PARALLEL=1 runs the evaluations side by side (a machine with many cores).
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
 JOBS=${JOBS:-2}
+MODEL=${MODEL:-contact}
+OUT=${OUT:-runs/contact_eval}
+SEPON=${SEPON:-1}
+PARALLEL=${PARALLEL:-0}
 HERE=experiments/reproduce/contact_heldout
 HELDOUT=heldout_c00,heldout_c01,heldout_c02,heldout_h00,heldout_h01,heldout_h02
 GEN="python experiments/tools/generate_data.py --split eval --jobs $JOBS"
@@ -30,18 +37,24 @@ else
     ref() { echo "--dem-reference $HERE/expected/$1.json"; }
 fi
 
-EC="python experiments/tools/evaluate_contact.py --model contact --out runs/contact_eval"
+EC="python experiments/tools/evaluate_contact.py --model $MODEL --out $OUT"
 ON="--rollout pp_separation=true"
-$EC --name heldout --ensembles experiments/envelope/ensembles.toml --cases $HELDOUT \
+run() { if [ "$PARALLEL" = 1 ]; then "$@" & else "$@"; fi; }
+run $EC --name heldout --ensembles experiments/envelope/ensembles.toml --cases $HELDOUT \
     --data $ENVELOPE $(ref heldout)
-$EC --name unseen --ensembles experiments/envelope/unseen.toml \
+run $EC --name unseen --ensembles experiments/envelope/unseen.toml \
     --cases motion1,motion2,post_motion1 --data $UNSEEN $(ref unseen)
-$EC --name standard --ensembles experiments/envelope/unseen.toml --cases standard \
+run $EC --name standard --ensembles experiments/envelope/unseen.toml --cases standard \
     --data $UNSEEN $(ref standard)
-$EC --name fresh --ensembles experiments/contact/fresh.toml --data $FRESH $(ref fresh)
-$EC --name heldout_sepon --ensembles experiments/envelope/ensembles.toml --cases $HELDOUT \
-    --data $ENVELOPE $ON $(ref heldout_sepon)
-$EC --name unseen_sepon --ensembles experiments/envelope/unseen.toml \
-    --cases motion1,motion2,post_motion1 --data $UNSEEN $ON $(ref unseen_sepon)
+run $EC --name fresh --ensembles experiments/contact/fresh.toml --data $FRESH $(ref fresh)
+NAMES="heldout unseen standard fresh"
+if [ "$SEPON" = 1 ]; then
+    run $EC --name heldout_sepon --ensembles experiments/envelope/ensembles.toml \
+        --cases $HELDOUT --data $ENVELOPE $ON $(ref heldout_sepon)
+    run $EC --name unseen_sepon --ensembles experiments/envelope/unseen.toml \
+        --cases motion1,motion2,post_motion1 --data $UNSEEN $ON $(ref unseen_sepon)
+    NAMES="$NAMES heldout_sepon unseen_sepon"
+fi
+[ "$PARALLEL" = 1 ] && for job in $(jobs -p); do wait "$job"; done
 
-python experiments/tools/evaluate_contact.py --bars runs/contact_eval/{heldout,unseen,standard,fresh,heldout_sepon,unseen_sepon}.json
+python experiments/tools/evaluate_contact.py --bars $(for n in $NAMES; do echo "$OUT/$n.json"; done)
