@@ -30,7 +30,8 @@ Pure JAX core: no config, no files (the host side is :mod:`sgn_jax.api`). Three 
    quantity the DEM check measures. ``"horizon"`` is the truncated-horizon alternative: the
    mean over packings and segment starts of the autodiff derivative of the energy dissipated
    in ``horizon`` steps from the (anchored, stop-gradient) state at the segment start; it sees
-   only the immediate response (``experiments/design/verify_gradients.py`` measures both).
+   only the immediate response (``experiments/reproduce/design_gradients/verify_gradients.py``
+   measures both; docs/results.md section 5).
 """
 
 from __future__ import annotations
