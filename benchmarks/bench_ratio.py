@@ -18,7 +18,7 @@ vmap). The surrogate's accuracy is not measured here: the models' held-out error
 docs/results.md and docs/benchmarks.md states them beside the ratios.
 
     python benchmarks/bench_ratio.py                      # prints JSON
-    python benchmarks/bench_ratio.py --append             # and adds a section to docs/benchmarks.md
+    python benchmarks/bench_ratio.py --markdown           # and the table for docs/benchmarks.md
 
 Writes benchmarks/results/bench_ratio.json.
 """
@@ -305,8 +305,8 @@ def bench(args) -> dict:
 
 def markdown(res: dict, machine: dict, args) -> str:
     s = res["single"]
-    lines = [f"\n## Surrogate vs DEM, same work, one run (`benchmarks/bench_ratio.py`; "
-             f"{machine['date']}, commit {machine['commit']})\n",
+    lines = [f"\n## Surrogate vs DEM, same work, one run (`benchmarks/bench_ratio.py`, "
+             f"commit {machine['commit']})\n",
              f"Machine: {machine['processor']}, {machine['cpu_count']} cores, jax "
              f"{machine['jax']}, load {machine['load_average']} at the end. Wall time per "
              "simulated second of one rollout (compile apart); ratio = DEM / surrogate.\n",
@@ -363,7 +363,9 @@ def main(argv=None) -> int:
     p.add_argument("--dem-ensemble-packings", type=int, default=None,
                    help="run this many of the ensemble's DEM packings and scale (default: all)")
     p.add_argument("--out", default="benchmarks/results/bench_ratio.json")
-    p.add_argument("--append", action="store_true", help="append to docs/benchmarks.md")
+    p.add_argument("--markdown", action="store_true",
+                   help="also print the results as a markdown section, to replace the table of "
+                        "docs/benchmarks.md")
     p.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
     p.add_argument("--worker-args", default="{}", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -379,9 +381,8 @@ def main(argv=None) -> int:
            "total_s": time.perf_counter() - t}
     write_json(ROOT / args.out, doc)
     print(json.dumps(doc, indent=1, default=float))
-    if args.append:
-        with open(ROOT / "docs" / "benchmarks.md", "a") as fh:
-            fh.write(markdown(res, machine, args))
+    if args.markdown:
+        print(markdown(res, machine, args))
     return 0
 
 
