@@ -109,7 +109,7 @@ def _surrogate(model: str):
 def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int = 1,
                batching: str = "vmap") -> dict:
     """``batch`` surrogate rollouts of ``seconds`` (vmapped over packings, or with ``batching``
-    "map" one after another in the model's single-rollout form, ``api.over_packings``;
+    "map" one after another in the model's single-rollout form, ``experiment_tools.over_packings``;
     ``batch`` 1 is one plain rollout, with pair-capacity tiers when ``tiers``). ``devices`` >
     1: the batch is sharded over that many devices (``api.shard_packings``; on a CPU host
     devices, which the driver makes with ``XLA_FLAGS=--xla_force_host_platform_device_count``;
@@ -294,7 +294,7 @@ def bench(args) -> dict:
             sharded["max_rel_energy_diff_vs_unsharded"] = float(np.max(np.abs(a - b) / np.abs(a)))
             ens[model + " (2 devices)"] = sharded
             # one packing after another on each device (batching "map": the model's
-            # single-rollout form, api.over_packings), one device per core
+            # single-rollout form, experiment_tools.over_packings), one device per core
             mapped = run("0,1", "sgn", model=model, batch=n, seconds=secs, tiers=False,
                          devices=2, batching="map")
             mapped["ratio_vs_fastest_dem"] = fastest / mapped["wall_s"]
