@@ -500,8 +500,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         batching: how the packings' rollouts (the powers and the difference estimator's
             sides) run: ``"vmap"`` (default) as one batch, ``"map"`` one after another
             (``lax.map``), for a predictor of a model's single-rollout form, which a vmap
-            would make slower (:func:`sgn_jax.pipelines.studies.over_packings`). The horizon estimator's
-            gradients stay vmapped.
+            would make slower (:func:`sgn_jax.pipelines.studies.over_packings`). The horizon
+            estimator's gradients stay vmapped.
         start: where each packing's rollout starts. None (default): from its window
             (the ``starts`` argument), made under ``base_motion`` and ending at ``t0``,
             anchored to ``theta``'s motion and fitted into ``theta``'s jar
