@@ -175,7 +175,8 @@ def test_demo_prints_the_headline_numbers(demo):
 
 
 def test_demo_reports_motion_checks(demo):
-    """Beside the energy: the motion checks (DEM next to the model) in the report and summary.json."""
+    """Beside the energy: the motion checks (DEM next to the model) in the report and
+    summary.json."""
     text, summary = demo["stdout"], demo["summary"]
     checks = {c["name"]: c for c in summary["motion_checks"]}
     assert list(checks) == ["jar_speed", "snapped", "overlap", "mse_plateau"]
