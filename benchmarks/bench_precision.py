@@ -7,9 +7,10 @@ accumulation, what a bf16 surrogate would run), for each ``--hidden``, interleav
 process so that both see the same load, and records whether the CPU has native bf16
 (``avx512_bf16`` / ``amx_bf16`` in /proc/cpuinfo).
 
-    taskset -c 0 python benchmarks/bench_precision.py [--hidden 64 128] [--append]
+    taskset -c 0 python benchmarks/bench_precision.py [--hidden 64 128] [--markdown]
 
-Writes benchmarks/results/bench_precision.json; with --append a section of docs/benchmarks.md.
+Writes benchmarks/results/bench_precision.json; with --markdown prints the table that replaces
+the one of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
     p.add_argument("--rows", type=int, default=265, help="edge + node slots per graph")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--out", default="benchmarks/results/bench_precision.json")
-    p.add_argument("--append", action="store_true")
+    p.add_argument("--markdown", action="store_true",
+                   help="also print the table, to replace the one of docs/benchmarks.md")
     args = p.parse_args(argv)
     from sgn_jax.experiment_tools import machine_info, write_json
 
@@ -92,10 +94,10 @@ def main(argv=None) -> int:
     doc = {"machine": machine_info(), "cpu_bf16_flags": cpu_bf16_flags(), "rows": rows}
     write_json(ROOT / args.out, doc)
     print(json.dumps(doc, indent=1))
-    if args.append:
+    if args.markdown:
         m = doc["machine"]
-        lines = [f"\n## float32 vs bfloat16 MLP blocks (`benchmarks/bench_precision.py`; "
-                 f"{m['date']}, commit {m['commit']})\n",
+        lines = [f"\n## float32 vs bfloat16 MLP blocks (`benchmarks/bench_precision.py`, "
+                 f"commit {m['commit']})\n",
                  f"{m['processor']}, {m['cpu_count']} cores, jax {m['jax']}; native bf16 "
                  f"flags: {', '.join(doc['cpu_bf16_flags']) or 'none (bf16 is emulated)'}. "
                  f"A 4-layer MLP over {args.rows} rows (a graph's edge and node slots), "
@@ -104,8 +106,7 @@ def main(argv=None) -> int:
                  "|---|---|---|---|"]
         lines += [f"| {r['hidden']} | {r['float32_us']:.1f} | {r['bfloat16_us']:.1f} | "
                   f"{r['bf16_over_f32']:.2f} |" for r in rows]
-        with open(ROOT / "docs" / "benchmarks.md", "a") as fh:
-            fh.write("\n".join(lines) + "\n")
+        print("\n".join(lines))
     return 0
 
 

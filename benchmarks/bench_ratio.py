@@ -18,7 +18,7 @@ vmap). The surrogate's accuracy is not measured here: the models' held-out error
 docs/results.md and docs/benchmarks.md states them beside the ratios.
 
     python benchmarks/bench_ratio.py                      # prints JSON
-    python benchmarks/bench_ratio.py --append             # and adds a section to docs/benchmarks.md
+    python benchmarks/bench_ratio.py --markdown           # and the table for docs/benchmarks.md
 
 Writes benchmarks/results/bench_ratio.json.
 """
@@ -109,7 +109,7 @@ def _surrogate(model: str):
 def worker_sgn(model: str, batch: int, seconds: float, tiers: bool, devices: int = 1,
                batching: str = "vmap") -> dict:
     """``batch`` surrogate rollouts of ``seconds`` (vmapped over packings, or with ``batching``
-    "map" one after another in the model's single-rollout form, ``api.over_packings``;
+    "map" one after another in the model's single-rollout form, ``experiment_tools.over_packings``;
     ``batch`` 1 is one plain rollout, with pair-capacity tiers when ``tiers``). ``devices`` >
     1: the batch is sharded over that many devices (``api.shard_packings``; on a CPU host
     devices, which the driver makes with ``XLA_FLAGS=--xla_force_host_platform_device_count``;
@@ -294,7 +294,7 @@ def bench(args) -> dict:
             sharded["max_rel_energy_diff_vs_unsharded"] = float(np.max(np.abs(a - b) / np.abs(a)))
             ens[model + " (2 devices)"] = sharded
             # one packing after another on each device (batching "map": the model's
-            # single-rollout form, api.over_packings), one device per core
+            # single-rollout form, experiment_tools.over_packings), one device per core
             mapped = run("0,1", "sgn", model=model, batch=n, seconds=secs, tiers=False,
                          devices=2, batching="map")
             mapped["ratio_vs_fastest_dem"] = fastest / mapped["wall_s"]
@@ -305,8 +305,8 @@ def bench(args) -> dict:
 
 def markdown(res: dict, machine: dict, args) -> str:
     s = res["single"]
-    lines = [f"\n## Surrogate vs DEM, same work, one run (`benchmarks/bench_ratio.py`; "
-             f"{machine['date']}, commit {machine['commit']})\n",
+    lines = [f"\n## Surrogate vs DEM, same work, one run (`benchmarks/bench_ratio.py`, "
+             f"commit {machine['commit']})\n",
              f"Machine: {machine['processor']}, {machine['cpu_count']} cores, jax "
              f"{machine['jax']}, load {machine['load_average']} at the end. Wall time per "
              "simulated second of one rollout (compile apart); ratio = DEM / surrogate.\n",
@@ -363,7 +363,9 @@ def main(argv=None) -> int:
     p.add_argument("--dem-ensemble-packings", type=int, default=None,
                    help="run this many of the ensemble's DEM packings and scale (default: all)")
     p.add_argument("--out", default="benchmarks/results/bench_ratio.json")
-    p.add_argument("--append", action="store_true", help="append to docs/benchmarks.md")
+    p.add_argument("--markdown", action="store_true",
+                   help="also print the results as a markdown section, to replace the table of "
+                        "docs/benchmarks.md")
     p.add_argument("--worker", choices=sorted(WORKERS), help=argparse.SUPPRESS)
     p.add_argument("--worker-args", default="{}", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -379,9 +381,8 @@ def main(argv=None) -> int:
            "total_s": time.perf_counter() - t}
     write_json(ROOT / args.out, doc)
     print(json.dumps(doc, indent=1, default=float))
-    if args.append:
-        with open(ROOT / "docs" / "benchmarks.md", "a") as fh:
-            fh.write(markdown(res, machine, args))
+    if args.markdown:
+        print(markdown(res, machine, args))
     return 0
 
 

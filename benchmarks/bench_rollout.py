@@ -14,10 +14,11 @@ Measures, on this machine, compile time apart:
 The network is randomly initialised (speed does not depend on the weights: static shapes); the
 initial window comes from the DEM run (or a lattice of balls with --skip-dem).
 
-    taskset -c 0 python benchmarks/bench_rollout.py --append     # one core
-    python benchmarks/bench_rollout.py --append                  # both cores
+    taskset -c 0 python benchmarks/bench_rollout.py --markdown   # one core
+    python benchmarks/bench_rollout.py --markdown                # both cores
 
-Prints one JSON document; with --append adds a section to docs/benchmarks.md.
+Prints one JSON document; with --markdown also the tables, to replace those of
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -374,7 +375,9 @@ def main() -> None:
     parser.add_argument("--skip-dem", action="store_true")
     parser.add_argument("--memory-steps", type=int, nargs="*", default=[1000, 10000])
     parser.add_argument("--memory-hidden", type=int, default=64)
-    parser.add_argument("--append", action="store_true", help="append to docs/benchmarks.md")
+    parser.add_argument("--markdown", action="store_true",
+                        help="also print the results as markdown, to replace the tables of "
+                             "docs/benchmarks.md")
     args = parser.parse_args()
 
     from sgn_jax.pipelines.configure import graph_spec_from_config
@@ -408,12 +411,8 @@ def main() -> None:
         report["memory"].append(memory_in_subprocess(steps, args.memory_hidden))
         print(json.dumps(report["memory"][-1]), file=sys.stderr)
     print(json.dumps(report, indent=1))
-    if args.append:
-        path = ROOT / "docs" / "benchmarks.md"
-        with open(path, "a") as fh:  # append only our own section
-            if fh.tell() == 0:
-                fh.write("# Benchmarks\n")
-            fh.write(markdown(report))
+    if args.markdown:
+        print(markdown(report))
 
 
 if __name__ == "__main__":

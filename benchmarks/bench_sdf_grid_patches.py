@@ -123,7 +123,7 @@ def markdown(results: dict) -> str:
         "",
         "`sdf_grid_from_jar(params, 0.5 mm)` builds one grid per wall patch by default "
         "(`per_patch=True`, values (P, nx, ny, nz), phi = max over the interpolated patches); "
-        "`per_patch=False` is the old single grid of the combined `jar_sdf`.",
+        "`per_patch=False` is a single grid of the combined `jar_sdf`.",
         "",
         "| grid | build (warm) | values | float32 MB |",
         "|---|---|---|---|",

@@ -7,7 +7,7 @@ training (:class:`sgn_jax.surrogate.train.BatchPacker`), and times the jitted tr
     python benchmarks/bench_train.py                      # hidden 256 and 128, batch 32
     python benchmarks/bench_train.py --hidden 256 --batch 16 32 64 --edges 60 100 --seconds 20
 
-Prints one JSON line per configuration and, with --append, adds a section to
+Prints one JSON line per configuration and, with --markdown, the table that replaces the one of
 docs/benchmarks.md.
 """
 
@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -112,7 +111,8 @@ def main() -> None:
     p.add_argument("--edges", type=float, nargs="+", default=[100.0],
                    help="mean directed edges per graph (ball-ball + ball-wall)")
     p.add_argument("--seconds", type=float, default=20.0, help="timed seconds per configuration")
-    p.add_argument("--append", action="store_true", help="append the results to docs/benchmarks.md")
+    p.add_argument("--markdown", action="store_true",
+                   help="also print the table, to replace the one of docs/benchmarks.md")
     args = p.parse_args()
 
     machine = machine_info()
@@ -124,14 +124,13 @@ def main() -> None:
                 row = bench(hidden, batch, edges, args.seconds)
                 print(json.dumps(row), flush=True)
                 rows.append(row)
-    if args.append:
-        path = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
-        lines = ["", f"## SGN training throughput (benchmarks/bench_train.py, {time.strftime('%Y-%m-%d')})",
+    if args.markdown:
+        lines = ["", "## SGN training throughput (`benchmarks/bench_train.py`)",
                  "", f"Machine: {machine['platform']}, {machine['cpu_count']} CPUs, backend "
                  f"{machine['backend']}, jax {machine['jax']}, commit {machine['commit']}. "
                  "Synthetic graphs of the standard case (24 balls + wall, window 7), edges per "
                  "graph ~ Poisson(mean), packed as in training; float32; compile time apart; "
-                 f"{args.seconds:.0f} s timed per row, the other engineers' jobs sharing the CPU.",
+                 f"{args.seconds:.0f} s timed per row; load average {machine['load_average']}.",
                  "", "| hidden | graphs/batch | mean edges/graph | edge capacity | params | "
                  "compile (s) | ms/step | samples/s | 45,000-sample epoch (s) |",
                  "|---|---|---|---|---|---|---|---|---|"]
@@ -139,8 +138,7 @@ def main() -> None:
             lines.append(f"| {r['hidden']} | {r['batch_graphs']} | {r['mean_edges_per_graph']:.0f} "
                          f"| {r['batch_edge_capacity']} | {r['n_params']:,} | {r['compile_s']} | "
                          f"{r['ms_per_step']} | {r['samples_per_s']} | {r['epoch_45000_s']} |")
-        with open(path, "a") as fh:
-            fh.write("\n".join(lines) + "\n")
+        print("\n".join(lines))
 
 
 if __name__ == "__main__":

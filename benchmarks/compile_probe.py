@@ -6,8 +6,8 @@ lowerings (``jax.monitoring`` duration events), to find where the test suite's t
 
 writes ``/tmp/probe_<worker>.json`` (one list of rows per xdist worker: ``test``, ``start``
 (epoch s, for the workers' timelines), ``wall`` s and,
-per event, its seconds and ``n:<event>`` count). Subprocesses of tests are not seen.
-docs/benchmarks.md ("The test suite's wall time") has what it found.
+per event, its seconds and ``n:<event>`` count). Subprocesses of tests are not seen. The
+default test run's wall time is in docs/benchmarks.md (its introduction).
 """
 
 import collections

@@ -409,18 +409,18 @@ class ModelConfig:
         overlap_limit: m, kind "contact" only; 0 = off. The rigid limit of the contact law:
             each contact's normal impulse is at least the one that keeps its overlap at the end
             of the step (ballistically, as if it were the balls' only contact) within this
-            depth (docs/contact.md, "Overlap limit"); the SGN refuses a non-zero value.
+            depth (docs/contact.md, "One step", item 7); the SGN refuses a non-zero value.
         overlap_law_factor: kind "contact" only; 0 = off (needs overlap_limit > 0). The limit
             grows with the contact's approach speed as this factor times the DEM contact law's
             own deepest overlap at that speed (fast impacts go as deep as the DEM's, scaled).
         overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed
-            compressed by an impact; docs/contact.md, "Overlap limit").
+            compressed by an impact; docs/contact.md, "One step", item 7).
         friction_sweeps: kind "contact" with spin only; 0 = off. Projected Jacobi sweeps of
             Coulomb sticking over all contacts together after the impulses, so that a packed
-            bed holds as the DEM's does instead of creeping (docs/contact.md, "Friction
-            sweeps").
+            bed holds as the DEM's does instead of creeping (docs/contact.md, "One step",
+            item 8).
     """
 
     kind: str = "sgn"

@@ -249,9 +249,9 @@ def _section_markdown(section: SectionDoc) -> list[str]:
         lines += ["Keys by jar kind (`kind` plus these; the other kind's keys are not used):",
                   ""]
         lines += _keys_by_kind_table(_jar_keys_by_kind(section)) + [""]
-        lines += ["An STL jar (`sgn_jax.geometry.load_stl`): the file is the closed **cavity** "
-                  "(where the balls are) in jar-frame coordinates, floor centre at the origin "
-                  "and y up; it must be watertight and consistently wound, and is read in "
+        lines += ["An STL jar (`sgn_jax.pipelines.configure.load_stl`): the file is the closed "
+                  "**cavity** (where the balls are) in jar-frame coordinates, floor centre at the "
+                  "origin and y up; it must be watertight and consistently wound, and is read in "
                   "`stl_units` and scaled to m (docs/geometry.md):", "",
                   "```toml", STL_EXAMPLE_TOML.rstrip("\n"), "```", ""]
     return lines

@@ -30,7 +30,8 @@ Pure JAX core: no config, no files (the host side is :mod:`sgn_jax.api`). Three 
    quantity the DEM check measures. ``"horizon"`` is the truncated-horizon alternative: the
    mean over packings and segment starts of the autodiff derivative of the energy dissipated
    in ``horizon`` steps from the (anchored, stop-gradient) state at the segment start; it sees
-   only the immediate response (``experiments/design/verify_gradients.py`` measures both).
+   only the immediate response (``experiments/reproduce/design_gradients/verify_gradients.py``
+   measures both; docs/results.md section 5).
 """
 
 from __future__ import annotations
@@ -499,8 +500,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         batching: how the packings' rollouts (the powers and the difference estimator's
             sides) run: ``"vmap"`` (default) as one batch, ``"map"`` one after another
             (``lax.map``), for a predictor of a model's single-rollout form, which a vmap
-            would make slower (:func:`sgn_jax.api.over_packings`). The horizon estimator's
-            gradients stay vmapped.
+            would make slower (:func:`sgn_jax.pipelines.studies.over_packings`). The horizon
+            estimator's gradients stay vmapped.
         start: where each packing's rollout starts. None (default): from its window
             (the ``starts`` argument), made under ``base_motion`` and ending at ``t0``,
             anchored to ``theta``'s motion and fitted into ``theta``'s jar

@@ -4,9 +4,9 @@ The two states are those of docs/conventions.md section 7.
 
 One place for the science of the two states: the thresholds (with units and where they come
 from) and the classifiers. :mod:`sgn_jax.analysis.metrics` applies them to a prediction and its DEM
-reference (``sgn-jax evaluate``); ``experiments/generate_data.py`` labels each DEM file of an
-ensemble with :func:`regime_of` and :func:`regime_windows`; ``experiments/calibrate_states.py``
-measures the indicators on a DEM ensemble and is where the speed threshold was chosen.
+reference (``sgn-jax evaluate``); ``experiments/tools/generate_data.py`` labels each DEM file of
+an ensemble with :func:`regime_of` and :func:`regime_windows`; the speed threshold comes from
+both indicators measured over the 1-s windows of a DEM ensemble (:data:`AGITATED_SPEED_M_S`).
 
 Two families of rules:
 
@@ -15,7 +15,7 @@ Two families of rules:
   frame, from finite differences of the saved frames (``pos - offset``, 1 ms apart at the
   default ``save_every``; :func:`sgn_jax.analysis.metrics.jar_frame_speed`), is >=
   :data:`AGITATED_SPEED_M_S`, else "bed". It reads positions only, so it does not depend on the
-  surrogate's energy head (which the power comparison judges). The older rules remain:
+  surrogate's energy head (which the power comparison judges). Two other rules are available:
   ``"contacts"`` (mean ball pairs within the edge skin per ball >= :data:`BED_PAIRS_PER_BALL`
   is a "bed") does not separate the DEM states and a surrogate whose balls overlap inflates it;
   ``"power"`` (agitated when the mean dissipation power >= an explicit threshold in W) judges
@@ -41,10 +41,10 @@ from sgn_jax.pairs import MetricsError
 AGITATED_SPEED_M_S = 0.16
 """Default state threshold of :func:`classify_state`: mean ball speed in the jar frame (m/s);
 agitated if >=. Provenance: calibrated on the 12-packing DEM ensemble of the standard case
-(``experiments/calibrate_states.py``, docs/results.md "States"): over 1-s windows the bed
-(>= 14 DEM ball-ball contacts) moves at 0.059-0.123 m/s in the jar frame and the agitated state
-(fewer contacts) at 0.191-0.366 m/s; 0.16 m/s is near the middle of the gap (0.157). Whole 10-s
-runs: bed 0.063-0.118 m/s, agitated 0.222-0.332 m/s."""
+(seeds 0-11; :func:`regime_windows` against :func:`sgn_jax.analysis.metrics.jar_frame_speed`):
+over 1-s windows the bed (>= 14 DEM ball-ball contacts) moves at 0.059-0.123 m/s in the jar
+frame and the agitated state (fewer contacts) at 0.191-0.366 m/s; 0.16 m/s is near the middle of
+the gap (0.157). Whole 10-s runs: bed 0.063-0.118 m/s, agitated 0.222-0.332 m/s."""
 
 BED_PAIRS_PER_BALL = 0.75
 """``classify_by="contacts"`` threshold: mean ball pairs within ``2 R + [graph] pp_skin`` per

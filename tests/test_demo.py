@@ -166,11 +166,17 @@ def test_demo_prints_the_headline_numbers(demo):
     regime = summary["regime"]
     # the state printed is the one of the speed rule, next to the speed it thresholds
     assert (f"DEM {regime['jar_speed_dem_m_s']:.3f} m/s ({regime['state_dem']})") in text
-    assert (f"SGN {regime['jar_speed_sgn_m_s']:.3f} m/s ({regime['state_sgn']})") in text
+    assert (f"model {regime['jar_speed_sgn_m_s']:.3f} m/s ({regime['state_sgn']})") in text
+    # the surrogate is "model" whatever its kind (the default is the contact model, not an SGN)
+    assert f"DEM {summary['energy']['dem_J']:.4g} J, model {summary['energy']['sgn_J']:.4g} J" \
+        in text
+    assert f"vs model {summary['speed']['sgn_s_per_sim_s']:.2f} s per simulated second" in text
+    assert "SGN" not in text
 
 
 def test_demo_reports_motion_checks(demo):
-    """Beside the energy: the motion checks (DEM next to SGN) in the report and summary.json."""
+    """Beside the energy: the motion checks (DEM next to the model) in the report and
+    summary.json."""
     text, summary = demo["stdout"], demo["summary"]
     checks = {c["name"]: c for c in summary["motion_checks"]}
     assert list(checks) == ["jar_speed", "snapped", "overlap", "mse_plateau"]
@@ -183,10 +189,10 @@ def test_demo_reports_motion_checks(demo):
     assert checks["snapped"]["ball_steps"] == STEPS * 24
     assert 0 <= checks["overlap"]["dem"] < 500  # um; the DEM's deepest is ~62 um
     assert checks["mse_plateau"]["sgn"] == summary["position"]["mse_plateau_m2"]
-    assert "motion     checks of the motion, DEM vs SGN" in text
-    assert f"jar-frame ball speed  DEM {regime['jar_speed_dem_m_s']:.3f} m/s, SGN " \
+    assert "motion     checks of the motion, DEM vs model" in text
+    assert f"jar-frame ball speed  DEM {regime['jar_speed_dem_m_s']:.3f} m/s, model " \
            f"{regime['jar_speed_sgn_m_s']:.3f} m/s" in text
-    assert "snapped to the wall   DEM 0 (no snap), SGN" in text
+    assert "snapped to the wall   DEM 0 (no snap), model" in text
     assert f"deepest ball overlap  DEM {checks['overlap']['dem']:,.0f} um" in text
     assert "MSE_t plateau         DEM chaos floor 5.6e-04 m^2 (same packing, dt vs dt/2), " \
            "unrelated packings 8.2e-04 m^2" in text
@@ -216,10 +222,10 @@ def test_report_warns_when_the_motion_is_off(demo):
     warnings = [line.strip() for line in lines if "WARNING:" in line]
     assert len(warnings) == 5 and warnings[-1] == f"WARNING: {ENERGY_TRUST_WARNING}"
     assert lines[-1].strip() == warnings[-1]  # the last thing printed
-    assert "SGN 0.500 m/s (+85 %; limit +-20 %): OUT OF RANGE" in text
-    assert "SGN 49.46 % of ball-steps (118,702 of 240,000; limit 1 %): OUT OF RANGE" in text
-    assert "DEM 62 um, SGN 9,990 um (limit 500 um): OUT OF RANGE" in text
-    assert "SGN 1.25e-03 m^2 = 1.52x the unrelated level (limit < 1x): OUT OF RANGE" in text
+    assert "model 0.500 m/s (+85 %; limit +-20 %): OUT OF RANGE" in text
+    assert "model 49.46 % of ball-steps (118,702 of 240,000; limit 1 %): OUT OF RANGE" in text
+    assert "DEM 62 um, model 9,990 um (limit 500 um): OUT OF RANGE" in text
+    assert "model 1.25e-03 m^2 = 1.52x the unrelated level (limit < 1x): OUT OF RANGE" in text
 
 
 def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, capsys):

@@ -1,6 +1,7 @@
 """Where a design study's packings start in the jar it evaluates (``design_study(...,
-start=...)``, docs/design.md "Where a packing starts in a changed jar"): the DEM's placement as
-a jittable function of the jar, the surrogate's settle, the DEM's start and the default.
+start=...)``; docs/design.md, "What is differentiated", its paragraph "Where a packing starts in
+a changed jar"): the DEM's placement as a jittable function of the jar, the surrogate's settle,
+the DEM's start and the default.
 
 A file of its own so that the test run's two workers share the design tests (``--dist
 loadfile``)."""

@@ -10,7 +10,9 @@ the one page these rules do not apply to.
 
 Excluded: the shipped checkpoints and their provenance records under ``sgn_jax/data/models/``
 (data written by the training runs, not prose), this file (its patterns name what they find)
-and ``experiments/`` and ``benchmarks/`` (scripts and results files of their own).
+and the result files under ``experiments/`` and ``benchmarks/`` (JSON, JSON lines and CSV
+written by the runs: their commands, commits and dates are the record of the run). The scripts,
+READMEs, configs and expected tables there are prose and are scanned.
 """
 
 from __future__ import annotations
@@ -140,3 +142,18 @@ def test_project_files_have_no_history():
 def test_tests_have_no_history():
     problems = _report(_read(_files(ROOT / "tests", TEXT_SUFFIXES)))
     assert not problems, "history in tests/:\n" + "\n".join(problems)
+
+
+# The experiments' and benchmarks' prose: scripts, shell commands, READMEs, configs, expected
+# tables; not the result files the runs write (RESULT_SUFFIXES).
+EXPERIMENT_SUFFIXES = (TEXT_SUFFIXES | {".sh"}) - {".json"}
+RESULT_SUFFIXES = {".json", ".jsonl", ".csv"}
+
+
+@pytest.mark.parametrize("folder", ["experiments", "benchmarks"])
+def test_experiments_and_benchmarks_prose_has_no_history(folder):
+    files = _files(ROOT / folder, EXPERIMENT_SUFFIXES)
+    assert files, f"nothing to scan under {folder}/"
+    assert not any(p.suffix in RESULT_SUFFIXES for p in files)
+    problems = _report(_read(files))
+    assert not problems, f"history in {folder}/:\n" + "\n".join(problems)

@@ -71,7 +71,7 @@ def test_trajectory_xz_plot(tmp_path):
     assert_png(plot_trajectory_xz(pos, tmp_path / "xz.png", ref_pos=ref,
                                   offset=np.array([0.017, 0.0, 0.0]), jar=jar))
     assert_png(plot_trajectory_xz(pos, tmp_path / "xz_plain.png"))
-    # the legend names what is drawn: SGN balls, DEM balls, the lines joining them, the jar
+    # the legend names what is drawn: model balls, DEM balls, the lines joining them, the jar
     from unittest import mock
 
     from matplotlib.figure import Figure
@@ -80,8 +80,8 @@ def test_trajectory_xz_plot(tmp_path):
                            side_effect=Figure.legend) as legend:
         plot_trajectory_xz(pos, tmp_path / "xz_legend.png", ref_pos=ref, jar=jar)
     labels = [h.get_label() for h in legend.call_args.kwargs["handles"]]
-    assert labels == ["SGN ball (24)", "DEM ball, same time",
-                      "same ball, SGN to DEM (length: its position error)",
+    assert labels == ["model ball (24)", "DEM ball, same time",
+                      "same ball, model to DEM (length: its position error)",
                       "jar cross-section (at its offset)"]
     assert "matched by index" in legend.call_args.kwargs["title"]
     with pytest.raises(ValueError, match=r"pos must be \(N, 3\)"):

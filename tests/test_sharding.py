@@ -49,7 +49,7 @@ def test_sharded_ensemble_and_design_study_equal_unsharded_on_two_host_devices()
 
 
 # --------------------------------------------------------------------------------------------
-# Data-parallel training (was tests/test_train_sharded.py)
+# Data-parallel training
 #
 # What "the same" means, measured (hidden 16, 5 steps at lr 1e-3, 2 x 4 graphs per step, no
 # noise): the sharded step sums the two devices' gradients, the one-device step sums over one

@@ -2,12 +2,12 @@
 
 Layout of each frame (lab frame; axes in mm)::
 
-    t = ... s since the start of motion   E_DEM = ... mJ   E_SGN = ... mJ
-    +-------------------------------+-------------------------------+
-    | DEM (reference): top view     | SGN (surrogate): top view     |  x-z, section at mid-height
-    +-------------------------------+-------------------------------+
-    | DEM (reference): side view    | SGN (surrogate): side view    |  x-y, section at z = 0
-    +-------------------------------+-------------------------------+
+    t = ... s since the start of motion   E_DEM = ... mJ   E_model = ... mJ
+    +-------------------------------+---------------------------------+
+    | DEM (reference): top view     | model (surrogate): top view     |  x-z, section at mid-height
+    +-------------------------------+---------------------------------+
+    | DEM (reference): side view    | model (surrogate): side view    |  x-y, section at z = 0
+    +-------------------------------+---------------------------------+
 
 The jar outline comes from the jar's own geometry (plane sections of its cavity mesh, which the
 caller builds with :func:`sgn_jax.pipelines.configure.jar_mesh_from_config`, so STL jars and the
@@ -113,9 +113,9 @@ def write_comparison_gif(
     width_px: int = 760,
     progress: bool = True,
 ) -> Path:
-    """Write the side-by-side animation (DEM left, SGN right; top and side views) as a GIF.
+    """Write the side-by-side animation (DEM left, model right; top and side views) as a GIF.
 
-    Every panel is titled with its source (DEM or SGN) and view and has axes in mm; the
+    Every panel is titled with its source (DEM or model) and view and has axes in mm; the
     figure's title gives the time of the frame (and the captions).
 
     Args:
@@ -191,7 +191,7 @@ def write_comparison_gif(
     fig = Figure(figsize=(width_in, height_in), dpi=dpi)
     FigureCanvasAgg(fig)
     title = fig.suptitle("", fontsize=9, y=1.0 - 0.05 / height_in, va="top")
-    fig.text(0.5, 1.0 - 0.27 / height_in, "left: DEM (reference)   right: SGN (surrogate)   "
+    fig.text(0.5, 1.0 - 0.27 / height_in, "left: DEM (reference)   right: model (surrogate)   "
              "lab frame, mm; one colour per ball, the same in all panels", fontsize=7,
              ha="center", va="top", color="0.3")
     # Per panel: axes, positions, the two drawn coordinates, the depth coordinate (what is
@@ -199,7 +199,7 @@ def write_comparison_gif(
     # front), outline, its segments, the circles.
     panels = []
     for column, (label, positions) in enumerate((("DEM (reference)", pos_dem),
-                                                  ("SGN (surrogate)", pos_sgn))):
+                                                  ("model (surrogate)", pos_sgn))):
         for row, (view, coords, depth, segments, lims) in enumerate((
                 ("top view, section at mid-height", (0, 2), 1, sections.top, (x_lim, z_lim)),
                 ("side view, section at z = 0", (0, 1), 2, sections.side, (x_lim, y_lim)))):

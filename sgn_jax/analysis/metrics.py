@@ -65,17 +65,20 @@ from sgn_jax.regime import (
 MSE_FLOOR_SAME_PACKING_M2 = 5.6e-4
 """The DEM's own chaos floor, standard case: MSE_t plateau between two DEM runs of the same
 packing (seed 4) at dt and at dt/2 (median over the second half of 5 s). Source: docs/results.md
-section 3 ("The MSE_t plateau"), ``experiments/mse_baseline.py`` (``runs/mse_chaos.json``)."""
+section 2 ("The MSE_t plateau: the DEM's own floor"), ``experiments/reproduce/mse_floor``
+(``runs/mse_chaos.json``)."""
 
 MSE_FLOOR_UNRELATED_M2 = 8.2e-4
 """MSE_t plateau between two unrelated DEM packings of the standard case, balls matched by index
 (mean of 4 pairs, 7.0-8.8e-4). A surrogate at or above it tracks the DEM no better than an
 independent run: its positions carry no information beyond the jar's size. Source:
-docs/results.md section 3, ``experiments/mse_baseline.py`` (``runs/mse_baseline.json``)."""
+docs/results.md section 2, ``experiments/reproduce/mse_floor``
+(``runs/mse_baseline_standard.json``)."""
 
 DEM_DEEPEST_OVERLAP_M = 62e-6
-"""Deepest ball-ball overlap of the DEM in a 10-s run of the standard case (docs/results.md,
-``experiments/diagnose_contacts.py``), for orientation."""
+"""Deepest ball-ball overlap of the DEM in a 10-s run of the standard case
+(:func:`deepest_pair_overlap` over the DEM record), for orientation; the motion checks report
+each run's own DEM value beside the model's."""
 
 MOTION_SPEED_TOLERANCE = 0.20
 """Warn when the surrogate's mean jar-frame ball speed differs from the DEM's by more than this

@@ -10,7 +10,7 @@ and returns the path.
 - :func:`plot_ensemble`: per-run dissipation power, predicted vs DEM, and power vs contact
   count (the two docs/conventions.md section 7 states).
 - :func:`plot_trajectory_xz`: a top view (x-z) of the balls at one frame, with the jar outline
-  and a legend (SGN balls, DEM balls, the line joining the same ball of both, the jar).
+  and a legend (model balls, DEM balls, the line joining the same ball of both, the jar).
 - :func:`plot_run`: all single-run figures from a ``sgn_jax.analysis.metrics.Comparison``.
 - :func:`plot_case_curves`: all runs of an ensemble case in one figure (energy and MSE_t).
 - :func:`new_figure`, :func:`save_figure`: the figure and the file writer every plot here uses,
@@ -79,7 +79,7 @@ def plot_position_mse(t: Any, mse: Any, path: str | Path, *, plateau: float | No
     fig = new_figure(7.0, 3.6, layout="constrained")
     ax = fig.add_subplot()
     shown = np.where(np.isfinite(mse) & (mse > 0), mse, np.nan)
-    ax.plot(t, shown, color=_PRED_COLOR, lw=1.0, label=r"MSE$_t$ (SGN vs DEM)")
+    ax.plot(t, shown, color=_PRED_COLOR, lw=1.0, label=r"MSE$_t$ (model vs DEM)")
     if plateau is not None and math.isfinite(plateau) and plateau > 0:
         ax.axhline(plateau, color="tab:red", ls="--", lw=1.0,
                    label=f"plateau (median, last half) = {plateau:.3g} m$^2$")
@@ -98,7 +98,7 @@ def plot_position_mse(t: Any, mse: Any, path: str | Path, *, plateau: float | No
 
 def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
                            title: str | None = None) -> Path:
-    """Cumulative dissipated energy, SGN vs DEM (paper Fig. 8), and the relative error.
+    """Cumulative dissipated energy, model vs DEM (paper Fig. 8), and the relative error.
 
     Args:
         t: (S,) s; e_pred: (S,) J; e_ref: (S,) J, NaN where the reference does not cover the
@@ -111,14 +111,14 @@ def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
     fig = new_figure(7.0, 5.2, layout="constrained")
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[2.2, 1.0])
     top.plot(t, e_ref, color=_REF_COLOR, lw=1.4, label="DEM (normal + tangential damping)")
-    top.plot(t, e_pred, color=_PRED_COLOR, lw=1.2, ls="--", label="SGN prediction")
+    top.plot(t, e_pred, color=_PRED_COLOR, lw=1.2, ls="--", label="model prediction")
     covered = np.flatnonzero(np.isfinite(e_ref))
     if covered.size and covered[-1] < t.size - 1:
         top.axvline(t[covered[-1]], color="grey", ls=":", lw=1.0)
         top.text(t[covered[-1]], 0.02, " DEM reference ends", transform=top.get_xaxis_transform(),
                  color="grey", fontsize=8)
     top.set_ylabel("cumulative dissipated energy (J)")
-    top.set_title(title or "Cumulative energy dissipation: SGN vs DEM")
+    top.set_title(title or "Cumulative energy dissipation: model vs DEM")
     top.grid(True, alpha=0.3)
     top.legend(loc="upper left")
 
@@ -141,7 +141,7 @@ def plot_cumulative_energy(t: Any, e_pred: Any, e_ref: Any, path: str | Path, *,
 
 def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
                   title: str | None = None) -> Path:
-    """Per-run mean dissipation power (SGN vs DEM) and power vs contact count, by state.
+    """Per-run mean dissipation power (model vs DEM) and power vs contact count, by state.
 
     Args:
         summary: the dict from ``sgn_jax.analysis.metrics.ensemble_summary``.
@@ -160,20 +160,20 @@ def plot_ensemble(summary: Mapping[str, Any], path: str | Path, *,
         "jar_speed_ref_mean_m_s" in r for r in rows)
     if by_speed:  # the state rule's own indicator on the x axis
         c_pred, c_ref = column("jar_speed_pred_mean_m_s"), column("jar_speed_ref_mean_m_s")
-        ref_label, pred_label = "DEM", "SGN"
+        ref_label, pred_label = "DEM", "model"
         x_label = "mean ball speed in the jar frame (m/s)"
     else:
         c_pred, c_ref = column("pp_contacts_pred_mean"), column("pp_pairs_within_skin_ref_mean")
-        ref_label, pred_label = "DEM (pairs within skin)", "SGN (edges / 2)"
+        ref_label, pred_label = "DEM (pairs within skin)", "model (edges / 2)"
         x_label = "mean ball pairs within the edge skin"
     fig = new_figure(10.0, 4.2, layout="constrained")
     left, right = fig.subplots(1, 2)
 
     index = np.arange(len(rows))
     left.bar(index - 0.2, p_ref, width=0.4, color="grey", label="DEM")
-    left.bar(index + 0.2, p_pred, width=0.4, color=_PRED_COLOR, label="SGN")
+    left.bar(index + 0.2, p_pred, width=0.4, color=_PRED_COLOR, label="model")
     for spread, color, name in ((summary["power"]["ref_W"], "black", "DEM"),
-                                (summary["power"]["pred_W"], _PRED_COLOR, "SGN")):
+                                (summary["power"]["pred_W"], _PRED_COLOR, "model")):
         if spread["mean"] is not None:
             left.axhline(spread["mean"], color=color, ls="--", lw=1.0,
                          label=f"{name} mean {spread['mean']:.3g} +- {spread['std']:.2g} W")
@@ -236,7 +236,7 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
     """Top view (x horizontal, z vertical) of the balls at one frame, with a legend.
 
     Drawn: the surrogate's balls (filled blue discs); with ``ref_pos``, the DEM's balls at the
-    same time (open black circles) and a grey line from each SGN ball to the same ball (by
+    same time (open black circles) and a grey line from each model ball to the same ball (by
     index) of the DEM, whose length is that ball's position error; for an Emax jar its
     stadium cross-section (and post) at the jar offset. The legend under the axes says so.
 
@@ -255,7 +255,7 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
     fig = new_figure(6.4, 4.6, layout="constrained")
     ax = fig.add_subplot()
     handles = [Line2D([], [], ls="none", marker="o", ms=9, mfc=_PRED_COLOR, mec=_PRED_COLOR,
-                      alpha=0.6, label=f"SGN ball ({len(pos)})")]
+                      alpha=0.6, label=f"model ball ({len(pos)})")]
     emax = jar is not None and getattr(jar, "kind", None) == "emax"
     if emax:
         x, z = _stadium_outline(jar, offset_xz)
@@ -274,7 +274,7 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
             Line2D([], [], ls="none", marker="o", ms=9, mfc="none", mec=_REF_COLOR,
                    label="DEM ball, same time"),
             Line2D([], [], color="grey", lw=0.8,
-                   label="same ball, SGN to DEM (length: its position error)")]
+                   label="same ball, model to DEM (length: its position error)")]
     if emax:
         handles.append(Line2D([], [], color="dimgrey", lw=1.5,
                               label="jar cross-section (at its offset)"))
@@ -293,12 +293,12 @@ def plot_trajectory_xz(pos: Any, path: str | Path, *, ref_pos: Any = None, offse
     ax.set_aspect("equal")
     ax.set_xlabel("x (m), lab frame")
     ax.set_ylabel("z (m), lab frame")
-    legend = "filled: SGN" + ("; open: DEM" if ref_pos is not None else "")
+    legend = "filled: model" + ("; open: DEM" if ref_pos is not None else "")
     ax.set_title(title or f"Top view ({legend})", fontsize=10)
     ax.grid(True, alpha=0.3)
     caption = "balls projected along the vertical (y) onto the x-z plane"
     if ref_pos is not None:
-        caption += "; SGN and DEM balls matched by index"
+        caption += "; model and DEM balls matched by index"
     fig.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=8, frameon=False,
                title=caption, title_fontsize=8)
     return save_figure(fig, path)
@@ -326,7 +326,7 @@ def plot_run(comparison: Any, prediction: Any, reference: Any, out_dir: str | Pa
         prediction.pos[frame], out_dir / "trajectory_xz.png", ref_pos=ref_frame,
         offset=prediction.offset[frame], jar=prediction.config.jar,
         ball_radius=float(reference.meta["ball_radius"]),
-        title=f"Top view at t = {float(prediction.t_pos[frame]):.4g} s (filled: SGN"
+        title=f"Top view at t = {float(prediction.t_pos[frame]):.4g} s (filled: model"
               + ("; open: DEM)" if ref_frame is not None else ")")))
     return paths
 
@@ -372,7 +372,7 @@ def plot_sensitivity(result: Mapping[str, Any], path: str | Path) -> Path:
 
 def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str | Path],
                      labels: Sequence[str], path: str | Path) -> Path:
-    """All runs of a case in one figure: cumulative dissipated energy (DEM dashed, SGN solid)
+    """All runs of a case in one figure: cumulative dissipated energy (DEM dashed, model solid)
     and the position MSE_t (paper Eq. 33), with the paper's ~2e-4 m^2 plateau for scale."""
     fig = new_figure(10.0, 7.0, layout="constrained")
     top, bottom = fig.subplots(2, 1, sharex=True)
@@ -390,7 +390,7 @@ def plot_case_curves(title: str, preds: Sequence[str | Path], refs: Sequence[str
         bottom.plot(np.asarray(pred.t_pos)[al.frame_index], mse, color=color, lw=0.6)
     bottom.axhline(2e-4, color="k", ls=":", lw=1.0, label="paper plateau ~2e-4 m²")
     top.set_ylabel("cumulative dissipated energy (J)")
-    top.set_title("SGN solid, DEM dashed (normal + tangential damping)", fontsize=10)
+    top.set_title("model solid, DEM dashed (normal + tangential damping)", fontsize=10)
     top.legend(fontsize=7, ncols=4, loc="upper left")
     top.grid(True, alpha=0.3)
     bottom.set_yscale("log")

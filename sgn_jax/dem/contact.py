@@ -125,10 +125,9 @@ def hertz_energy(law: ContactLaw, overlap: jnp.ndarray) -> jnp.ndarray:
 def head_on_normal_force(law: ContactLaw, overlap: Any, approach_rate: Any) -> Any:
     """The normal force (N, repulsive positive) of :func:`contact_forces` for a head-on
     contact: the Hertz spring plus its damping ``gamma_n v_n``, not clipped
-    (docs/conventions.md section 3), zero out of contact. numpy, for the host-side 1-D references of a contact
-    (:func:`sgn_jax.surrogate.contact_train.impact_stretches`,
-    experiments/contact/impact_response.py); ``law``'s fields and the arguments may be floats
-    or arrays of one shape."""
+    (docs/conventions.md section 3), zero out of contact. numpy, for the host-side 1-D
+    references of a contact (:func:`sgn_jax.surrogate.contact_train.impact_stretches`);
+    ``law``'s fields and the arguments may be floats or arrays of one shape."""
     d = np.maximum(overlap, 0.0)
     sqrt_rd = np.sqrt(law.radius_eff * d)
     spring = (4.0 / 3.0) * law.young_eff * sqrt_rd * d

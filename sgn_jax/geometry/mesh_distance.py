@@ -263,8 +263,9 @@ def mesh_signed_distance(mesh: Any, points: np.ndarray, chunk_size: int = 4096) 
     """Exact signed distance (m, float64) from ``points`` (n, 3) to a closed mesh; negative
     inside. Every triangle is checked (O(n F)); for grids use :func:`signed_distance_grid`.
 
-    ``mesh`` must be watertight and consistently wound (as :func:`sgn_jax.geometry.load_stl` and
-    :func:`sgn_jax.geometry.jar_mesh` return); an inside-out mesh is turned on a copy.
+    ``mesh`` must be watertight and consistently wound (as
+    :func:`sgn_jax.pipelines.configure.load_stl` and :func:`sgn_jax.geometry.jar_mesh` return); an
+    inside-out mesh is turned on a copy.
     """
     data = _MeshData(mesh)
     points = np.asarray(points, dtype=np.float64)

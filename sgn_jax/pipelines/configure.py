@@ -109,7 +109,7 @@ def jar_params_from_config(jar_cfg: Any) -> JarParams:
 
 def jar_mesh_from_config(jar_cfg: Any) -> Any:
     """The jar of a ``[jar]`` config section as a trimesh: kind "emax" -> :func:`jar_mesh`,
-    kind "stl" -> :func:`sgn_jax.geometry.load_stl` of ``stl_path`` in ``stl_units``."""
+    kind "stl" -> :func:`sgn_jax.pipelines.configure.load_stl` of ``stl_path`` in ``stl_units``."""
     if jar_cfg.kind == "emax":
         return jar_mesh(jar_params_from_config(jar_cfg))
     if jar_cfg.kind == "stl":

@@ -185,7 +185,7 @@ def run_demo(
     traj = load_trajectory(dem_path)
 
     # ---- 2. surrogate rollout from the DEM's first full window
-    log(f"SGN: {n_steps} steps of {dt:g} s from the DEM window ending at t = {window * dt:g} s")
+    log(f"model: {n_steps} steps of {dt:g} s from the DEM window ending at t = {window * dt:g} s")
     pred_path = out / "prediction.npz"
     rollout = run_rollout(trained, traj, window, n_steps * dt, pred_path, case_cfg,
                           progress=progress, checkpoint_path=str(ckpt))
@@ -313,7 +313,7 @@ def _per_ball(value: Any, n_balls: int) -> float | None:
 
 def _write_animation(path: Path, prediction: Any, traj: Any, comparison: Any, case_cfg: Any,
                      n_frames: int, progress: bool) -> Path:
-    """About ``n_frames`` frames over the rollout: DEM and SGN at the prediction's frame times."""
+    """About ``n_frames`` frames over the rollout: DEM and model at the prediction's frame times."""
     al = comparison.alignment
     if al.frame_index.size == 0:
         raise DemoError("no prediction frame has a DEM sample at the same time")
@@ -324,7 +324,7 @@ def _write_animation(path: Path, prediction: Any, traj: Any, comparison: Any, ca
     e_pred = np.concatenate([[0.0], comparison.energy_pred])
     e_ref = np.concatenate([[0.0], comparison.energy_ref])
     step_of_frame = np.rint((t_pos - prediction.t_start) / prediction.dt).astype(np.int64)
-    captions = [f"E_DEM = {1e3 * e_ref[s]:.2f} mJ   E_SGN = {1e3 * e_pred[s]:.2f} mJ"
+    captions = [f"E_DEM = {1e3 * e_ref[s]:.2f} mJ   E_model = {1e3 * e_pred[s]:.2f} mJ"
                 for s in step_of_frame]
     return write_comparison_gif(
         path, t_pos, np.asarray(traj.pos)[ref_frames], np.asarray(prediction.pos)[frames],
@@ -358,11 +358,11 @@ def format_report(summary: dict[str, Any]) -> str:
         f"{d['steps']:,} steps of {d['dt_dem']:.4g} s: {d['motion_wall_s']:.1f} s for the "
         f"motion ({_fmt(s['dem_steps_per_s'], ',.0f')} steps/s), {s['dem_settle_s']:.1f} s "
         f"settling, {s['dem_compile_s']:.1f} s compile",
-        f"  SGN        {g['steps']:,} steps of {g['dt']:g} s from t = "
+        f"  model      {g['steps']:,} steps of {g['dt']:g} s from t = "
         f"{summary['t_start_s']:.4g} s: {g['run_s']:.1f} s ({s['sgn_ms_per_step']:.3f} ms/step), "
         f"{s['sgn_compile_s']:.1f} s compile",
         f"  energy     dissipated over the rollout (normal + tangential damping): DEM "
-        f"{_fmt(e['dem_J'], '.4g')} J, SGN {_fmt(e['sgn_J'], '.4g')} J, relative error "
+        f"{_fmt(e['dem_J'], '.4g')} J, model {_fmt(e['sgn_J'], '.4g')} J, relative error "
         f"{_fmt(None if rel is None else 100 * rel, '.2f')} % (Pearson r "
         f"{_fmt(e['pearson_r'], '.4f')}); DEM with slip and rolling friction "
         f"{e['dem_all_kinds_J']:.4g} J"
@@ -371,15 +371,15 @@ def format_report(summary: dict[str, Any]) -> str:
         *_motion_check_lines(checks),
         f"  positions  MSE_t plateau {_fmt(p['mse_plateau_m2'], '.3g')} m^2, final "
         f"{_fmt(p['mse_final_m2'], '.3g')} m^2",
-        f"  speed      DEM {s['dem_s_per_sim_s']:.2f} s vs SGN {s['sgn_s_per_sim_s']:.2f} s per "
+        f"  speed      DEM {s['dem_s_per_sim_s']:.2f} s vs model {s['sgn_s_per_sim_s']:.2f} s per "
         f"simulated second: ratio {_fmt(s['ratio'], '.2f')}x (compile and settling apart)",
-        f"  checks     balls outside the jar: SGN {c['sgn_balls_outside_ball_steps']} "
+        f"  checks     balls outside the jar: model {c['sgn_balls_outside_ball_steps']} "
         f"ball-steps, DEM {c['dem_balls_outside']} balls; edge overflows "
         f"{c['edge_overflow_total']}; snapped ball-steps {g['snapped_ball_steps']}",
         f"  regime     mean ball speed in the jar frame: DEM "
-        f"{_fmt(r['jar_speed_dem_m_s'], '.3f')} m/s ({r['state_dem']}), SGN "
+        f"{_fmt(r['jar_speed_dem_m_s'], '.3f')} m/s ({r['state_dem']}), model "
         f"{_fmt(r['jar_speed_sgn_m_s'], '.3f')} m/s ({r['state_sgn']}); ball pairs within the "
-        f"edge skin per ball: DEM {_fmt(r['pairs_within_skin_per_ball_dem'], '.2f')}, SGN "
+        f"edge skin per ball: DEM {_fmt(r['pairs_within_skin_per_ball_dem'], '.2f')}, model "
         f"{_fmt(r['pairs_per_ball_sgn'], '.2f')}; one trajectory of a multistable charge: "
         "judge dissipation on ensembles (docs/conventions.md section 7)",
         f"  wrote      {out}/: summary.json, {names}",
@@ -396,33 +396,33 @@ def _motion_check_lines(checks: list[dict[str, Any]]) -> list[str]:
         return []
     by_name = {c["name"]: c for c in checks}
     verdict = {True: "ok", False: "OUT OF RANGE", None: "n/a"}
-    lines = ["  motion     checks of the motion, DEM vs SGN (the energy can agree by accident):"]
+    lines = ["  motion     checks of the motion, DEM vs model (the energy can agree by accident):"]
     c = by_name.get("jar_speed")
     if c:
         off = c.get("relative_difference")
         lines.append(
-            f"    jar-frame ball speed  DEM {_fmt(c['dem'], '.3f')} m/s, SGN "
+            f"    jar-frame ball speed  DEM {_fmt(c['dem'], '.3f')} m/s, model "
             f"{_fmt(c['sgn'], '.3f')} m/s ({_fmt(None if off is None else 100 * off, '+.0f')} "
             f"%; limit +-{100 * MOTION_SPEED_TOLERANCE:g} %): {verdict[c['ok']]}")
     c = by_name.get("snapped")
     if c:
         count = c.get("sgn_ball_steps")
         lines.append(
-            f"    snapped to the wall   DEM 0 (no snap), SGN "
+            f"    snapped to the wall   DEM 0 (no snap), model "
             f"{_fmt(None if c['sgn'] is None else 100 * c['sgn'], '.2f')} % of ball-steps "
             f"({_fmt(count, ',d')} of {_fmt(c.get('ball_steps'), ',d')}; limit "
             f"{100 * MOTION_SNAPPED_FRACTION_MAX:g} %): {verdict[c['ok']]}")
     c = by_name.get("overlap")
     if c:
         lines.append(
-            f"    deepest ball overlap  DEM {_fmt(c['dem'], ',.0f')} um, SGN "
+            f"    deepest ball overlap  DEM {_fmt(c['dem'], ',.0f')} um, model "
             f"{_fmt(c['sgn'], ',.0f')} um (limit {1e6 * MOTION_OVERLAP_MAX_M:g} um): "
             f"{verdict[c['ok']]}")
     c = by_name.get("mse_plateau")
     if c:
         lines.append(
             f"    MSE_t plateau         DEM chaos floor {c['dem']:.1e} m^2 (same packing, dt vs "
-            f"dt/2), unrelated packings {c['dem_unrelated_packings']:.1e} m^2; SGN "
+            f"dt/2), unrelated packings {c['dem_unrelated_packings']:.1e} m^2; model "
             f"{_fmt(c['sgn'], '.2e')} m^2 = {_fmt(c.get('ratio_to_unrelated'), '.2f')}x the "
             f"unrelated level (limit < {MOTION_MSE_FLOOR_MAX_RATIO:g}x): {verdict[c['ok']]}")
     return lines

@@ -1,6 +1,7 @@
-"""The pieces that the experiment scripts share (``experiments/run_experiments.py``,
-``experiments/generate_data.py``, ``experiments/sensitivity.py``,
-``experiments/envelope/evaluate_model.py``): how to start the ``sgn-jax`` CLI in a subprocess
+"""The pieces that the experiment scripts share (``experiments/tools/run_experiments.py``,
+``experiments/tools/generate_data.py``, ``experiments/tools/evaluate_contact.py``,
+``experiments/reproduce/envelope_heldout/evaluate_model.py``): how to start the ``sgn-jax`` CLI
+in a subprocess
 and on which cores, how to read the JSON summary line it prints, and the planning and summary
 steps of a model's evaluation on an ensemble (rollout length, ``[rollout]`` overrides, the
 per-case result). Exposed through :mod:`sgn_jax.experiment_tools`.

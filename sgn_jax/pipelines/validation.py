@@ -17,7 +17,8 @@ The rules, each with its reason (docs/validation.md has the table and the number
 - **DEM envelope** (a warning): the DEM was validated (no escapes, energy ledger) up to a peak
   jar speed of :data:`DEM_VALIDATED_PEAK_SPEED` (2000 rpm at 17 mm).
 - **Surrogate envelope** (a warning): a model promises what it was trained on
-  (:func:`model_envelope`); outside it the answer may be wrong (docs/results.md section 4).
+  (:func:`model_envelope`); outside it the answer may be wrong (docs/results.md section 4, "The
+  motion-general SGN on held-out motions": the paper-setting SGN off its training motion).
 
 Pure functions of a :class:`sgn_jax.config.Config`; they never read files.
 """

@@ -13,8 +13,10 @@ one ``[cases.NAME]`` table per case::
 A config name is looked up in ``<the file's folder>/configs/NAME.toml``, then among the
 package's built-in configs. :func:`load_ensembles` checks the whole file and names the case and
 the key of every problem (:class:`EnsembleError`); :func:`select_cases` picks cases by name.
-The experiment scripts (``experiments/generate_data.py``, ``run_experiments.py``,
-``mse_baseline.py``, ``envelope/evaluate_model.py``) read their ensembles through this module.
+The experiment scripts (``experiments/tools/generate_data.py``, ``run_experiments.py`` and
+``evaluate_contact.py`` there, ``experiments/reproduce/mse_floor/mse_baseline.py``,
+``experiments/reproduce/envelope_heldout/evaluate_model.py``) read their ensembles through this
+module.
 """
 
 from __future__ import annotations

@@ -262,7 +262,7 @@ def impact_stretches(law_pw: Any, law_pp: Any, ball_radius: float, dt: float, wi
     Why: in the envelope's runs most contacts are in beds; an isolated impact, and so the
     coefficient of restitution the DEM's damping is chosen for (the config's ``restitution``
     at every speed), is rare, and a model trained on them alone rebounds at e = 0.4-0.7 at
-    0.2-0.5 m/s (experiments/contact/impact_response.py): a bed that bounces too much agitates
+    0.2-0.5 m/s in an isolated head-on impact: a bed that bounces too much agitates
     too early. These stretches teach the impact itself.
 
     Each stretch: ``window + 1 + unroll`` positions; approach speed log-uniform in
