@@ -371,7 +371,7 @@ def train_stages(cfg: Any, data_dir: str | Path, out_dir: str | Path, *,
                               spin_weight=stage.spin_weight),
             lr_init=stage.lr_init, lr_final=stage.lr_final, seed=cfg.train.seed,
             checkpoint_every=stage.checkpoint_every, init_from=previous_best,
-            resume=resume or latest_step(stage_dir / "checkpoints" / "latest") is not None,
+            resume=resume,
             progress=progress, log=log)
         if summary["steps_done"] != stage.steps:
             raise TrainingError(f"stage {stage.name} stopped after {summary['steps_done']} of "
