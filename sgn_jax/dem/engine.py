@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax import motion as motion_mod
+from sgn_jax.dem import collisions as coll
 from sgn_jax.dem.laws import HERTZ_MINDLIN, ContactLawError, resolve_contact_law
 from sgn_jax.errors import SGNJaxError
 
@@ -88,6 +89,10 @@ class DEMSpec:
         contact_law: the contact law (:mod:`sgn_jax.dem.laws`), an object or a registered
             name (resolved here to the object); default Hertz-Mindlin. ``DEMParams.pp`` and
             ``pw`` must be this law's parameters (``make_params(..., contact_law=)``).
+        collision_capacity: 0 (the default): no collision ledger. > 0: the state carries a
+            collision ledger (:mod:`sgn_jax.dem.collisions`) whose buffer holds this many
+            closed contacts between two emptyings by the host (pair modes "pairs" and
+            "neighbour").
     """
 
     n_balls: int
@@ -99,6 +104,7 @@ class DEMSpec:
     neighbour_capacity: int = 8
     neighbour_skin: float = 0.001
     contact_law: Any = HERTZ_MINDLIN
+    collision_capacity: int = 0
 
     def __post_init__(self) -> None:
         try:
@@ -118,6 +124,12 @@ class DEMSpec:
             raise DEMError(f"pair_mode must be one of {PAIR_MODES}, got {self.pair_mode!r}")
         if self.neighbour_capacity < 1 or self.neighbour_skin < 0:
             raise DEMError("neighbour_capacity must be >= 1 and neighbour_skin >= 0")
+        if self.collision_capacity < 0:
+            raise DEMError(f"collision_capacity must be >= 0 (0: no collision ledger), got "
+                           f"{self.collision_capacity}")
+        if self.collision_capacity and self.resolved_pair_mode == "nxn":
+            raise DEMError("the collision ledger needs pair_mode 'neighbour' or 'pairs' (each "
+                           "ball pair in one slot), not 'nxn'")
 
     @property
     def resolved_pair_mode(self) -> str:
@@ -254,6 +266,8 @@ class DEMState:
         step: () int64, DEM steps since the start of motion (negative while settling).
         pairs: the ball-ball slots.
         ledger: the energy ledger.
+        collisions: the collision ledger (:mod:`sgn_jax.dem.collisions`), None unless
+            ``spec.collision_capacity`` > 0.
     """
 
     pos: jnp.ndarray
@@ -265,6 +279,7 @@ class DEMState:
     step: jnp.ndarray
     pairs: PairList
     ledger: EnergyLedger
+    collisions: Any = None
 
 
 def zero_ledger() -> EnergyLedger:
@@ -274,11 +289,16 @@ def zero_ledger() -> EnergyLedger:
 
 
 def reset_ledger_totals(state: DEMState) -> DEMState:
-    """Zero the cumulative dissipation and wall work (keeps the stored spring energies)."""
+    """Zero the cumulative dissipation and wall work (keeps the stored spring energies); the
+    collision ledger, if any, starts its recorded window here too
+    (:func:`sgn_jax.dem.collisions.restart_window`)."""
     led = state.ledger
-    return state.replace(ledger=led.replace(diss_pp=jnp.zeros_like(led.diss_pp),
-                                            diss_pw=jnp.zeros_like(led.diss_pw),
-                                            work_wall=jnp.zeros_like(led.work_wall)))
+    state = state.replace(ledger=led.replace(diss_pp=jnp.zeros_like(led.diss_pp),
+                                             diss_pw=jnp.zeros_like(led.diss_pw),
+                                             work_wall=jnp.zeros_like(led.work_wall)))
+    if state.collisions is not None:
+        state = state.replace(collisions=coll.restart_window(state.collisions))
+    return state
 
 
 def pp_history_shape(spec: DEMSpec) -> tuple[int, ...]:
@@ -336,7 +356,11 @@ def _rebuild_pairs(spec: DEMSpec, params: DEMParams, state: DEMState) -> DEMStat
                      overflow=old.overflow | (count > spec.n_pair_slots),
                      rebuilds=old.rebuilds + 1,
                      max_candidates=jnp.maximum(old.max_candidates, count))
-    return state.replace(pairs=pairs, pp_history=history)
+    state = state.replace(pairs=pairs, pp_history=history)
+    if state.collisions is not None:
+        tracks = coll.carry_pp_track(state.collisions.pp, where, found)
+        state = state.replace(collisions=state.collisions.replace(pp=tracks))
+    return state
 
 
 def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray) -> PairList:
@@ -388,6 +412,8 @@ def init_state(
         step=jnp.asarray(step, jnp.int64),
         pairs=pairs,
         ledger=zero_ledger(),
+        collisions=(coll.empty_ledger(spec.n_pair_slots, spec.n_balls, spec.collision_capacity)
+                    if spec.collision_capacity else None),
     )
 
 
@@ -564,11 +590,64 @@ def make_dem_step(
             spring_pp=spring_pp,
             spring_pw=spring_pw,
         )
+        collisions = state.collisions
+        if collisions is not None:
+            collisions = track_collisions(collisions, state.step, pairs, pp, f_pp, d_pp, v_rel,
+                                          pw, f_pw, d_pw, v_rel_w)
         return state.replace(
             pos=pos_new, vel=vel_new, omega=omega_new,
             pp_history=f_pp.history, pw_history=f_pw.history,
-            offset=offset_next, step=state.step + 1, ledger=ledger,
+            offset=offset_next, step=state.step + 1, ledger=ledger, collisions=collisions,
         )
+
+    balls = jnp.arange(n)
+
+    def track_collisions(collisions: Any, step_now: jnp.ndarray, pairs: PairList,
+                         pp: _PairGeometry, f_pp: Any, d_pp: Any, v_rel: jnp.ndarray,
+                         pw: _PairGeometry, f_pw: Any, d_pw: Any, v_rel_w: jnp.ndarray) -> Any:
+        """The collision ledger after this step: each contact's terms of the energy ledger added
+        to its event, the events of contacts that opened written to the buffer.
+
+        A ball's contact with the jar is one event whatever wall patches it touches (a ball
+        rolling across the seam of two patches stays in one contact): its terms are the sums
+        over the patches, its overlap the deepest, its speeds and its patch (the event's
+        ``partner``) those of the deepest patch."""
+        def speeds(v: jnp.ndarray, normal: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+            v_n = jnp.sum(v * normal, axis=-1)
+            return v_n, jnp.maximum(jnp.sum(v * v, axis=-1) - v_n * v_n, 0.0)
+
+        v_n, v_t = speeds(v_rel, pp.normal)
+        track_pp, ended_pp = coll.update_track(
+            collisions.pp, step_now, f_pp.in_contact, pp.overlap, f_pp.normal_total, v_n, v_t,
+            (d_pp.normal, d_pp.tangential, d_pp.slip, d_pp.rolling),
+            f_pp.spring_energy_old_now, f_pp.spring_energy)
+
+        deepest_patch = jnp.argmax(pw.overlap, axis=1)                      # (N,)
+        deepest = jax.nn.one_hot(deepest_patch, spec.n_patches, dtype=pw.overlap.dtype)
+        v_n_w, v_t_w = speeds(v_rel_w, pw.normal)
+
+        def over_patches(x: jnp.ndarray) -> jnp.ndarray:
+            return jnp.sum(x, axis=1)
+
+        track_pw, ended_pw = coll.update_track(
+            collisions.pw, step_now, jnp.any(f_pw.in_contact, axis=1),
+            jnp.max(pw.overlap, axis=1), over_patches(f_pw.normal_total),
+            over_patches(deepest * v_n_w), over_patches(deepest * v_t_w),
+            tuple(over_patches(x) for x in (d_pw.normal, d_pw.tangential, d_pw.slip,
+                                            d_pw.rolling)),
+            over_patches(f_pw.spring_energy_old_now), over_patches(f_pw.spring_energy))
+        patch = jnp.where(track_pw.active & ~collisions.pw.active, deepest_patch.astype(jnp.int32),
+                          collisions.wall_patch)
+
+        def rows() -> tuple[jnp.ndarray, jnp.ndarray]:
+            ints = jnp.concatenate([
+                coll.event_ints(pairs.i, pairs.j, False, collisions.pp, step_now),
+                coll.event_ints(balls, collisions.wall_patch, True, collisions.pw, step_now)])
+            floats = jnp.concatenate([track_pp.values, track_pw.values])
+            return ints, floats
+
+        buffer = coll.write_events(collisions.buffer, (ended_pp, ended_pw), rows)
+        return coll.CollisionLedger(pp=track_pp, pw=track_pw, wall_patch=patch, buffer=buffer)
 
     return step
 

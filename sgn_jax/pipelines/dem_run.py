@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import shutil
 import time
 from pathlib import Path
@@ -34,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.config import Config, config_to_dict, replace_section
+from sgn_jax.dem import collisions as coll
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import (
     DISSIPATION_KINDS,
@@ -123,10 +125,63 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
                    dtype=cfg.dem.dtype, clip_attractive=cfg.dem.clip_attractive,
                    pair_mode=pair_mode, neighbour_capacity=cfg.dem.neighbour_capacity,
                    neighbour_skin=cfg.dem.neighbour_skin,
-                   contact_law=contact_law_from_config(cfg))
+                   contact_law=contact_law_from_config(cfg),
+                   collision_capacity=collision_capacity(cfg) if pair_mode != "nxn" else 0)
     capacity = cfg.dem.pp_capacity if cfg.dem.pp_capacity > 0 else 3 * n
     return DEMSetup(cfg=cfg, spec=spec, params=params, jar=jar, substeps=cfg.dem.substeps,
                     pp_capacity=capacity)
+
+
+COLLISION_RATE_BOUND = 1000.0
+"""Events per ball per second the collision buffer is sized for when ``[dem]
+collision_capacity`` is 0 (the standard case closes ~280 per ball per second, most of them
+brief touches in the bed)."""
+
+
+def collision_capacity(cfg: Any) -> int:
+    """Events the DEM's collision buffer holds per chunk: ``[dem] collision_capacity``, or when
+    that is 0 sized from the chunk's duration (:data:`COLLISION_RATE_BOUND`, at least 4,096);
+    0 when ``[dem] collisions`` is false."""
+    if not cfg.dem.collisions:
+        return 0
+    if cfg.dem.collision_capacity:
+        return int(cfg.dem.collision_capacity)
+    chunk_s = cfg.dem.chunk_samples * cfg.dem.dt
+    return max(4096, math.ceil(COLLISION_RATE_BOUND * cfg.balls.count * chunk_s))
+
+
+def collision_table(setup: DEMSetup, ints: np.ndarray, floats: np.ndarray) -> dict[str, np.ndarray]:
+    """The record's ``collision_*`` arrays (docs/collisions.md) from ledger rows (E, N_INTS),
+    (E, N_FLOATS) (:mod:`sgn_jax.dem.collisions`); steps become seconds of motion (a contact
+    that began before t = 0 gets a negative start and the began-before flag)."""
+    dt_dem = setup.dt_dem
+    wall = ints[:, coll.WALL].astype(bool)
+    start = ints[:, coll.START_STEP]
+    flags = ints[:, coll.FLAGS] | np.where(start < 0, coll.FLAG_BEGAN_BEFORE, 0)
+    mass_eff = np.where(wall, float(setup.params.pw.mass_eff), float(setup.params.pp.mass_eff))
+    return {
+        "collision_ball": ints[:, coll.BALL].astype(np.int32),
+        "collision_partner": ints[:, coll.PARTNER].astype(np.int32),
+        "collision_wall": wall,
+        "collision_start_s": start * dt_dem,
+        "collision_duration_s": (ints[:, coll.END_STEP] - start) * dt_dem,
+        "collision_impact_normal": floats[:, coll.IMPACT_NORMAL],
+        "collision_impact_tangential": np.sqrt(np.maximum(floats[:, coll.IMPACT_TANGENTIAL_SQ],
+                                                          0.0)),
+        "collision_max_overlap": floats[:, coll.MAX_OVERLAP],
+        "collision_peak_force": floats[:, coll.PEAK_FORCE],
+        "collision_mass_eff": mass_eff.astype(np.float64),
+        "collision_energy": floats[:, coll.ENERGY0:],
+        "collision_flags": flags.astype(np.int8),
+    }
+
+
+COLLISION_ARRAYS = (
+    "collision_ball", "collision_partner", "collision_wall", "collision_start_s",
+    "collision_duration_s", "collision_impact_normal", "collision_impact_tangential",
+    "collision_max_overlap", "collision_peak_force", "collision_mass_eff", "collision_energy",
+    "collision_flags")
+"""The names of the collision table's arrays in a trajectory record."""
 
 
 # The jar's offset as one program (op by op its formulas are ~10 small compilations).
@@ -217,7 +272,8 @@ def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
 
 _DEM_DIR = Path(__file__).resolve().parent.parent / "dem"
 _DEM_SOURCES = (_DEM_DIR / "engine.py", _DEM_DIR / "contact.py", _DEM_DIR / "laws.py",
-                _DEM_DIR / "placement.py", _DEM_DIR / "walls.py", Path(__file__).resolve())
+                _DEM_DIR / "placement.py", _DEM_DIR / "walls.py", _DEM_DIR / "collisions.py",
+                Path(__file__).resolve())
 
 
 def _dem_source_digest() -> str:
@@ -241,6 +297,7 @@ def settle_key(setup: DEMSetup, seed: int) -> str:
     rest = [float(v).hex() for v in np.asarray(_offset_jit(setup.params.motion, 0.0))]
     key = {"jar": cfg["jar"], "balls": cfg["balls"], "material": cfg["material"], "dem": dem,
            "seed": int(seed), "dt_dem": setup.dt_dem, "pp_capacity": setup.pp_capacity,
+           "collision_capacity": setup.spec.collision_capacity,
            "pair_mode": setup.spec.resolved_pair_mode, "format": PARTIAL_FORMAT,
            "code": _dem_source_digest(), "rest_offset": rest}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:32]
@@ -343,6 +400,8 @@ def run_dem(
         raise DEMError(f"chunk_samples must be >= 1, got {chunk}")
     if out_path is not None and Path(out_path).suffix != ".npz":
         raise DatasetError(f"output path {str(out_path)!r} must end in '.npz'")
+    if chunk != cfg.dem.chunk_samples:  # the collision buffer is sized per chunk
+        cfg = replace_section(cfg, "dem", chunk_samples=chunk)
     setup = setup_from_config(cfg, dt_dem=dt_dem, dtype=dtype)
     spec, params, k = setup.spec, setup.params, setup.substeps
     n_motion = int(round(duration / setup.dt))
@@ -365,6 +424,21 @@ def run_dem(
         state, samples = compiled[n](params, state)
         return state, jax.tree_util.tree_map(np.asarray, samples)
 
+    def drain_events(state: DEMState, t_end: float) -> tuple[DEMState, dict[str, np.ndarray]]:
+        """The events the chunk closed (as ``events_ints`` / ``events_floats`` rows) and the
+        state with an empty buffer; an overflowed buffer stops the run."""
+        if state.collisions is None:
+            return state, {}
+        count = int(state.collisions.buffer.count)
+        if count > spec.collision_capacity:
+            raise DEMError(
+                f"{count} contacts closed in the chunk ending at t = {t_end:g} s, more than the "
+                f"collision ledger's {spec.collision_capacity} slots: raise [dem] "
+                "collision_capacity (or lower [dem] chunk_samples) and rerun")
+        ints, floats = coll.buffer_rows(state.collisions)
+        state = state.replace(collisions=coll.empty_buffer(state.collisions))
+        return state, {"events_ints": ints, "events_floats": floats}
+
     observe_jit = jax.jit(lambda p, s: observe(spec, setup.jar.wall_fn, p, s, setup.pp_capacity))
     jar = setup.jar
     sdf = jax.jit(jax.vmap(jax.vmap(lambda x: jar.sdf_fn(jar.geometry, x))))
@@ -372,6 +446,7 @@ def run_dem(
     pdir = partial_dir(out_path) if out_path is not None else None
     fingerprint = _fingerprint(setup, seed)
     chunks: list[dict[str, np.ndarray]] = []
+    event_chunks: list[dict[str, np.ndarray]] = []  # the collision events closed in each chunk
     state = None
     done = 0  # motion samples done after sample 0
     if pdir is not None and pdir.is_dir():
@@ -388,7 +463,10 @@ def run_dem(
         if ok:
             for c in range(n_chunks):
                 with np.load(pdir / f"chunk_{c:05d}.npz") as data:
-                    chunks.append({name: data[name] for name in data.files})
+                    chunks.append({name: data[name] for name in data.files
+                                   if not name.startswith("events_")})
+                    event_chunks.append({name: data[name] for name in data.files
+                                         if name.startswith("events_")})
             if done > n_motion:
                 raise DEMError(f"{pdir} holds {done * setup.dt:g} s of motion, more than the "
                                f"requested {duration:g} s; delete it or ask for more")
@@ -400,7 +478,8 @@ def run_dem(
         if pdir is None:
             return
         pdir.mkdir(parents=True, exist_ok=True)
-        _save_npz(pdir / f"chunk_{len(chunks) - 1:05d}.npz", chunks[-1])
+        _save_npz(pdir / f"chunk_{len(chunks) - 1:05d}.npz",
+                  {**chunks[-1], **event_chunks[-1]})
         _save_npz(pdir / "state.npz", {**_tree_to_npz(state), "fingerprint": np.array(fingerprint),
                                        "n_chunks": np.array(len(chunks)),
                                        "samples_done": np.array(done)})
@@ -415,6 +494,7 @@ def run_dem(
             state = reset_ledger_totals(kick_balls(state, cfg.dem.kick_speed, seed))
             chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
                                                  observe_jit(params, state)))
+            event_chunks.append({})
             checkpoint(state)
     if state is None:
         state = initial_state(setup, seed)
@@ -424,6 +504,8 @@ def run_dem(
         while left > 0:
             n = min(chunk, left)
             state, samples = run_chunk(state, n)
+            if state.collisions is not None:  # settling is not recorded: drop its events
+                state = state.replace(collisions=coll.empty_buffer(state.collisions))
             bad = check_samples(setup, samples, sdf)
             if bad:
                 first = -(left - 1)  # sample index (negative: before t = 0) of the chunk's first
@@ -440,6 +522,7 @@ def run_dem(
         state = reset_ledger_totals(kick_balls(state, cfg.dem.kick_speed, seed))
         chunks.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[None],
                                              observe_jit(params, state)))
+        event_chunks.append({})
         checkpoint(state)
 
     bar = _progress(n_motion * setup.dt, "DEM", progress)
@@ -468,8 +551,10 @@ def run_dem(
         if bad:
             bar.close()
             raise _stop_invalid(setup, chunks, samples, bad, done + 1, out_path, seed)
+        state, events = drain_events(state, (done + n) * setup.dt)
         motion_wall += chunk_wall
         chunks.append(samples)
+        event_chunks.append(events)
         done += n
         steps_run += n * k
         motion_steps += n * k
@@ -479,6 +564,12 @@ def run_dem(
     bar.close()
 
     arrays = assemble_arrays(setup, chunks)
+    if state.collisions is not None:
+        rows = [(e["events_ints"], e["events_floats"]) for e in event_chunks if e]
+        rows.append(coll.open_rows(state.collisions, state.pairs.i, state.pairs.j,
+                                   int(state.step)))
+        arrays.update(collision_table(setup, np.concatenate([r[0] for r in rows]),
+                                      np.concatenate([r[1] for r in rows])))
     summary = summarize(setup, arrays)
     summary.update({
         "seed": seed, "duration_s": n_motion * setup.dt, "dt_dem": setup.dt_dem,
@@ -493,7 +584,8 @@ def run_dem(
         "dt_dem": setup.dt_dem, "substeps": k, "settle_time": n_settle * setup.dt,
         "pp_capacity": setup.pp_capacity, "pair_mode": spec.resolved_pair_mode,
         "dtype": spec.dtype, "ledger_residual_J": summary["ledger_residual_J"],
-        "extra_arrays": ["diss_pp_stiffness", "diss_pw_stiffness", "n_pp_contacts"],
+        "extra_arrays": ["diss_pp_stiffness", "diss_pw_stiffness", "n_pp_contacts",
+                         *(name for name in COLLISION_ARRAYS if name in arrays)],
     })
     if out_path is not None:
         save_trajectory(out_path, arrays, meta)
@@ -622,6 +714,7 @@ def summarize(setup: DEMSetup, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     outside = np.any(phi > 0, axis=0)
     duration = float(arrays["t"][-1]) if arrays["t"].size else 0.0
     target = sum(diss[f"{w}_{k}"] for w in ("pp", "pw") for k in ("normal", "tangential"))
+    summary_collisions = collision_closure(arrays) if "collision_energy" in arrays else None
     return {
         "dissipation_J": diss,
         "total_dissipation_J": float(total[-1]),
@@ -634,7 +727,30 @@ def summarize(setup: DEMSetup, arrays: dict[str, np.ndarray]) -> dict[str, Any]:
         "max_phi_m": float(np.max(phi)),
         "mean_pp_contacts": float(np.mean(arrays["n_pp_contacts"])),
         "mean_pw_contacts": float(np.mean(np.sum(arrays["pw_contact"], axis=1))),
+        "collisions": summary_collisions,
     }
+
+
+def collision_closure(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """How the collision events add up against the energy ledger: the event count, and per
+    contact type and kind the events' energy, the ledger's, and their difference relative to
+    the ledger's total dissipation (J, -)."""
+    energy = arrays["collision_energy"]
+    wall = arrays["collision_wall"]
+    total = float(sum(np.sum(arrays[f"diss_{w}_{k}"]) for w in ("pp", "pw")
+                      for k in DISSIPATION_KINDS))
+    out: dict[str, Any] = {"events": int(energy.shape[0]),
+                           "ball_ball": int(np.sum(~wall)), "ball_wall": int(np.sum(wall))}
+    worst = 0.0
+    for which, mask in (("pp", ~wall), ("pw", wall)):
+        for index, kind in enumerate(DISSIPATION_KINDS):
+            events = float(np.sum(energy[mask, index]))
+            ledger = float(np.sum(arrays[f"diss_{which}_{kind}"]))
+            rel = (events - ledger) / total if total > 0 else 0.0
+            out[f"{which}_{kind}"] = {"events_J": events, "ledger_J": ledger, "rel": rel}
+            worst = max(worst, abs(rel))
+    out["worst_rel"] = worst
+    return out
 
 
 def simulate_dem(cfg: Config, duration: float, *, seed: int = 0, progress: bool = False

@@ -1,0 +1,110 @@
+"""The collision ledger's cost: DEM steps per second with and without it, on one core.
+
+The standard case (24 balls, 300 rpm), a settled bed after 0.05 s of motion (seed 0), advanced
+``--steps`` DEM steps by the jitted scan with the ledger off (``collision_capacity = 0``) and
+on; the timings alternate, best of ``--repeats`` each, compile time apart. With ``--rollout``
+the same for the shipped contact model's rollout (collisions off / on).
+
+    taskset -c 0 python benchmarks/bench_collisions.py [--steps 50000] [--markdown docs/benchmarks.md]
+
+Writes JSON to --out; prints a markdown table (or replaces it in --markdown).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+
+import jax
+
+import sgn_jax
+from sgn_jax.config import builtin_config_path, load_config
+from sgn_jax.dem.engine import init_state, make_advance
+from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
+from sgn_jax.records.io_utils import git_commit, write_json
+
+CAP = int(os.environ.get("CAP", 8192))
+MARKER = "collision-ledger-cost"
+
+
+def _best(fn, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def dem_rows(steps: int, repeats: int) -> list[dict]:
+    cfg = load_config(builtin_config_path("emax_300rpm"))
+    setup = setup_from_config(cfg)
+    state = initial_state(setup, seed=0)
+    advance = make_advance(setup.spec, setup.jar.wall_fn)
+    state = advance(setup.params, state, int(-state.step))
+    state = advance(setup.params, state, 500 * setup.substeps)
+    runs = {}
+    for capacity in (0, CAP):
+        spec = dataclasses.replace(setup.spec, collision_capacity=capacity)
+        start = init_state(spec, setup.params, state.pos, state.vel, state.omega,
+                           step=int(state.step))
+        start = start.replace(pw_history=state.pw_history, pp_history=state.pp_history,
+                              pairs=state.pairs)
+        adv = make_advance(spec, setup.jar.wall_fn)
+        t0 = time.perf_counter()
+        compiled = adv.lower(setup.params, start, steps).compile()
+        runs[capacity] = (compiled, start, time.perf_counter() - t0)
+    best = {c: float("inf") for c in runs}
+    for _ in range(repeats):  # alternate, so that a busy spell hits both
+        for c, (compiled, start, _) in runs.items():
+            best[c] = min(best[c], _best(lambda: compiled(setup.params, start), 1))
+    events = int(runs[CAP][0](setup.params, runs[CAP][1]).collisions.buffer.count)
+    off, on = best[0], best[CAP]
+    return [{"what": "DEM, standard case", "steps": steps, "off_s": off, "on_s": on,
+             "off_steps_per_s": steps / off, "on_steps_per_s": steps / on,
+             "slowdown": on / off - 1, "compile_off_s": runs[0][2],
+             "compile_on_s": runs[CAP][2], "events": events}]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=50_000)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default="benchmarks/results/bench_collisions.json")
+    parser.add_argument("--markdown", default=None,
+                        help="replace the table between this script's markers in this file")
+    args = parser.parse_args()
+    rows = dem_rows(args.steps, args.repeats)
+    machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+               "affinity": sorted(os.sched_getaffinity(0)), "jax": jax.__version__}
+    result = {"benchmark": "collision_ledger_cost", "commit": git_commit(),
+              "sgn_jax": sgn_jax.__version__, "machine": machine, "rows": rows}
+    write_json(args.out, result)
+    lines = [f"Commit {result['commit']}, jax {machine['jax']}, affinity {machine['affinity']} "
+             f"(`{args.out}`):", "",
+             "| run | ledger off (steps/s) | ledger on (steps/s) | slowdown | events |",
+             "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['what']} | {r['off_steps_per_s']:,.0f} | {r['on_steps_per_s']:,.0f} "
+                     f"| {100 * r['slowdown']:+.1f} % | {r['events']} |")
+    table = "\n".join(lines)
+    print(json.dumps(rows))
+    print(table)
+    if args.markdown:
+        from pathlib import Path
+        path = Path(args.markdown)
+        text = path.read_text()
+        begin, end = f"<!-- {MARKER}:begin -->", f"<!-- {MARKER}:end -->"
+        if begin not in text or end not in text:
+            raise SystemExit(f"{path} has no {begin} ... {end} markers")
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        path.write_text(f"{head}{begin}\n{table}\n{end}{tail}")
+
+
+if __name__ == "__main__":
+    main()
