@@ -270,9 +270,10 @@ def check_kind(kind: str) -> None:
 
 
 _DEM_HINT = ("rerun the DEM with its collision ledger on (`sgn-jax dem --config CONFIG --out "
-             "FILE.npz` with the collision ledger enabled, docs/collisions.md)")
-_SURROGATE_HINT = ("rerun the rollout with collisions on (`sgn-jax rollout ... --out FILE.npz` "
-                   "with the collision ledger enabled, docs/collisions.md)")
+             "FILE.npz --collisions`, docs/collisions.md)")
+_SURROGATE_HINT = ("rerun the rollout with its collision ledger on (`sgn-jax rollout --init "
+                   "DEM.npz --duration S --out FILE.npz --collisions`, a contact model; "
+                   "docs/collisions.md)")
 
 
 def _ball_mass(meta: Mapping[str, Any], where: str) -> float:
@@ -355,12 +356,18 @@ def events_from_record(record: Trajectory | Prediction) -> EventTable:
     return events_from_arrays(record.arrays, record.meta, source=source, path=record.path)
 
 
-def record_source(path: str | Path) -> str:
+def record_source(path: str | Path, source: str | None = None) -> str:
     """``"dem"`` or ``"surrogate"``: which kind of record the ``.npz`` at ``path`` is, by its
-    array names (a prediction has ``t_step``, a trajectory ``pp_pairs``).
+    array names (a prediction has ``t_step``, a trajectory ``pp_pairs``), checked to hold
+    collision events. Reads only the archive's directory, so every input can be checked before
+    any is loaded.
+
+    Args:
+        source: ``"dem"`` or ``"surrogate"`` to insist on a kind; None to accept either.
 
     Raises:
-        CollisionDataError: the file is missing, not an ``.npz`` archive, or neither kind.
+        CollisionDataError: the file is missing, not an ``.npz`` archive, neither kind (or not
+            the kind asked for), or has no ``collision_*`` arrays (saying how to produce them).
     """
     path = Path(path)
     if not path.is_file():
@@ -372,11 +379,22 @@ def record_source(path: str | Path) -> str:
         raise CollisionDataError(f"{path} is not an .npz record ({type(exc).__name__}: "
                                  f"{exc})") from None
     if "t_step" in names:
-        return "surrogate"
-    if "pp_pairs" in names and "t" in names:
-        return "dem"
-    raise CollisionDataError(f"{path} is neither a DEM trajectory (`sgn-jax dem`) nor a "
-                             "rollout prediction (`sgn-jax rollout`)")
+        found = "surrogate"
+    elif "pp_pairs" in names and "t" in names:
+        found = "dem"
+    else:
+        raise CollisionDataError(f"{path} is neither a DEM trajectory (`sgn-jax dem`) nor a "
+                                 "rollout prediction (`sgn-jax rollout`)")
+    if source is not None and found != source:
+        what = {"dem": "a DEM trajectory", "surrogate": "a rollout prediction"}
+        raise CollisionDataError(f"{path} is {what[found]}, not {what[source]}; pass it as "
+                                 f"{'a DEM' if found == 'dem' else 'a surrogate'} record "
+                                 f"(--{'dem' if found == 'dem' else 'surrogate'})")
+    if not any(name.startswith(PREFIX) for name in names):
+        hint = _DEM_HINT if found == "dem" else _SURROGATE_HINT
+        raise CollisionDataError(f"{path} holds no collision events (no '{PREFIX}*' "
+                                 f"arrays); {hint}")
+    return found
 
 
 def load_events(path: str | Path, source: str | None = None) -> EventTable:
@@ -390,11 +408,7 @@ def load_events(path: str | Path, source: str | None = None) -> EventTable:
         CollisionDataError: a record of the other kind, or one without collision events;
         DatasetError / PredictionError: a malformed record.
     """
-    found = record_source(path)
-    if source is not None and found != source:
-        what = {"dem": "a DEM trajectory", "surrogate": "a rollout prediction"}
-        raise CollisionDataError(f"{path} is {what[found]}, not {what[source]}; pass it as "
-                                 f"{'--dem' if found == 'dem' else '--surrogate'}")
+    found = record_source(path, source)
     record = load_trajectory(path) if found == "dem" else load_prediction(path)
     return events_from_record(record)
 
