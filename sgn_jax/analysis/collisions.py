@@ -608,18 +608,20 @@ def impact_speed_distribution(table: EventTable, kind: str = "all", *,
                              quantiles=quantiles)
 
 
-def dissipation_split(table: EventTable, kind: str = "all") -> dict[str, float]:
-    """Shares (in [0, 1]) of the events' dissipated energy: ``"normal"`` (column 0, impact
-    damping), ``"tangential"`` (everything else: shear), and one per :data:`ENERGY_COLUMNS`
-    entry; NaN where nothing was dissipated."""
+def dissipation_split(table: EventTable, kind: str = "all") -> dict[str, Any]:
+    """Shares (in [0, 1]) of the dissipated energy of ``kind``'s events: ``"normal"`` (column 0,
+    normal damping: the impact), ``"tangential"`` (every other column: the shear), and
+    ``"columns"``, {column: share} for each of :data:`ENERGY_COLUMNS`; NaN where nothing was
+    dissipated."""
     by_column = table.energy[table.kind_mask(kind)].sum(axis=0)
     total = float(by_column.sum())
     if total <= 0:
-        shares = dict.fromkeys(ENERGY_COLUMNS, math.nan)
-        return {"normal": math.nan, "tangential": math.nan, **shares}
-    shares = {name: float(v) / total for name, v in zip(ENERGY_COLUMNS, by_column, strict=True)}
-    return {"normal": shares[ENERGY_COLUMNS[0]],
-            "tangential": float(by_column[1:].sum()) / total, **shares}
+        return {"normal": math.nan, "tangential": math.nan,
+                "columns": dict.fromkeys(ENERGY_COLUMNS, math.nan)}
+    return {"normal": float(by_column[0]) / total,
+            "tangential": float(by_column[1:].sum()) / total,
+            "columns": {name: float(v) / total
+                        for name, v in zip(ENERGY_COLUMNS, by_column, strict=True)}}
 
 
 # --------------------------------------------------------------------------------------------
