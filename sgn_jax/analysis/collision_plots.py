@@ -49,6 +49,15 @@ def _errors(se: Any) -> Any:
     return None if not np.isfinite(se).any() else np.where(np.isfinite(se), se, 0.0)
 
 
+def _log_errors(mean: np.ndarray, se: Any) -> Any:
+    """Error bars on a log axis: the lower bar stops at 10 % of the value (a bar that reaches
+    zero has no end on a log axis)."""
+    errors = _errors(se)
+    if errors is None:
+        return None
+    return np.stack([np.minimum(errors, 0.9 * mean), errors])
+
+
 def _centres(edges: np.ndarray) -> np.ndarray:
     """Geometric centres of log bins."""
     return np.sqrt(edges[:-1] * edges[1:])
@@ -89,19 +98,24 @@ def plot_spectrum(ensembles: EnsembleStatistics | Sequence[EnsembleStatistics],
     left, right = fig.subplots(1, 2)
     name = ("dissipated energy per collision (J)" if quantity == "dissipation"
             else "stress energy 0.5 m* v_n^2 per collision (J)")
-    for ax, key, ylabel in ((left, f"{quantity}_rate_hz", "collisions per second per bin"),
-                            (right, f"{quantity}_power_W", "power dissipated per bin (W)")):
+    for ax, key, ylabel, log_y in (
+            (left, f"{quantity}_rate_hz", "collisions per second per bin", True),
+            (right, f"{quantity}_power_W", "power dissipated per bin (W)", False)):
         for e in ensembles:
             mean = np.asarray(e.mean[key], dtype=np.float64)
             shown = mean > 0  # a log axis has no place for an empty bin
             style = _STYLE[e.source]
-            errors = _errors(e.se[key])
-            ax.errorbar(_centres(e.edges)[shown], mean[shown],
-                        yerr=None if errors is None else errors[shown],
+            errors = _log_errors(mean, e.se[key]) if log_y else _errors(e.se[key])
+            if errors is not None:
+                errors = errors[..., shown]
+            ax.errorbar(_centres(e.edges)[shown], mean[shown], yerr=errors,
                         color=style["color"], marker=style["marker"], ms=4, lw=1.0,
                         capsize=2, label=_label(e))
         ax.set_xscale("log")
-        ax.set_yscale("log")
+        if log_y:
+            ax.set_yscale("log")
+        else:  # linear: on equal log bins the area under the points is where the power lies
+            ax.set_ylim(bottom=0.0)
         ax.set_xlim(ensembles[0].edges[0], ensembles[0].edges[-1])
         ax.set_xlabel(name)
         ax.set_ylabel(ylabel)
@@ -149,9 +163,9 @@ def plot_impact_speeds(ensembles: EnsembleStatistics | Sequence[EnsembleStatisti
         style = _STYLE[e.source]
         mean = np.asarray(e.mean["impact_speed_rate_hz"], dtype=np.float64)
         shown = mean > 0
-        errors = _errors(e.se["impact_speed_rate_hz"])
+        errors = _log_errors(mean, e.se["impact_speed_rate_hz"])
         ax.errorbar(_centres(e.speed_edges)[shown], mean[shown],
-                    yerr=None if errors is None else errors[shown], color=style["color"],
+                    yerr=None if errors is None else errors[..., shown], color=style["color"],
                     marker=style["marker"], ms=4, lw=1.0, capsize=2, label=_label(e))
         median = e.mean["impact_speed_median_m_s[all]"]
         if np.isfinite(median):

@@ -165,7 +165,7 @@ class CollisionSpectra:
         """The scalar statistics as a text table: mean +- SE per source, and the surrogate's
         relative difference from the DEM where both are given."""
         both = self.dem is not None and self.surrogate is not None
-        header = f"{'statistic':<42} {'unit':<5}"
+        header = f"{'statistic':<52} {'unit':<5}"
         for e in self.ensembles:
             header += f" {(e.source + f' (n={e.n_records})'):>24}"
         if both:
@@ -175,7 +175,7 @@ class CollisionSpectra:
             label = description
             if key.startswith("power_above") or key == "share_above":
                 label = f"{description} ({self.threshold:g} J)"
-            line = f"{label:<42} {unit:<5}"
+            line = f"{label:<52} {unit:<5}"
             for e in self.ensembles:
                 mean, se = e.mean[key], e.se[key]
                 cell = f"{mean:.4g}" + (f" +- {se:.2g}" if math.isfinite(se) else "")
