@@ -327,3 +327,25 @@ def test_cli_spectra_refuses_bad_input(tmp_path, capsys):
     assert "--threshold must be an energy > 0 J" in capsys.readouterr().err
     assert main(["spectra"]) == 2
     assert "--dem FILE" in capsys.readouterr().err
+
+
+def test_a_record_without_events_gives_zeros_and_nan(tmp_path):
+    empty = make_table([])
+    stats = C.collision_statistics(empty)
+    assert stats["frequency_per_ball_hz[all]"] == 0.0 and stats["power_W[all]"] == 0.0
+    assert math.isnan(stats["mean_stress_energy_J[all]"]) and math.isnan(stats["share_above"])
+    assert math.isnan(stats["impact_speed_q90_m_s"]) and not stats["dissipation_rate_hz"].any()
+    out = collision_spectra(dem=[empty, make_table(ROWS)]).to_json()
+    json.dumps(out, allow_nan=False)
+    assert out["dem"]["n_events"] == [0, 4]
+
+
+def test_inconsistent_event_arrays_are_refused():
+    arrays = {f"collision_{k}": np.zeros(3) for k in C.EVENT_FIELDS}
+    arrays["collision_energy"] = np.zeros((3, 4))  # one dissipation kind short
+    arrays.update(t=np.arange(5) * 0.01, pos=np.zeros((5, 2, 3)))
+    with pytest.raises(C.CollisionDataError, match="'energy' has shape"):
+        C.events_from_arrays(arrays, {"ball_mass": 4e-3}, source="dem")
+    del arrays["collision_flags"]
+    with pytest.raises(C.CollisionDataError, match="collision_flags"):
+        C.events_from_arrays(arrays, {"ball_mass": 4e-3}, source="dem")
