@@ -85,6 +85,8 @@ def test_power_specific_power_stress_energy_and_split(table):
     empty = make_table([(False, 0.1, 0.1, 2e-3, energy(0.0), 0)])
     assert math.isnan(C.dissipation_split(empty)["normal"])
     assert math.isnan(C.mean_stress_energy(empty, "ball-wall"))
+    receding = make_table([(False, 0.1, -0.3, 2e-3, energy(1e-6), 0)])
+    assert C.mean_stress_energy(receding) == 0.0  # not approaching: no impact energy
 
 
 def test_log_edges_are_decade_aligned_and_exact():

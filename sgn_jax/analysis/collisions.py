@@ -17,7 +17,8 @@ Conventions (docs/collisions.md):
   contact when the record began has no impact to measure). Dissipated energies and powers use
   every event, so the summed power is the ledger's power.
 - **stress energy** of an event: ``0.5 * mass_eff * impact_normal**2`` (J), the kinetic energy
-  of the normal approach at first touch (Kwade's stress energy).
+  of the normal approach at first touch (Kwade's stress energy); 0 where the bodies were not
+  approaching (``impact_normal <= 0``).
 - **dissipated energy** of an event: ``energy.sum(axis=1)`` (J).
 - **energy bins**: fixed, decade-aligned log bins (:data:`ENERGY_EDGES`: 4 per decade,
   1e-10 .. 1e-1 J), the same for every record, so the DEM's and the surrogate's spectra overlay.
@@ -215,8 +216,9 @@ class EventTable:
 
     @property
     def stress_energy(self) -> np.ndarray:
-        """(E,) J, ``0.5 * mass_eff * impact_normal**2`` (the impact's normal kinetic energy)."""
-        return 0.5 * self.mass_eff * self.impact_normal**2
+        """(E,) J, ``0.5 * mass_eff * max(impact_normal, 0)**2``: the impact's normal kinetic
+        energy (0 for a contact whose bodies were not approaching at first touch)."""
+        return 0.5 * self.mass_eff * np.maximum(self.impact_normal, 0.0)**2
 
     @property
     def dissipated(self) -> np.ndarray:
