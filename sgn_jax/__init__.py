@@ -80,6 +80,11 @@ __all__ = [
     # metrics
     "evaluate",
     "ensemble_summary",
+    # collision statistics: the events of a record, the spectra of DEM and surrogate records
+    "load_events",
+    "EventTable",
+    "collision_spectra",
+    "CollisionSpectra",
     # errors and warnings
     "SGNJaxError",
     "SGNJaxWarning",
@@ -90,6 +95,7 @@ __all__ = [
     "PredictionError",
     "DesignError",
     "RolloutError",
+    "CollisionDataError",
 ]
 
 _API_MODULE = "sgn_jax.api"

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from sgn_jax.analysis.collisions import CollisionDataError, EventTable, load_events
 from sgn_jax.analysis.metrics import ensemble_summary, evaluate
 from sgn_jax.config import Config, ConfigError, replace_section, resolve_config
 from sgn_jax.design import DesignError, default_step, parameter_unit
@@ -37,6 +38,7 @@ from sgn_jax.pipelines.configure import (
 )
 from sgn_jax.pipelines.dem_run import DEMRun, run_dem, simulate_dem
 from sgn_jax.pipelines.rollout_run import run_rollout
+from sgn_jax.pipelines.spectra import CollisionSpectra, collision_spectra
 from sgn_jax.pipelines.studies import (
     DEMEnsemble,
     DesignStudy,
@@ -129,6 +131,11 @@ __all__ = [
     # metrics
     "evaluate",
     "ensemble_summary",
+    # collision statistics: the events of a record, the spectra of DEM and surrogate records
+    "load_events",
+    "EventTable",
+    "collision_spectra",
+    "CollisionSpectra",
     # errors and warnings
     "SGNJaxError",
     "SGNJaxWarning",
@@ -139,4 +146,5 @@ __all__ = [
     "PredictionError",
     "DesignError",
     "RolloutError",
+    "CollisionDataError",
 ]
