@@ -245,6 +245,10 @@ def _split_kinds(spec: str, allowed: tuple[str, ...], argument: str) -> tuple[st
     return parts
 
 
+COLLISION_PREFIX = "collision_"
+"""Names of the collision table's arrays (docs/collisions.md): one row per contact event."""
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Trajectory(ArrayRecord, record_format=_FORMAT):
     """A DEM trajectory as loaded: read-only arrays by attribute (``traj.pos`` (T, N, 3)
@@ -295,7 +299,8 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
         """Samples ``start:stop`` (Python slice semantics, step 1) as a new Trajectory.
 
         Required arrays and extra arrays whose first dimension is T are sliced; other extra
-        arrays are kept whole. The dissipation arrays of the first kept sample are set to 0
+        arrays are kept whole, except the collision table (``collision_*``, one row per contact
+        event, not per sample), which is left out. The dissipation arrays of the first kept sample are set to 0
         (the interval before it is not part of the slice), so the record format's "first sample 0"
         still holds and ``cumulative_dissipation`` starts at 0. ``work_wall`` stays cumulative since
         t = 0 of the original run.
@@ -307,6 +312,8 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
         n_samples = self.n_samples
         arrays = {}
         for name, value in self.arrays.items():
+            if name.startswith(COLLISION_PREFIX):
+                continue
             if name in REQUIRED_ARRAYS or (value.ndim >= 1 and value.shape[0] == n_samples):
                 value = np.array(value[first:last])
             if name in _DISS_NAMES:
@@ -323,7 +330,8 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
         States (positions, velocities, energies, ``work_wall``, contacts) are those at the kept
         samples; the dissipation of each kept sample is the sum over the ``factor`` intervals
         that end at it, so the cumulative dissipation at every kept sample is unchanged and the
-        first sample stays 0. Samples after the last multiple of ``factor`` are dropped.
+        first sample stays 0. Samples after the last multiple of ``factor`` are dropped. The
+        collision table (``collision_*``, time-stamped events) is kept whole.
         ``meta['dt']`` (and ``[dem] dt`` of a stored config dict) become ``factor * dt``. This
         is how a surrogate with a coarser step than the DEM's sampling trains and starts from
         the same records (docs/sgn.md, "Surrogate step").
@@ -345,6 +353,8 @@ class Trajectory(ArrayRecord, record_format=_FORMAT):
                 # coarse interval (first sample 0, as in the original).
                 cum = np.cumsum(np.asarray(value, np.float64))[kept]
                 value = np.concatenate([[0.0], np.diff(cum)]).astype(value.dtype)
+            elif name.startswith(COLLISION_PREFIX):
+                pass
             elif name in REQUIRED_ARRAYS or (value.ndim >= 1 and value.shape[0] == n_samples):
                 value = np.array(value[kept])
             value.flags.writeable = False
