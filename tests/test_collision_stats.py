@@ -319,7 +319,7 @@ def test_cli_spectra_refuses_bad_input(tmp_path, capsys):
     plain = write_dem_record(tmp_path / "plain.npz", collisions=False)
     assert main(["spectra", "--dem", str(plain), "--no-plots"]) == 2
     err = capsys.readouterr().err
-    assert "holds no collision events" in err and "sgn-jax dem" in err and "--collisions" in err
+    assert "holds no collision events" in err and "sgn-jax dem" in err and "collisions = true" in err
     dem = write_dem_record(tmp_path / "dem.npz")
     assert main(["spectra", "--surrogate", str(dem), "--no-plots"]) == 2
     assert "is a DEM trajectory, not a rollout prediction" in capsys.readouterr().err

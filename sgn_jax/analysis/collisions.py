@@ -272,7 +272,7 @@ def check_kind(kind: str) -> None:
 
 
 _DEM_HINT = ("rerun the DEM with its collision ledger on (`sgn-jax dem --config CONFIG --out "
-             "FILE.npz --collisions`, docs/collisions.md)")
+             "FILE.npz` with [dem] collisions = true, the default; docs/collisions.md)")
 _SURROGATE_HINT = ("rerun the rollout with its collision ledger on (`sgn-jax rollout --init "
                    "DEM.npz --duration S --out FILE.npz --collisions`, a contact model; "
                    "docs/collisions.md)")
