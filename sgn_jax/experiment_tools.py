@@ -20,6 +20,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from sgn_jax.analysis.collisions import (
+    decade_comparison,
+    ensemble_statistics,
+    events_from_arrays,
+)
 from sgn_jax.analysis.metrics import (
     align,
     contact_census,
@@ -119,6 +124,9 @@ def plot_case_curves(title: str, preds: list[str | Path], refs: list[str | Path]
 
 
 __all__ = [
+    "decade_comparison",
+    "ensemble_statistics",
+    "events_from_arrays",
     # configs, checkpoints and the shipped models
     "config_from_dict",
     "config_to_dict",
