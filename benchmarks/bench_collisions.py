@@ -27,7 +27,7 @@ from sgn_jax.dem.engine import init_state, make_advance
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
 from sgn_jax.records.io_utils import git_commit, write_json
 
-CAP = int(os.environ.get("CAP", 8192))
+CAP = 8192  # events the buffer holds: more than the timed steps close
 MARKER = "collision-ledger-cost"
 
 
