@@ -163,17 +163,26 @@ def update_events(carry: CollisionCarry, grid: ContactGrid, step: jax.Array) -> 
     capacity = carry.floats.shape[0]
     acting = grid.acting
     close = (carry.open & ~acting).reshape(-1)
-    rank = jnp.cumsum(close, dtype=I32) - 1
-    row = jnp.where(close, carry.count + rank, capacity)   # past the table: dropped
-    ball, partner, wall = _pair_ids(n)
-    flags = carry.began.astype(I32)
-    ints = jnp.stack([ball, partner, wall.astype(I32), carry.start, step - carry.start, flags],
-                     axis=-1).reshape(-1, _N_INT)
-    start_s = carry.t0 + carry.start.astype(F64) * carry.dt
-    floats = jnp.concatenate([carry.acc, start_s[..., None]], axis=-1).reshape(-1, _N_FLOAT + 1)
-    table_f = carry.floats.at[row].set(floats, mode="drop")
-    table_i = carry.ints.at[row].set(ints, mode="drop")
-    count = carry.count + jnp.sum(close, dtype=I32)
+    n_close = jnp.sum(close, dtype=I32)
+
+    def emit(tables):
+        table_f, table_i = tables
+        rank = jnp.cumsum(close, dtype=I32) - 1
+        row = jnp.where(close, carry.count + rank, capacity)   # past the table: dropped
+        ball, partner, wall = _pair_ids(n)
+        flags = carry.began.astype(I32)
+        ints = jnp.stack([ball, partner, wall.astype(I32), carry.start, step - carry.start,
+                          flags], axis=-1).reshape(-1, _N_INT)
+        start_s = carry.t0 + carry.start.astype(F64) * carry.dt
+        floats = jnp.concatenate([carry.acc, start_s[..., None]],
+                                 axis=-1).reshape(-1, _N_FLOAT + 1)
+        return (table_f.at[row].set(floats, mode="drop"),
+                table_i.at[row].set(ints, mode="drop"))
+
+    # most steps close no event: skip the write there
+    table_f, table_i = jax.lax.cond(n_close > 0, emit, lambda tables: tables,
+                                    (carry.floats, carry.ints))
+    count = carry.count + n_close
 
     fresh = grid.values.astype(F64)
     new = acting & ~carry.open
