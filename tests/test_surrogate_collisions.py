@@ -22,7 +22,7 @@ from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph, with_spins
 from sgn_jax.surrogate.rollout import make_rollout, make_rollout_advance
 
 R, DT, W = 0.005, 1e-4, 3
-SPEC = GraphSpec(n_particles=5, window=W, ball_radius=R, dt=DT, pp_skin=1.5e-3,
+GRAPH_SPEC = GraphSpec(n_particles=5, window=W, ball_radius=R, dt=DT, pp_skin=1.5e-3,
                  phi_pw=-0.0052, pp_pair_capacity=10)
 MOTION = CircleMotion(rpm=300.0, amplitude=0.017)
 
@@ -53,7 +53,7 @@ def random_net(window, spin=False, seed=4):
     phys = ContactPhysics(ball_radius=R, dt=DT, window=W, history=3, gate_margin=2e-4,
                           rolling_friction=0.045)
     net = ContactNet(physics=phys, hidden=32, mlp_layers=3, spin=spin)
-    graph, _ = build_graph(window, None, SPEC, floor_query())
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query())
     params = net.init(jax.random.PRNGKey(seed), graph)["params"]
     key = jax.random.PRNGKey(seed + 1)
 
@@ -72,7 +72,7 @@ def cluster_run():
     """40 steps of the cluster in one call: (net, params, window, rollout, result)."""
     window = cluster_window(np.random.default_rng(5))
     net, params = random_net(window)
-    rollout = make_rollout(SPEC, net, 40, 10, query=floor_query(), snap_back=False,
+    rollout = make_rollout(GRAPH_SPEC, net, 40, 10, query=floor_query(), snap_back=False,
                            collisions=True, collision_capacity=64)
     result = jax.device_get(rollout(params, None, window, MOTION, None, 0.0))
     return net, params, window, rollout, result
@@ -110,7 +110,7 @@ def test_a_rollout_in_chunks_records_the_events_of_one_call(cluster_run):
     from sgn_jax.surrogate.rollout import init_state
 
     net, params, window, _, whole = cluster_run
-    advance = make_rollout_advance(SPEC, net, 4, 2, query=floor_query(), snap_back=False,
+    advance = make_rollout_advance(GRAPH_SPEC, net, 4, 2, query=floor_query(), snap_back=False,
                                    collisions=True, collision_capacity=64)
     state = init_state(window, MOTION, 0.0, DT, collision_capacity=64)
     tables = []
@@ -134,13 +134,13 @@ def test_overflow_raises_naming_the_capacity(cluster_run):
     net, params, window, _, result = cluster_run
     n_closed = len(result.collision_arrays(flush=False)["collision_ball"])
     assert n_closed >= 2
-    rollout = make_rollout(SPEC, net, 40, 10, query=floor_query(), snap_back=False,
+    rollout = make_rollout(GRAPH_SPEC, net, 40, 10, query=floor_query(), snap_back=False,
                            collisions=True, collision_capacity=1)
     small = jax.device_get(rollout(params, None, window, MOTION, None, 0.0))
     with pytest.raises(CollisionCapacityError, match=r"collision_capacity = 1\b.*raise it"):
         small.collision_arrays()
     with pytest.raises(CollisionCapacityError, match="integer >= 1"):
-        make_rollout(SPEC, net, 10, 10, collisions=True, collision_capacity=0)
+        make_rollout(GRAPH_SPEC, net, 10, 10, collisions=True, collision_capacity=0)
 
 
 def test_permuted_balls_give_the_permuted_events(cluster_run):
