@@ -52,6 +52,8 @@ I32 = jnp.int32
 GRID_FIELDS = ("impact_normal", "impact_tangential", "max_overlap", "peak_force", "mass_eff",
                "energy_normal", "energy_tangential")
 _N_FLOAT = len(GRID_FIELDS)
+_LARGEST = np.array([f in ("max_overlap", "peak_force") for f in GRID_FIELDS])
+_SUMMED = np.array([f.startswith("energy") for f in GRID_FIELDS])
 # Integer columns of the table: ball, partner, wall, start step, steps, flags.
 _N_INT = 6
 ENERGY_COLUMNS = 5   # DISSIPATION_KINDS of the DEM: normal, tangential, slip, rolling, stiffness
@@ -140,10 +142,11 @@ def contact_grid(n_balls: int, receivers: jax.Array, senders: jax.Array, acting:
     a, b = jnp.minimum(receivers, senders), jnp.maximum(receivers, senders)
     size = n_balls * (n_balls + 1)
     flat = jnp.where(acting, a * (n_balls + 1) + b, size)   # out of range: dropped
-    on = jnp.zeros((size,), bool).at[flat].set(True, mode="drop")
-    # energies add over a ball's wall patches; the other fields take the largest
+    # energies add over a ball's wall patches; the other fields take the largest (a pair that
+    # acts has m* > 0, so its largest m* is finite: no scatter of its own for ``acting``)
     summed = jnp.zeros((size, 2), values.dtype).at[flat].add(values[:, 5:], mode="drop")
     largest = jnp.full((size, 5), -jnp.inf, values.dtype).at[flat].max(values[:, :5], mode="drop")
+    on = largest[:, 4] > -jnp.inf
     grid = jnp.concatenate([jnp.where(on[:, None], largest, 0.0), summed], axis=-1)
     shape = (n_balls, n_balls + 1)
     return ContactGrid(acting=on.reshape(shape), values=grid.reshape(shape + (_N_FLOAT,)))
@@ -187,8 +190,9 @@ def update_events(carry: CollisionCarry, grid: ContactGrid, step: jax.Array) -> 
     fresh = grid.values.astype(F64)
     new = acting & ~carry.open
     # continuing: first-step fields kept, the largest overlap and force, the energies summed
-    cont = jnp.concatenate([carry.acc[..., :2], jnp.maximum(carry.acc[..., 2:4], fresh[..., 2:4]),
-                            carry.acc[..., 4:5], carry.acc[..., 5:] + fresh[..., 5:]], axis=-1)
+    # (one elementwise pass over the columns, by column masks)
+    old = carry.acc
+    cont = jnp.where(_LARGEST, jnp.maximum(old, fresh), jnp.where(_SUMMED, old + fresh, old))
     acc = jnp.where(new[..., None], fresh, cont)
     began = jnp.where(new, (step == 0) & (fresh[..., 2] > 0), carry.began)
     return carry.replace(open=acting, acc=acc, start=jnp.where(new, step, carry.start),
