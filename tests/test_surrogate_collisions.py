@@ -252,3 +252,20 @@ def test_run_rollout_writes_the_collision_table_into_the_prediction(tmp_path):
     total = pred.diss_pp_model.sum() + pred.diss_pw_model.sum()
     assert pred.collision_energy.sum() == pytest.approx(total, rel=1e-5)
     assert pred.meta["collisions"]["capacity"] == 16
+
+
+def test_an_ensemble_records_each_packings_events(contact_short_packings):
+    """rollout_ensemble(collisions=True) of the shipped model: each packing's events add up to
+    its own ledger (the standard case: 24 balls in their settled bed)."""
+    from sgn_jax.pipelines.studies import rollout_ensemble
+
+    model, cfg, packings = contact_short_packings
+    result = rollout_ensemble(model, cfg, packings, 0.01, batching="map", collisions=True,
+                              collision_capacity=512)
+    for k in range(2):
+        events = result.collision_arrays(packing=k)
+        ledger = float(np.sum(result.steps.diss_pp[k]) + np.sum(result.steps.diss_pw[k]))
+        assert events["collision_ball"].size >= 3   # the bed: its contacts last
+        assert events["collision_energy"].sum() == pytest.approx(ledger, rel=1e-5)
+    with pytest.raises(Exception, match="packing=k"):
+        result.collision_arrays()

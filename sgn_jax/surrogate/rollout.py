@@ -172,17 +172,26 @@ class RolloutResult:
         """Cumulative dissipation after the last step (J)."""
         return self.steps.energy_cum[..., -1]
 
-    def collision_arrays(self, flush: bool = True) -> dict[str, np.ndarray]:
-        """The collision events of this (unbatched) result's call, the ``collision_*`` arrays
-        of :mod:`sgn_jax.surrogate.collisions`; ``flush``: with the events still open at its
-        end (flags bit 1). Needs a rollout with ``collisions=True``; raises
+    def collision_arrays(self, flush: bool = True, packing: int | None = None
+                         ) -> dict[str, np.ndarray]:
+        """The collision events of this result's call, the ``collision_*`` arrays of
+        :mod:`sgn_jax.surrogate.collisions`; ``flush``: with the events still open at its end
+        (flags bit 1); ``packing``: for a batched result (an ensemble), its packing k. Needs a
+        rollout with ``collisions=True``; raises
         :class:`sgn_jax.surrogate.collisions.CollisionCapacityError` when the call closed more
         events than ``collision_capacity``."""
-        if self.final.collisions is None:
+        final = self.final
+        if final.collisions is None:
             raise RolloutError("this rollout recorded no collision events: run it with "
                                "collisions=True (a contact model; RolloutOptions)")
-        return collision_arrays(self.final.collisions,
-                                int(self.final.step) if flush else None)
+        batched = np.ndim(final.step) > 0
+        if batched != (packing is not None):
+            raise RolloutError(
+                f"this result has {np.shape(final.step)[0] if batched else 'no'} packings: "
+                + ("pass packing=k" if batched else "call it without packing"))
+        if batched:
+            final = jax.tree_util.tree_map(lambda a: a[packing], final)
+        return collision_arrays(final.collisions, int(final.step) if flush else None)
 
     def prediction_arrays(self) -> dict[str, np.ndarray]:
         """The arrays of :func:`sgn_jax.records.prediction.save_prediction` (unbatched result)."""
