@@ -269,3 +269,12 @@ def test_an_ensemble_records_each_packings_events(contact_short_packings):
         assert events["collision_energy"].sum() == pytest.approx(ledger, rel=1e-5)
     with pytest.raises(Exception, match="packing=k"):
         result.collision_arrays()
+
+
+def test_the_cli_refuses_a_capacity_below_one(tmp_path, capsys):
+    from sgn_jax.cli import main
+
+    code = main(["rollout", "--init", str(tmp_path / "none.npz"), "--duration", "0.01",
+                 "--out", str(tmp_path / "p.npz"), "--collisions", "--collision-capacity", "0"])
+    assert code == 2
+    assert "--collision-capacity must be >= 1" in capsys.readouterr().err
