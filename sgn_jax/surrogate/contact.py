@@ -33,7 +33,10 @@ velocities ``vbar = (v_n + v_{n+1}) / 2`` of the integrator::
     D_pp + D_pw = W_wall + W_grav - dKE       (exact identity; W_wall = sum J_b . u_wall,
                                                W_grav = sum m g . vbar dt)
 
-so the surrogate's energy ledger closes by construction (tests/test_contact.py). The paper's
+so the surrogate's energy ledger closes by construction (tests/test_contact.py). Each term
+belongs to one contact: a rollout with ``collisions=True`` gathers them into collision events
+(:meth:`ContactNet.collision_terms`, :mod:`sgn_jax.surrogate.collisions`), whose energies add
+up to ``D_pp + D_pw``. The paper's
 target (normal + tangential damping, docs/conventions.md section 3) is reported as ``share_pp D_pp +
 share_pw D_pw``; the two shares (the part of all losses that is damping, not slip or rolling) are
 the only energy quantities fitted from data (``fit_dissipation_shares``), never a second energy.
