@@ -44,6 +44,7 @@ from sgn_jax.records.prediction import load_prediction
 from sgn_jax.records.shipped_models import resolve_checkpoint
 from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.regime import CLASSIFIERS
+from sgn_jax.surrogate.collisions import DEFAULT_CAPACITY
 
 
 class UserError(SGNJaxError):
@@ -252,6 +253,12 @@ def _add_rollout(sub: argparse._SubParsersAction) -> None:
                    help="steps between saved frames (default: [rollout] save_every)")
     p.add_argument("--which", choices=("best", "latest"), default="best",
                    help="which checkpoint of a training run (default: best)")
+    p.add_argument("--collisions", action="store_true",
+                   help="record the collision ledger (contact model): one event per contact, "
+                   "written as the prediction's collision_* arrays (docs/collisions.md)")
+    p.add_argument("--collision-capacity", type=int, default=DEFAULT_CAPACITY, metavar="EVENTS",
+                   help="events the ledger holds per chunk of [rollout] chunk_steps steps "
+                   f"(default {DEFAULT_CAPACITY}); a chunk with more stops with an error")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_rollout)
 
@@ -260,6 +267,9 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
 
     if args.save_every is not None and args.save_every < 1:
         raise UserError(f"--save-every must be >= 1, got {args.save_every}")
+    if args.collision_capacity < 1:
+        raise UserError(f"--collision-capacity must be >= 1 events, got "
+                        f"{args.collision_capacity}")
     check_duration(args.duration, "--duration")
     checkpoint = resolve_checkpoint(args.checkpoint)
     trained = load_trained_model(checkpoint, which=args.which)
@@ -269,7 +279,8 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     traj = load_trajectory(args.init)
     summary = run_rollout(trained, traj, args.start_index, args.duration, args.out, override,
                           save_every=args.save_every, progress=not args.no_progress,
-                          checkpoint_path=str(checkpoint))
+                          checkpoint_path=str(checkpoint), collisions=args.collisions,
+                          collision_capacity=args.collision_capacity)
     summary.pop("arrays")
     summary.pop("meta")
     print(json.dumps(summary, sort_keys=True))

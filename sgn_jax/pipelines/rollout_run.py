@@ -28,6 +28,12 @@ from sgn_jax.pipelines.configure import (
 from sgn_jax.records.io_utils import git_commit
 from sgn_jax.records.prediction import save_prediction
 from sgn_jax.records.trajectory import DatasetError
+from sgn_jax.surrogate.collisions import (
+    DEFAULT_CAPACITY,
+    check_capacity,
+    collision_arrays,
+    concat_tables,
+)
 from sgn_jax.surrogate.graph import Window, windows_from_arrays
 from sgn_jax.surrogate.rollout import (
     RolloutError,
@@ -118,7 +124,8 @@ def pair_capacity_tiers(capacity: int, n_steps: int, tiers_help: bool = True) ->
 def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, duration: float,
                 out_path: str | Path | None = None, cfg_override: Any = None, *,
                 save_every: int | None = None, progress: bool = True,
-                checkpoint_path: str | None = None) -> dict[str, Any]:
+                checkpoint_path: str | None = None, collisions: bool = False,
+                collision_capacity: int = DEFAULT_CAPACITY) -> dict[str, Any]:
     """Roll a trained SGN out from a dataset's window and save a prediction file.
 
     Runs in jitted chunks of ``[rollout] chunk_steps`` with a progress bar, with ball-pair
@@ -142,6 +149,13 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
         save_every: steps between saved frames (default ``[rollout] save_every``).
         progress: tqdm bar (steps, rate, ETA).
         checkpoint_path: recorded in the meta.
+        collisions: record the collision ledger (a contact model only;
+            :mod:`sgn_jax.surrogate.collisions`): the prediction gains the ``collision_*``
+            event arrays, the events still open at the end flushed (flags bit 1), and the
+            summary ``collision_events``.
+        collision_capacity: events the ledger holds per chunk of ``[rollout] chunk_steps``
+            steps; a chunk that closes more raises
+            :class:`sgn_jax.surrogate.collisions.CollisionCapacityError` saying so.
 
     Returns:
         a summary dict (steps, energy, counts, wall and compile time, ms per step); the arrays
@@ -155,6 +169,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
     dt = float(cfg.dem.dt)
     if not duration > 0:
         raise RolloutError(f"duration must be > 0 s, got {duration}")
+    capacity = check_capacity(collision_capacity) if collisions else 0
     n_steps = int(round(duration / dt))
     if n_steps < k or n_steps % k:
         raise RolloutError(f"duration {duration:g} s = {n_steps} steps of dt = {dt:g} s must be a "
@@ -195,11 +210,15 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
                    snap_velocity=rcfg.snap_velocity,
                    pp_max_overlap=(rcfg.pp_max_overlap if rcfg.pp_separation else None),
                    pp_capacity_tiers=pair_capacity_tiers(cap, n_steps, tiers))
-    predictor = model_predictor(model)
+    predictor = model_predictor(model, collisions=bool(collisions))
+    options["collisions"] = bool(collisions)
+    if collisions:
+        options["collision_capacity"] = capacity
     params = jax.device_put(trained_model.params)
     stats = jax.device_put(trained_model.norm_stats)
 
-    state = jax.jit(init_state, static_argnums=3)(window0, motion, t0, spec.dt)
+    state = jax.jit(init_state, static_argnums=(3, 4))(window0, motion, t0, spec.dt, capacity)
+    tables: list[dict[str, np.ndarray]] = []
     compiled: dict[int, Any] = {}
     compile_time = 0.0
     parts: list[RolloutResult] = []
@@ -219,6 +238,11 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
             result = jax.device_get(compiled[n](params, stats, state, motion, sdf, t0))
             run_time += time.perf_counter() - t_r
             state = result.final
+            if collisions:   # drain the chunk's events (and at the end flush the open ones)
+                tables.append(collision_arrays(
+                    state.collisions, int(state.step) if done + n == n_steps else None,
+                    f", or shorten the chunks ([rollout] chunk_steps = {chunk})"))
+                state = state.replace(collisions=state.collisions.replace(count=np.int32(0)))
             if not np.all(np.isfinite(result.positions)):
                 bad = int(np.flatnonzero(~np.isfinite(result.positions).all(axis=(1, 2)))[0])
                 raise RolloutError(
@@ -241,6 +265,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
     if "omega_model" in arrays:   # the spins of the frames, the initial one first as for pos
         arrays["omega_model"] = np.concatenate([np.asarray(w0.spins)[None],
                                                 arrays["omega_model"]])
+    if collisions:
+        arrays.update(concat_tables(tables))
     summary = {
         "steps": n_steps,
         "duration_s": n_steps * dt,
@@ -254,6 +280,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
         "compile_time_s": compile_time,
         "ms_per_step": 1e3 * run_time / n_steps,
     }
+    if collisions:
+        summary["collision_events"] = int(arrays["collision_ball"].size)
     meta = {
         "dt": dt, "save_every": k, "init_index": record_index,
         "config": config_to_dict(cfg),
@@ -267,6 +295,12 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
         "phi_sb": float(cfg.graph.phi_sb),
         **{key: summary[key] for key in ("wall_time_s", "compile_time_s", "ms_per_step")},
     }
+    if collisions:
+        meta["collisions"] = {"capacity": capacity, "energy": "model ledger diss_pp + diss_pw"}
+        share = getattr(trained_model.params, "get", lambda _k: None)("share_logit")
+        if share is not None:   # dE reports share_pp diss_pp + share_pw diss_pw
+            share_pp, share_pw = (float(x) for x in 1.0 / (1.0 + np.exp(-np.asarray(share))))
+            meta["collisions"].update(share_pp=share_pp, share_pw=share_pw)
     if out_path is not None:
         save_prediction(out_path, arrays, meta)
         summary["out"] = str(out_path)

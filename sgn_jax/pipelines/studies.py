@@ -63,6 +63,7 @@ from sgn_jax.pipelines.validation import check_dem_config, check_duration, warn_
 from sgn_jax.records.checkpoint import TrainedModel
 from sgn_jax.records.shipped_models import load_surrogate
 from sgn_jax.scene import analytic_jar_query
+from sgn_jax.surrogate.collisions import DEFAULT_CAPACITY, check_capacity
 from sgn_jax.surrogate.graph import GraphSpec, Window
 from sgn_jax.surrogate.rollout import (
     RolloutResult,
@@ -379,11 +380,13 @@ def _packing_start(start: str, surrogate: TrainedModel, cfg: Config, spec: Graph
 
 
 def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
-                      save_every: int | None, single: bool = False) -> Callable:
+                      save_every: int | None, single: bool = False,
+                      collision_capacity: int = 0) -> Callable:
     """The unjitted rollout of ``cfg``'s ``[rollout]`` settings for ``duration`` s (shared by
     :func:`rollout_ensemble` and :func:`rollout_sweep`). ``single``: the model kind's
     single-rollout form (:func:`sgn_jax.surrogate.rollout.single_rollout_model`), for
-    rollouts run one after another, never vmapped."""
+    rollouts run one after another, never vmapped. ``collision_capacity`` > 0: with the
+    collision ledger, that many events per rollout."""
     check_duration(duration, "duration")
     n_steps = _steps(duration, float(cfg.dem.dt), "duration")
     every = int(cfg.rollout.save_every if save_every is None else save_every)
@@ -394,11 +397,13 @@ def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
                                                       dem=cfg.dem), n_particles=cfg.balls.count)
     r = cfg.rollout
     module = single_rollout_model(surrogate.model)[0] if single else surrogate.model
-    return make_rollout(spec, model_predictor(module), n_steps, every,
+    collisions = collision_capacity > 0
+    return make_rollout(spec, model_predictor(module, collisions), n_steps, every,
                         snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
                         snap_velocity=r.snap_velocity, query=analytic_jar_query,
                         pp_max_overlap=r.pp_max_overlap if r.pp_separation else None,
-                        jit=False)
+                        collisions=collisions,
+                        collision_capacity=collision_capacity or DEFAULT_CAPACITY, jit=False)
 
 
 def over_packings(fn: Callable[[Any, Any], Any], batching: str = "vmap", shard: bool = False
@@ -435,7 +440,8 @@ def over_packings(fn: Callable[[Any, Any], Any], batching: str = "vmap", shard: 
 
 def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
                      duration: float, *, save_every: int | None = None,
-                     shard: bool = False, batching: str = "vmap") -> RolloutResult:
+                     shard: bool = False, batching: str = "vmap", collisions: bool = False,
+                     collision_capacity: int = DEFAULT_CAPACITY) -> RolloutResult:
     """Roll the surrogate out from every packing under ``cfg``'s jar and motion.
 
     The rollout uses ``cfg``'s ``[rollout]`` settings (snap-back, its velocity rule, the
@@ -446,7 +452,9 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
     devices (:func:`shard_packings`). ``batching``: "vmap" (default) runs them as one batch,
     "map" one after another in the model's single-rollout form (:func:`over_packings`; the
     faster on CPU cores for a model that has one, the contact kind); the same numbers to
-    float rounding.
+    float rounding. ``collisions``: record each rollout's collision ledger (a contact model;
+    ``collision_capacity`` events per rollout), read packing k's events with
+    ``result.collision_arrays(packing=k)``.
 
     Returns:
         a :class:`sgn_jax.surrogate.rollout.RolloutResult` with a leading axis K (packings):
@@ -455,8 +463,9 @@ def rollout_ensemble(surrogate: TrainedModel, cfg: Config, packings: Packings,
         ``n_snapped`` (K, S).
     """
     check_batching(batching)   # before any work (the rollout's form depends on it)
+    capacity = check_capacity(collision_capacity) if collisions else 0
     frame = _surrogate_frame(surrogate, cfg, packings)
-    run = _ensemble_runner(surrogate, cfg, duration, save_every, batching, shard)
+    run = _ensemble_runner(surrogate, cfg, duration, save_every, batching, shard, capacity)
     windows = shard_packings(frame.windows) if shard else frame.windows
     return jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats, frame.motion,
                                         frame.jar, jnp.asarray(packings.t0))))
@@ -471,16 +480,19 @@ _ENSEMBLE_RUNNERS_MAX = 8
 
 
 def _ensemble_runner(surrogate: TrainedModel, cfg: Config, duration: float,
-                     save_every: int | None, batching: str, shard: bool) -> Callable:
+                     save_every: int | None, batching: str, shard: bool,
+                     collision_capacity: int = 0) -> Callable:
     """The jitted ``run(windows, (params, norm_stats, motion, jar, t0))`` of
     :func:`rollout_ensemble`, made once per model, [balls], [dem], [rollout], duration,
     ``save_every``, batching and devices (for ``shard``), and kept (the last few)."""
     key = (surrogate.model, surrogate.config, cfg.balls, cfg.dem, cfg.rollout, float(duration),
-           save_every, batching, shard, tuple(jax.devices()) if shard else None)
+           save_every, batching, shard, tuple(jax.devices()) if shard else None,
+           collision_capacity)
     run = _ENSEMBLE_RUNNERS.get(key)
     if run is None:
         rollout = _ensemble_rollout(surrogate, cfg, duration, save_every,
-                                    single=batching == "map")
+                                    single=batching == "map",
+                                    collision_capacity=collision_capacity)
 
         def one(window, shared):
             params, norm_stats, motion, jar, t0 = shared

@@ -29,6 +29,11 @@ ball-ball and ball-wall impulses took out of the balls in each step, and ``work_
 rad/s, the balls' spins at the frames (a model with spin state integrates them; zeros without),
 whose rotational energy its ledger counts.
 
+Optional collision table (a contact model's rollout with ``collisions=True``,
+:mod:`sgn_jax.surrogate.collisions`): one row per collision event, E rows, the arrays
+``collision_<key>`` for every key of :data:`COLLISION_FIELDS` (``energy`` is (E, 5), the others
+(E,)); all of them or none. Its meta entry ``collisions`` says what the energies count.
+
 The rollout starts at ``t_start = t_step[0] - dt``: the time of the newest true sample of the
 initial window; step s ends at ``t_start + (s + 1) dt``. Frames may include ``t_start`` itself.
 Extra arrays are allowed and kept. ``meta`` is a 0-d unicode array holding a JSON object with at
@@ -81,6 +86,15 @@ REQUIRED_ARRAYS: dict[str, ArraySpec] = {
 }
 
 REQUIRED_META: tuple[str, ...] = ("dt", "save_every", "init_index", "config")
+
+COLLISION_FIELDS: dict[str, str] = {
+    "ball": "int", "partner": "int", "wall": "bool", "start_s": "float", "duration_s": "float",
+    "impact_normal": "float", "impact_tangential": "float", "max_overlap": "float",
+    "peak_force": "float", "mass_eff": "float", "energy": "float", "flags": "int",
+}
+"""The collision table's keys (stored as ``collision_<key>``) and their dtype kinds."""
+# NaN there means "not known by this ledger" (the event table's convention)
+_MAY_BE_NAN = ("collision_max_overlap", "collision_peak_force")
 
 # Times are t_start + k * dt (rounding ~1e-16 t in float64); a wrong dt, a dropped step or a
 # frame off the step grid is off by a large fraction of dt. Tolerance in steps (units of dt).
@@ -151,7 +165,7 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
         raise PredictionError(f"{where}: array 'pos' has no balls (N = 0)")
 
     for name, value in arrays.items():
-        if not np.issubdtype(value.dtype, np.inexact):
+        if not np.issubdtype(value.dtype, np.inexact) or name in _MAY_BE_NAN:
             continue
         bad = records.first_non_finite(value)
         if bad is not None:
@@ -190,6 +204,8 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
             f"0 <= k <= S (t_start = {t_start:.9g} s, dt = {dt:g} s, S = {t_step.size}); got "
             f"t_pos in [{float(t_pos[0]):.9g}, {float(t_pos[-1]):.9g}] s")
 
+    _check_collisions(arrays, where)
+
     cumsum = np.cumsum(arrays["dE"].astype(np.float64))
     scale = max(float(np.abs(cumsum).max()), float(np.abs(arrays["dE"]).sum()), 1e-300)
     drift = np.abs(arrays["energy_cum"] - cumsum)
@@ -199,6 +215,28 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
             f"{where}: array 'energy_cum' is not the running sum of 'dE': at step {worst} "
             f"energy_cum = {float(arrays['energy_cum'][worst]):.6g} J but cumsum(dE) = "
             f"{float(cumsum[worst]):.6g} J; store energy_cum = cumsum(dE) since the rollout start")
+
+
+def _check_collisions(arrays: Mapping[str, np.ndarray], where: str) -> None:
+    """The optional collision table: all its arrays or none, one length E, energy (E, 5)."""
+    present = [k for k in COLLISION_FIELDS if f"collision_{k}" in arrays]
+    if not present:
+        return
+    missing = [f"collision_{k}" for k in COLLISION_FIELDS if k not in present]
+    if missing:
+        raise PredictionError(f"{where}: the collision table is incomplete, {missing} missing; "
+                              "write all collision_* arrays or none (" + _FIX_HINT + ")")
+    n_events = arrays["collision_ball"].shape[0] if arrays["collision_ball"].ndim else -1
+    for key, kind in COLLISION_FIELDS.items():
+        value = arrays[f"collision_{key}"]
+        shape = (n_events, 5) if key == "energy" else (n_events,)
+        ok = {"int": np.issubdtype(value.dtype, np.integer) and value.dtype != bool,
+              "bool": value.dtype == bool,
+              "float": np.issubdtype(value.dtype, np.floating)}[kind]
+        if value.shape != shape or not ok:
+            raise PredictionError(f"{where}: array 'collision_{key}' must be {kind} of shape "
+                                  f"{shape} (E = {n_events} events, from 'collision_ball'), "
+                                  f"got {value.dtype} {value.shape}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,6 +361,7 @@ def prediction_from_trajectory(traj: Any, start_index: int, n_steps: int, *,
 
 
 __all__ = [
+    "COLLISION_FIELDS",
     "COUNT_ARRAYS",
     "REQUIRED_ARRAYS",
     "REQUIRED_META",

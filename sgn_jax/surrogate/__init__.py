@@ -8,7 +8,9 @@
   graph network, kind "sgn") and :mod:`sgn_jax.surrogate.contact` (the contact-impulse model,
   kind "contact", with its unrolled-loss training in :mod:`sgn_jax.surrogate.contact_train`);
 - :mod:`sgn_jax.surrogate.train` - loss, packed batches, the training and evaluation steps;
-- :mod:`sgn_jax.surrogate.rollout` - the surrogate as an init/step pair and a scan.
+- :mod:`sgn_jax.surrogate.rollout` - the surrogate as an init/step pair and a scan;
+- :mod:`sgn_jax.surrogate.collisions` - the contact model's collision ledger, recorded in the
+  rollout's scan.
 
 Importing the package registers the built-in model kinds (the imports below), so whatever
 imports a surrogate module finds them in the registry. A new kind is one file beside

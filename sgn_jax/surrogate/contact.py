@@ -33,7 +33,10 @@ velocities ``vbar = (v_n + v_{n+1}) / 2`` of the integrator::
     D_pp + D_pw = W_wall + W_grav - dKE       (exact identity; W_wall = sum J_b . u_wall,
                                                W_grav = sum m g . vbar dt)
 
-so the surrogate's energy ledger closes by construction (tests/test_contact.py). The paper's
+so the surrogate's energy ledger closes by construction (tests/test_contact.py). Each term
+belongs to one contact: a rollout with ``collisions=True`` gathers them into collision events
+(:meth:`ContactNet.collision_terms`, :mod:`sgn_jax.surrogate.collisions`), whose energies add
+up to ``D_pp + D_pw``. The paper's
 target (normal + tangential damping, docs/conventions.md section 3) is reported as ``share_pp D_pp +
 share_pw D_pw``; the two shares (the part of all losses that is damping, not slip or rolling) are
 the only energy quantities fitted from data (``fit_dissipation_shares``), never a second energy.
@@ -60,6 +63,7 @@ import jraph
 
 from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
 from sgn_jax.errors import SGNJaxError
+from sgn_jax.surrogate.collisions import contact_grid
 from sgn_jax.surrogate.graph import SLOT_DIM
 from sgn_jax.surrogate.model import register_model
 
@@ -202,7 +206,10 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         u_wall (E, 3): the jar's velocity (m/s) for ball-wall edges, 0 otherwise;
         jar_dv (E, 3): the jar's velocity change over the last step (m/s) for ball-wall
             edges (the estimate of its change over the next), 0 otherwise;
-        v_node (n_node, 3): every node's velocity at the newest slot, v_n (m/s).
+        v_node (n_node, 3): every node's velocity at the newest slot, v_n (m/s);
+        u_n (E,): m/s, the gap rate v_rel . n at the newest slot (< 0: approaching);
+        speed_c (E,): m/s, the tangential speed of the contact (of its contact point with
+            ``spin``; of the centres without).
 
     With ``spin`` (the graph's ``nodes["spin"]``, the balls' angular velocities w at t_n) the
     tangent is that of the slip at the CONTACT POINT, v_rel - R (w_r + w_s) x n (a wall does
@@ -322,7 +329,7 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
-        "v_node": vel[-1], **extra,
+        "v_node": vel[-1], "u_n": u[-1], "speed_c": slip_c, **extra,
     }
 
 
@@ -650,6 +657,13 @@ class ContactNet(nn.Module):
 
     def step_terms(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
         """Everything of one step: per-node velocity change and per-graph energies (J)."""
+        return self._terms_and_contacts(graph)[0]
+
+    def _terms_and_contacts(self, graph: jraph.GraphsTuple
+                            ) -> tuple[dict[str, jax.Array], dict[str, Any]]:
+        """``(step_terms, contacts)``; ``contacts``: the edge geometry ``geo``
+        (:func:`edge_geometry`) and per contact row (E,) its dissipation ``diss`` (J, its term
+        of ``diss_pp + diss_pw``) and that dissipation's normal-impulse part ``diss_normal``."""
         # One row per contact (the primary direction of each edge, half the slots): the MLPs run
         # once per contact and the partner gets exactly the opposite impulse.
         geo = edge_geometry(graph, self.physics, primary_only=True, spin=self.spin)
@@ -686,6 +700,12 @@ class ContactNet(nn.Module):
                         + jnp.sum(a_send * wbar_node[senders], axis=-1))
             per_edge_pp = per_edge_pp - rot_work * geo["is_pp"]
             per_edge_pw = per_edge_pw - rot_work * geo["is_pw"]
+        # The normal-impulse part of each contact's dissipation, (J . n)(n . (vbar_partner -
+        # vbar_r)); the rest (tangential impulse, torques) is its tangential part.
+        vbar_partner = jnp.where(geo["is_pw"][:, None], geo["u_wall"], vbar_node[senders])
+        per_edge_normal = (jnp.sum(impulse * geo["normal"], axis=-1)
+                           * jnp.sum(geo["normal"] * (vbar_partner - vbar), axis=-1)
+                           * (geo["is_pp"] | geo["is_pw"]))
         work_wall_e = jnp.sum(impulse * geo["u_wall"], axis=-1) * geo["is_pw"]
         n_graph = graph.n_node.shape[0]
         edge_graph = _edge_graph_index(graph)[0::2]
@@ -700,7 +720,8 @@ class ContactNet(nn.Module):
                  * geo["gate"]}
         if self.spin:
             terms["dw"] = dw
-        return terms
+        contacts = {"geo": geo, "diss": per_edge_pp + per_edge_pw, "diss_normal": per_edge_normal}
+        return terms, contacts
 
     def _accelerations(self, terms: dict[str, jax.Array]) -> jax.Array:
         """(n_node, 3) m/s^2, or with spin (n_node, 6): then the angular ones (rad/s^2)."""
@@ -716,6 +737,27 @@ class ContactNet(nn.Module):
         terms = self.step_terms(graph)
         ledger = jnp.stack([terms["diss_pp"], terms["diss_pw"], terms["work_wall"]], axis=-1)
         return self._accelerations(terms), terms["dE_target"], ledger
+
+    def collision_terms(self, graph: jraph.GraphsTuple):
+        """``(accel, dE_target, ledger, grid)``: :meth:`rollout_terms` and the step's contacts
+        per pair, a :class:`sgn_jax.surrogate.collisions.ContactGrid` (what a rollout with
+        ``collisions=True`` records events from). A contact acts where its gate is on (its
+        impulse is nonzero only there); its approach speed ``-u`` and tangential speed are
+        those of the inputs (the velocities at the step's start), its overlap ``-gap`` at the
+        step's start, its force ``m* du_n / dt`` (the step's mean normal force), its energies
+        the two parts of its term of ``diss_pp + diss_pw``."""
+        terms, contacts = self._terms_and_contacts(graph)
+        geo = contacts["geo"]
+        ledger = jnp.stack([terms["diss_pp"], terms["diss_pw"], terms["work_wall"]], axis=-1)
+        m_star = self._reduced_mass(geo)
+        normal_part = contacts["diss_normal"]
+        values = jnp.stack([-geo["u_n"], geo["speed_c"], jnp.maximum(-geo["gap"], 0.0),
+                            m_star * terms["du_n"] / self.physics.dt, m_star, normal_part,
+                            contacts["diss"] - normal_part], axis=-1)
+        n_balls = graph.nodes["features"].shape[0] - 2   # balls, the wall node, padding
+        grid = contact_grid(n_balls, geo["receivers"], geo["senders"], geo["gate"] > 0,
+                            values.astype(DTYPE))
+        return self._accelerations(terms), terms["dE_target"], ledger, grid
 
     def __call__(self, graph: jraph.GraphsTuple, stats: Any = None):
         del stats

@@ -62,6 +62,13 @@ import numpy as np
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.motion import Motion, frequency_hz, offset, velocity
 from sgn_jax.scene import SDFQuery, analytic_jar_query, grid_query
+from sgn_jax.surrogate.collisions import (
+    DEFAULT_CAPACITY,
+    check_capacity,
+    collision_arrays,
+    init_collisions,
+    update_events,
+)
 from sgn_jax.surrogate.graph import (
     GraphSpec,
     Window,
@@ -100,11 +107,15 @@ class RolloutState:
             (positions f64).
         step: () int32, steps taken since the rollout's start (time t0 + step * dt).
         energy: () float64 J, cumulative predicted dissipation since the start.
+        collisions: the collision ledger (:class:`sgn_jax.surrogate.collisions.CollisionCarry`:
+            the open events and the table of the closed ones) of a rollout with
+            ``collisions=True``; None otherwise.
     """
 
     window: Window
     step: jax.Array
     energy: jax.Array
+    collisions: Any = None
 
 
 @flax.struct.dataclass
@@ -161,6 +172,27 @@ class RolloutResult:
         """Cumulative dissipation after the last step (J)."""
         return self.steps.energy_cum[..., -1]
 
+    def collision_arrays(self, flush: bool = True, packing: int | None = None
+                         ) -> dict[str, np.ndarray]:
+        """The collision events of this result's call, the ``collision_*`` arrays of
+        :mod:`sgn_jax.surrogate.collisions`; ``flush``: with the events still open at its end
+        (flags bit 1); ``packing``: for a batched result (an ensemble), its packing k. Needs a
+        rollout with ``collisions=True``; raises
+        :class:`sgn_jax.surrogate.collisions.CollisionCapacityError` when the call closed more
+        events than ``collision_capacity``."""
+        final = self.final
+        if final.collisions is None:
+            raise RolloutError("this rollout recorded no collision events: run it with "
+                               "collisions=True (a contact model; RolloutOptions)")
+        batched = np.ndim(final.step) > 0
+        if batched != (packing is not None):
+            raise RolloutError(
+                f"this result has {np.shape(final.step)[0] if batched else 'no'} packings: "
+                + ("pass packing=k" if batched else "call it without packing"))
+        if batched:
+            final = jax.tree_util.tree_map(lambda a: a[packing], final)
+        return collision_arrays(final.collisions, int(final.step) if flush else None)
+
     def prediction_arrays(self) -> dict[str, np.ndarray]:
         """The arrays of :func:`sgn_jax.records.prediction.save_prediction` (unbatched result)."""
         s = self.steps
@@ -205,9 +237,29 @@ class ReplayTable:
 # Predictors and SDF queries
 
 
-def model_predictor(model_or_predict: Any) -> Predictor:
+def model_predictor(model_or_predict: Any, collisions: bool = False) -> Predictor:
     """Predictor of an SGN: a flax ``SGN`` module or a ``predict(params, stats, raw_graph)``
-    from :func:`sgn_jax.surrogate.model.make_predict`. Returns the N ball rows and dE of graph 0."""
+    from :func:`sgn_jax.surrogate.model.make_predict`. Returns the N ball rows and dE of graph 0.
+
+    ``collisions``: the predictor also returns the step's contacts per pair (a
+    :class:`sgn_jax.surrogate.collisions.ContactGrid`, what a rollout with ``collisions=True``
+    records events from); only a kind with ``collision_terms`` (the contact model) has them."""
+    if collisions:
+        method = getattr(model_or_predict, "collision_terms", None)
+        if not isinstance(model_or_predict, nn.Module) or method is None:
+            raise RolloutError(
+                f"collisions=True needs a model that reports its contacts' impulses (model kind "
+                f"'contact'), got {type(model_or_predict).__name__}; run this one with "
+                "collisions=False")
+
+        def collision_predictor(params: Any, stats: Any, graph: jraph.GraphsTuple,
+                                step: jax.Array):
+            del stats, step
+            accel, de, ledger, grid = model_or_predict.apply({"params": params}, graph,
+                                                             method=method)
+            return accel, de[0], ledger[0], grid
+
+        return collision_predictor
     if isinstance(model_or_predict, nn.Module):
         predict = make_predict(model_or_predict)
     elif callable(model_or_predict):
@@ -249,11 +301,13 @@ def single_rollout_model(model: Any) -> tuple[Any, bool]:
 NO_LEDGER = (float("nan"),) * 3
 
 
-def _with_ledger(out: tuple) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """A predictor's ``(accel, dE)`` or ``(accel, dE, ledger (3,))`` as the latter (ledger =
-    ``(diss_pp, diss_pw, work_wall)`` J, NaN when the predictor does not report one)."""
-    ledger = out[2] if len(out) == 3 else jnp.asarray(NO_LEDGER, F64)
-    return out[0], out[1], jnp.asarray(ledger).astype(F64).reshape(3)
+def _with_ledger(out: tuple) -> tuple[jax.Array, jax.Array, jax.Array, Any]:
+    """A predictor's ``(accel, dE)``, ``(accel, dE, ledger (3,))`` or ``(accel, dE, ledger,
+    grid)`` as the latter (ledger = ``(diss_pp, diss_pw, work_wall)`` J, NaN when the predictor
+    does not report one; grid: the contacts per pair, None when it does not report them)."""
+    ledger = out[2] if len(out) >= 3 else jnp.asarray(NO_LEDGER, F64)
+    grid = out[3] if len(out) == 4 else None
+    return out[0], out[1], jnp.asarray(ledger).astype(F64).reshape(3), grid
 
 
 def replay_predictor() -> Predictor:
@@ -294,10 +348,18 @@ def jar_state_window(window: Window, motion: Motion, t0: jax.Array, dt: float) -
     )
 
 
-def init_state(window0: Window, motion: Motion, t0: float | jax.Array, dt: float) -> RolloutState:
-    """The rollout's initial carry: ``window0``'s positions, the jar state of ``motion``."""
+def init_state(window0: Window, motion: Motion, t0: float | jax.Array, dt: float,
+               collision_capacity: int = 0) -> RolloutState:
+    """The rollout's initial carry: ``window0``'s positions, the jar state of ``motion``;
+    with ``collision_capacity`` > 0 an empty collision ledger whose table holds that many
+    events per jitted call (:mod:`sgn_jax.surrogate.collisions`; static)."""
+    collisions = None
+    if collision_capacity:
+        n_balls = int(jnp.shape(window0.positions)[1])
+        collisions = init_collisions(n_balls, collision_capacity, t0, dt)
     return RolloutState(window=jar_state_window(window0, motion, t0, dt),
-                        step=jnp.zeros((), I32), energy=jnp.zeros((), F64))
+                        step=jnp.zeros((), I32), energy=jnp.zeros((), F64),
+                        collisions=collisions)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -378,10 +440,10 @@ def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predicto
     def branch(k: int):
         def run(_: Any):
             graph = graph0 if k == 0 else build_graph(window, sdf, specs[k], query)[0]
-            accel, de, ledger = _with_ledger(predictor(params, stats, graph, step))
+            accel, de, ledger, grid = _with_ledger(predictor(params, stats, graph, step))
             n = spec.n_particles
             return (jnp.asarray(accel)[:n].astype(F64), jnp.asarray(de).astype(F64).reshape(()),
-                    ledger)
+                    ledger, grid)
         return run
 
     return jax.lax.switch(index, [branch(k) for k in range(len(specs))], None), counts
@@ -389,13 +451,22 @@ def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predicto
 
 def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: SnapBack,
                params: Any, stats: Any, motion: Motion, sdf: Any, t0: jax.Array,
-               tiers: tuple[int, ...] = ()):
+               tiers: tuple[int, ...] = (), collisions: bool = False):
     n, dt = spec.n_particles, spec.dt
 
     def step_fn(state: RolloutState, _: Any) -> tuple[RolloutState, StepRecord]:
         window = state.window
-        (accel, de, ledger), counts = _predict_tiered(spec, tiers, predictor, query, params, stats, sdf,
-                                              window, state.step)
+        (accel, de, ledger, grid), counts = _predict_tiered(spec, tiers, predictor, query, params,
+                                                            stats, sdf, window, state.step)
+        ledger_carry = state.collisions
+        if collisions:
+            if grid is None:
+                raise RolloutError("collisions=True needs a predictor that reports its contacts "
+                                   "(model_predictor(model, collisions=True) of a contact model)")
+            if ledger_carry is None:
+                raise RolloutError("collisions=True needs a state with a collision ledger: "
+                                   "init_state(..., collision_capacity=C)")
+            ledger_carry = update_events(ledger_carry, grid, state.step)
         accel = jnp.asarray(accel)[:n].astype(F64)
         de = jnp.asarray(de).astype(F64).reshape(())
         spins = window.spins
@@ -444,7 +515,8 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                             overflow=counts.pp_dropped.astype(I32),
                             n_outside=jnp.sum(phi_after > 0, dtype=I32), n_snapped=n_snapped,
                             diss_pp=ledger[0], diss_pw=ledger[1], work_wall=ledger[2])
-        return RolloutState(window=window, step=state.step + 1, energy=energy), record
+        return RolloutState(window=window, step=state.step + 1, energy=energy,
+                            collisions=ledger_carry), record
 
     return step_fn
 
@@ -496,8 +568,10 @@ def _check_counts(n_steps: int, save_every: int, checkpoint_steps: int | None) -
     return checkpoint_steps
 
 
-def _as_predictor(predictor: Any) -> Predictor:
-    return model_predictor(predictor) if isinstance(predictor, nn.Module) else predictor
+def _as_predictor(predictor: Any, collisions: bool = False) -> Predictor:
+    if isinstance(predictor, nn.Module):
+        return model_predictor(predictor, collisions)
+    return predictor
 
 
 @dataclasses.dataclass(frozen=True)
@@ -519,6 +593,11 @@ class RolloutOptions:
         pp_max_overlap: ball-ball separation (:func:`separate_pairs`, not in the paper): after
             each step, pairs overlapping by more than this (m) are moved apart to it, with the
             velocity rule of ``snap_velocity``; None (default) = off, as in the paper.
+        collisions: record the collision ledger (:mod:`sgn_jax.surrogate.collisions`; a
+            contact model only): the carry's ``collisions`` gathers one event per contact,
+            read with :meth:`RolloutResult.collision_arrays`. Off by default.
+        collision_capacity: events the ledger's table holds per jitted call (more raise
+            :class:`sgn_jax.surrogate.collisions.CollisionCapacityError` on the host).
     """
 
     checkpoint_steps: int | None = None
@@ -529,6 +608,8 @@ class RolloutOptions:
     unroll: int = 1
     pp_capacity_tiers: Any = ()
     pp_max_overlap: float | None = None
+    collisions: bool = False
+    collision_capacity: int = DEFAULT_CAPACITY
 
 
 class _Stepping(NamedTuple):
@@ -536,6 +617,7 @@ class _Stepping(NamedTuple):
     query: SDFQuery
     snap: SnapBack
     tiers: tuple[int, ...]
+    collisions: bool
 
 
 def _stepping(spec: GraphSpec, predictor: Any, options: RolloutOptions) -> _Stepping:
@@ -547,8 +629,11 @@ def _stepping(spec: GraphSpec, predictor: Any, options: RolloutOptions) -> _Step
         raise RolloutError(f"pp_max_overlap must be >= 0 m or None, got {o.pp_max_overlap}")
     snap = SnapBack(bool(o.snap_back), float(o.phi_sb), o.snap_velocity == "keep",
                     None if o.pp_max_overlap is None else float(o.pp_max_overlap))
-    return _Stepping(_as_predictor(predictor), _default_query() if o.query is None else o.query,
-                     snap, check_tiers(spec, o.pp_capacity_tiers))
+    if o.collisions:
+        check_capacity(o.collision_capacity)
+    return _Stepping(_as_predictor(predictor, bool(o.collisions)),
+                     _default_query() if o.query is None else o.query,
+                     snap, check_tiers(spec, o.pp_capacity_tiers), bool(o.collisions))
 
 
 def make_rollout_step(spec: GraphSpec, predictor: Any, **options: Any) -> Callable[..., Any]:
@@ -565,7 +650,7 @@ def make_rollout_step(spec: GraphSpec, predictor: Any, **options: Any) -> Callab
     def step(params: Any, stats: Any, state: RolloutState, motion: Motion, sdf: Any,
              t0: Any) -> tuple[RolloutState, StepRecord]:
         return _make_step(spec, s.predictor, s.query, s.snap, params, stats, motion, sdf,
-                          jnp.asarray(t0, F64), s.tiers)(state, None)
+                          jnp.asarray(t0, F64), s.tiers, s.collisions)(state, None)
 
     return step
 
@@ -594,8 +679,11 @@ def make_rollout_advance(spec: GraphSpec, predictor: Any, n_steps: int, save_eve
     def advance(params: Any, stats: Any, state: RolloutState, motion: Motion, sdf: Any,
                 t0: Any) -> RolloutResult:
         t0 = jnp.asarray(t0, F64)
+        if s.collisions and state.collisions is None:   # a state from init_state without one
+            state = state.replace(collisions=init_collisions(
+                spec.n_particles, opts.collision_capacity, t0, spec.dt))
         step_fn = _make_step(spec, predictor, query, snap, params, stats, motion, sdf, t0,
-                             tiers)
+                             tiers, s.collisions)
 
         def frame(carry: RolloutState, _: Any):
             carry, records = jax.lax.scan(step_fn, carry, None, length=save_every, unroll=unroll)
@@ -650,10 +738,12 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
         at t0. Differentiable in ``params``, ``window0`` positions, the motion and the SDF.
     """
     advance = make_rollout_advance(spec, predictor, n_steps, save_every, jit=False, **options)
+    opts = RolloutOptions(**options)
 
     def rollout(params: Any, stats: Any, window0: Window, motion: Motion, sdf: Any,
                 t0: Any) -> RolloutResult:
-        state = init_state(window0, motion, t0, spec.dt)
+        state = init_state(window0, motion, t0, spec.dt,
+                           opts.collision_capacity if opts.collisions else 0)
         result = advance(params, stats, state, motion, sdf, t0)
         return result.replace(
             t_pos=jnp.concatenate([jnp.asarray(t0, F64)[None], result.t_pos]),
