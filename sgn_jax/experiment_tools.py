@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from sgn_jax.analysis.collisions import (
+    collision_statistics,
     decade_comparison,
     ensemble_statistics,
     events_from_arrays,
@@ -124,6 +125,7 @@ def plot_case_curves(title: str, preds: list[str | Path], refs: list[str | Path]
 
 
 __all__ = [
+    "collision_statistics",
     "decade_comparison",
     "ensemble_statistics",
     "events_from_arrays",

@@ -87,8 +87,13 @@ def test_event_energies_add_up_to_the_models_own_ledger(cluster_run):
     assert np.all(energy[:, 2:] == 0.0)
     diss_pp, diss_pw = np.asarray(result.steps.diss_pp), np.asarray(result.steps.diss_pw)
     scale = np.abs(diss_pp).sum() + np.abs(diss_pw).sum()
-    assert energy[~wall].sum() == pytest.approx(diss_pp.sum(), abs=1e-6 * scale)
-    assert energy[wall].sum() == pytest.approx(diss_pw.sum(), abs=1e-6 * scale)
+    # with what below-floor steps left pending at the end (reported apart, small)
+    pending = result.collision_pending().sum()
+    assert abs(pending) <= 0.01 * scale
+    assert energy.sum() + pending == pytest.approx(diss_pp.sum() + diss_pw.sum(),
+                                                   abs=1e-6 * scale)
+    assert energy[~wall].sum() == pytest.approx(diss_pp.sum(), abs=0.01 * scale)
+    assert energy[wall].sum() == pytest.approx(diss_pw.sum(), abs=0.01 * scale)
     # both parts carry energy; durations are whole steps; m* of a pair and of a wall
     assert np.abs(energy[:, 0]).sum() > 0 and np.abs(energy[:, 1]).sum() > 0
     steps = events["collision_duration_s"] / DT
@@ -209,7 +214,8 @@ def test_a_head_on_impact_is_one_event_with_the_approach_speed_of_its_inputs():
     assert events["collision_peak_force"][0] == pytest.approx(
         phys.ball_mass / 2 * 0.3 * np.log(2.0) / DT, rel=1e-5)
     total = float(np.sum(result.steps.diss_pp))
-    assert events["collision_energy"][0].sum() == pytest.approx(total, rel=1e-5)
+    assert events["collision_energy"][0].sum() + result.collision_pending().sum() == \
+        pytest.approx(total, rel=1e-5)
     # the energy is all in the normal part: a head-on impulse has no tangential part
     assert abs(events["collision_energy"][0, 1]) <= 1e-6 * abs(total)
 
@@ -243,14 +249,17 @@ def test_run_rollout_writes_the_collision_table_into_the_prediction(tmp_path):
     assert summary["collision_events"] == pred.collision_ball.size == 1
     assert (pred.collision_ball[0], pred.collision_partner[0]) == (0, 1)
     assert not pred.collision_wall[0] and pred.collision_flags[0] == 0
-    assert pred.collision_start_s[0] == pytest.approx(t[-1], abs=1e-12)
+    # the contact begins when the 0.2 mm gap has closed at 1 m/s (the gated steps before,
+    # below the force floor, are no contact yet)
+    assert pred.collision_start_s[0] == pytest.approx(t[-1] + 2e-4, abs=dt + 1e-12)
     assert pred.collision_impact_normal[0] == pytest.approx(1.0, rel=1e-4)
     # a trained model dissipates, less than the impact's kinetic energy, mostly normal
     stress = 0.5 * pred.collision_mass_eff[0] * 1.0 ** 2
     assert 0 < pred.collision_energy[0].sum() < stress
     assert pred.collision_energy[0, 0] > 0.9 * pred.collision_energy[0].sum()
     total = pred.diss_pp_model.sum() + pred.diss_pw_model.sum()
-    assert pred.collision_energy.sum() == pytest.approx(total, rel=1e-5)
+    pending = sum(pred.meta["collisions"]["pending_J"])
+    assert pred.collision_energy.sum() + pending == pytest.approx(total, rel=1e-5)
     assert pred.meta["collisions"]["capacity"] == 16
 
 
@@ -266,7 +275,8 @@ def test_an_ensemble_records_each_packings_events(contact_short_packings):
         events = result.collision_arrays(packing=k)
         ledger = float(np.sum(result.steps.diss_pp[k]) + np.sum(result.steps.diss_pw[k]))
         assert events["collision_ball"].size >= 3   # the bed: its contacts last
-        assert events["collision_energy"].sum() == pytest.approx(ledger, rel=1e-5)
+        pending = result.collision_pending(packing=k).sum()
+        assert events["collision_energy"].sum() + pending == pytest.approx(ledger, rel=1e-5)
     with pytest.raises(Exception, match="packing=k"):
         result.collision_arrays()
 

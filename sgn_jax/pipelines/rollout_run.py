@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax
@@ -31,8 +32,11 @@ from sgn_jax.records.trajectory import DatasetError
 from sgn_jax.surrogate.collisions import (
     DEFAULT_CAPACITY,
     check_capacity,
+    EVENT_FORCE_FRACTION,
+    STANDARD_GRAVITY,
     collision_arrays,
     concat_tables,
+    pending_energy,
 )
 from sgn_jax.surrogate.graph import Window, windows_from_arrays
 from sgn_jax.surrogate.rollout import (
@@ -125,7 +129,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
                 out_path: str | Path | None = None, cfg_override: Any = None, *,
                 save_every: int | None = None, progress: bool = True,
                 checkpoint_path: str | None = None, collisions: bool = False,
-                collision_capacity: int = DEFAULT_CAPACITY) -> dict[str, Any]:
+                collision_capacity: int = DEFAULT_CAPACITY,
+                collision_force_fraction: float = EVENT_FORCE_FRACTION) -> dict[str, Any]:
     """Roll a trained SGN out from a dataset's window and save a prediction file.
 
     Runs in jitted chunks of ``[rollout] chunk_steps`` with a progress bar, with ball-pair
@@ -156,6 +161,9 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
         collision_capacity: events the ledger holds per chunk of ``[rollout] chunk_steps``
             steps; a chunk that closes more raises
             :class:`sgn_jax.surrogate.collisions.CollisionCapacityError` saying so.
+        collision_force_fraction: a contact touches in a step when its normal force is at
+            least this fraction of its reduced mass's weight (default
+            :data:`sgn_jax.surrogate.collisions.EVENT_FORCE_FRACTION`, docs/collisions.md).
 
     Returns:
         a summary dict (steps, energy, counts, wall and compile time, ms per step); the arrays
@@ -218,6 +226,13 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
     stats = jax.device_put(trained_model.norm_stats)
 
     state = jax.jit(init_state, static_argnums=(3, 4))(window0, motion, t0, spec.dt, capacity)
+    if collisions:   # the force floor of a touching contact (docs/collisions.md)
+        if not collision_force_fraction >= 0:
+            raise RolloutError(f"collision_force_fraction must be >= 0, got "
+                               f"{collision_force_fraction!r}")
+        state = state.replace(collisions=state.collisions.replace(
+            min_force_per_kg=jnp.asarray(collision_force_fraction * STANDARD_GRAVITY,
+                                         jnp.float64)))
     tables: list[dict[str, np.ndarray]] = []
     compiled: dict[int, Any] = {}
     compile_time = 0.0
@@ -282,6 +297,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
     }
     if collisions:
         summary["collision_events"] = int(arrays["collision_ball"].size)
+        summary["collision_pending_J"] = pending_energy(state.collisions).tolist()
     meta = {
         "dt": dt, "save_every": k, "init_index": record_index,
         "config": config_to_dict(cfg),
@@ -296,7 +312,9 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
         **{key: summary[key] for key in ("wall_time_s", "compile_time_s", "ms_per_step")},
     }
     if collisions:
-        meta["collisions"] = {"capacity": capacity, "energy": "model ledger diss_pp + diss_pw"}
+        meta["collisions"] = {"capacity": capacity, "energy": "model ledger diss_pp + diss_pw",
+                              "force_fraction": float(collision_force_fraction),
+                              "pending_J": summary["collision_pending_J"]}
         share = getattr(trained_model.params, "get", lambda _k: None)("share_logit")
         if share is not None:   # dE reports share_pp diss_pp + share_pw diss_pw
             share_pp, share_pw = (float(x) for x in 1.0 / (1.0 + np.exp(-np.asarray(share))))

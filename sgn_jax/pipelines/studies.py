@@ -24,6 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.analysis.collisions import (
+    DEFAULT_THRESHOLD_J,
+    EVENT_FIELDS,
+    EventTable,
+    collision_statistics,
+)
 from sgn_jax.config import Config, replace_section
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
 from sgn_jax.dem.placement import placement_candidates
@@ -237,6 +243,7 @@ class DesignStudy:
     duration: float
     burn_in: float
     _args: tuple = dataclasses.field(repr=False)
+    _source: Any = dataclasses.field(default=None, repr=False)
 
     def estimate(self, theta: Any = None) -> dict[str, Any]:
         """Power and gradient with standard errors at ``theta`` (default ``theta0``)."""
@@ -244,6 +251,98 @@ class DesignStudy:
         est = jax.device_get(self.ensemble.estimate(jnp.asarray(theta, jnp.float64),
                                                     *self._args))
         return summarize_estimate(est, self.names)
+
+    def collision_tables(self, theta: Any = None, *,
+                         collision_capacity: int = DEFAULT_CAPACITY) -> list[EventTable]:
+        """The collision events of every packing at ``theta`` (default ``theta0``) over the
+        measurement interval (after the burn-in), one :class:`EventTable` per packing
+        (docs/collisions.md): forward rollouts of the contact model with its collision ledger,
+        from the packings' windows moved to the motion at ``theta``. Motion parameters and a
+        study started from the packings only (a jar parameter would need each packing refitted
+        into the changed jar)."""
+        if self._source is None:
+            raise DesignError("this study holds no packings to roll out (build it with "
+                              "sj.design_study)")
+        surrogate, cfg, packings, start = self._source
+        jar_names = [n for n in self.names if not n.startswith("motion.")]
+        if jar_names or start != "packing":
+            raise DesignError(f"collision statistics of a design study take motion parameters "
+                              f"from the packings (start='packing'); this study has "
+                              f"{jar_names or self.names} with start={start!r}")
+        theta = self.theta0 if theta is None else np.asarray(theta, np.float64)
+        if np.shape(theta) != np.shape(self.theta0):
+            raise DesignError(f"theta has shape {np.shape(theta)}, the study's parameters "
+                              f"{list(self.names)} need {np.shape(self.theta0)}")
+        capacity = check_capacity(collision_capacity)
+        frame = _surrogate_frame(surrogate, cfg, packings)
+        motion, jar = apply_parameters(self.names, jnp.asarray(theta), frame.motion, frame.jar)
+        dt = float(cfg.dem.dt)
+        base = motion_from_config(packings.config.motion)
+        if type(base) is not type(motion):
+            base = frame.motion
+        windows = _reanchor(packings, base, motion, dt)
+        run = _ensemble_runner(surrogate, cfg, self.duration, None, "map", False, capacity)
+        result = jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats, motion,
+                                              jar, jnp.asarray(packings.t0))))
+        t0 = float(packings.t0)
+        mass = float(cfg.balls.density) * 4.0 / 3.0 * math.pi * float(cfg.balls.radius) ** 3
+        tables = []
+        for k in range(len(packings)):
+            arrays = result.collision_arrays(packing=k)
+            table = EventTable(**{name: arrays["collision_" + name] for name in EVENT_FIELDS},
+                               record_duration_s=self.duration, record_start_s=t0,
+                               n_balls=int(cfg.balls.count),
+                               total_mass_kg=mass * int(cfg.balls.count), source="surrogate")
+            tables.append(table.window(t0 + self.burn_in, t0 + self.duration))
+        return tables
+
+    def collision_estimate(self, statistic: str = "power_above_W", theta: Any = None, *,
+                           steps: dict[str, float] | None = None,
+                           threshold: float = DEFAULT_THRESHOLD_J,
+                           threshold_by: str = "dissipated") -> dict[str, Any]:
+        """A collision statistic (a scalar of
+        :func:`sgn_jax.analysis.collisions.collision_statistics`: ``power_above_W``,
+        ``share_above``, ``frequency_per_ball_hz[all]``, ``mean_stress_energy_J[all]``, ...)
+        at ``theta`` with its standard error over the packings, and its gradient by central
+        differences with common packings (step ``steps[name]``, default
+        :func:`default_step`), each with the standard error of the per-packing differences.
+        Events are discrete, so the statistic is not differentiated through the rollout.
+        Costs 1 + 2 D ensembles of rollouts with the collision ledger."""
+        theta = self.theta0 if theta is None else np.asarray(theta, np.float64)
+
+        def per_packing(at: np.ndarray) -> np.ndarray:
+            values = []
+            for table in self.collision_tables(at):
+                stats = collision_statistics(table, threshold=threshold,
+                                             threshold_by=threshold_by)
+                if statistic not in stats or np.ndim(stats[statistic]) != 0:
+                    scalars = sorted(k for k, v in stats.items() if np.ndim(v) == 0)
+                    raise DesignError(f"unknown scalar collision statistic {statistic!r}; "
+                                      f"choose one of {scalars}")
+                values.append(float(stats[statistic]))
+            return np.asarray(values)
+
+        def mean_se(values: np.ndarray) -> tuple[float, float]:
+            se = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else math.nan
+            return float(np.mean(values)), se
+
+        unknown = sorted(set(steps or {}) - set(self.names))
+        if unknown:
+            raise DesignError(f"steps given for {unknown}, not parameters of this study "
+                              f"({list(self.names)})")
+        value, se = mean_se(per_packing(theta))
+        out: dict[str, Any] = {"statistic": statistic, "theta": theta.tolist(),
+                               "names": list(self.names), "value": value, "se": se,
+                               "threshold_J": threshold, "threshold_by": threshold_by,
+                               "gradient": {}}
+        for i, name in enumerate(self.names):
+            h = float((steps or {}).get(name, default_step(name, float(theta[i]))))
+            plus, minus = theta.copy(), theta.copy()
+            plus[i] += h
+            minus[i] -= h
+            g, g_se = mean_se((per_packing(plus) - per_packing(minus)) / (2 * h))
+            out["gradient"][name] = {"value": g, "se": g_se, "step": h}
+        return out
 
     def powers(self, theta: Any = None) -> np.ndarray:
         """(K,) per-packing powers (W) at ``theta`` without any gradient work."""
@@ -357,7 +456,8 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
 
     return DesignStudy(names=names, theta0=theta0,
                        power=power_of_theta, ensemble=ensemble, duration=float(duration),
-                       burn_in=float(burn_in), _args=args)
+                       burn_in=float(burn_in), _args=args,
+                       _source=(surrogate, cfg, packings, start))
 
 
 def _packing_start(start: str, surrogate: TrainedModel, cfg: Config, spec: GraphSpec,

@@ -57,6 +57,15 @@ _SUMMED = np.array([f.startswith("energy") for f in GRID_FIELDS])
 # Integer columns of the table: ball, partner, wall, start step, steps, flags.
 _N_INT = 6
 ENERGY_COLUMNS = 5   # DISSIPATION_KINDS of the DEM: normal, tangential, slip, rolling, stiffness
+EVENT_FORCE_FRACTION = 0.1
+"""A contact is touching in a step when its normal force (impulse / dt) is at least this
+fraction of the weight of its reduced mass, ``EVENT_FORCE_FRACTION * m* * STANDARD_GRAVITY``
+(docs/collisions.md). The gate lets a contact act whenever the balls come within
+``gate_margin`` (50 um) of touching, and the model's impulse there is small but not zero: a
+pair rattling at a few um, which the DEM sees as several contacts, would otherwise be one
+event. The fraction is fitted on training packings of training motions (docs/collisions.md),
+never on the held-out ones."""
+STANDARD_GRAVITY = 9.80665
 DEFAULT_CAPACITY = 20000
 """Events per jitted call (per chunk of ``[rollout] chunk_steps`` in ``run_rollout``): the
 standard case (24 balls, 300 rpm) closes about 1,500 events per second of rollout (0.3 per
@@ -94,6 +103,11 @@ class CollisionCarry:
         ints: (C, 6) int32, their ball, partner, wall, start step, steps and flags.
         count: () int32, events closed in this call (the table holds the first min(count, C)).
         t0, dt: () float64 s, the rollout's start time and step.
+        pending: (N, N + 1, 2) float64 J, the dissipation of a pair's gated steps below the
+            force floor while no event of it is open: added to its next event (so the events
+            still add up to the model's ledger); what is left at the end is reported apart.
+        min_force_per_kg: () float64 N/kg, the force floor per kg of m*
+            (:data:`EVENT_FORCE_FRACTION` of standard gravity by default).
     """
 
     open: jax.Array
@@ -105,6 +119,8 @@ class CollisionCarry:
     count: jax.Array
     t0: jax.Array
     dt: jax.Array
+    pending: jax.Array
+    min_force_per_kg: jax.Array
 
     @property
     def capacity(self) -> int:
@@ -112,15 +128,21 @@ class CollisionCarry:
         return int(self.floats.shape[-2])
 
 
-def init_collisions(n_balls: int, capacity: int, t0: Any, dt: float) -> CollisionCarry:
-    """An empty ledger of ``n_balls`` balls and a table of ``capacity`` events."""
+def init_collisions(n_balls: int, capacity: int, t0: Any, dt: float,
+                    force_fraction: float = EVENT_FORCE_FRACTION) -> CollisionCarry:
+    """An empty ledger of ``n_balls`` balls and a table of ``capacity`` events; a contact
+    touches in a step when its force is at least ``force_fraction`` of its m*'s weight."""
     capacity = check_capacity(capacity)
+    if not force_fraction >= 0:
+        raise CollisionCapacityError(f"force_fraction must be >= 0, got {force_fraction!r}")
     shape = (n_balls, n_balls + 1)
     return CollisionCarry(open=jnp.zeros(shape, bool), acc=jnp.zeros(shape + (_N_FLOAT,), F64),
                           start=jnp.zeros(shape, I32), began=jnp.zeros(shape, bool),
                           floats=jnp.zeros((capacity, _N_FLOAT + 1), F64),
                           ints=jnp.zeros((capacity, _N_INT), I32), count=jnp.zeros((), I32),
-                          t0=jnp.asarray(t0, F64), dt=jnp.asarray(dt, F64))
+                          t0=jnp.asarray(t0, F64), dt=jnp.asarray(dt, F64),
+                          pending=jnp.zeros(shape + (2,), F64),
+                          min_force_per_kg=jnp.asarray(force_fraction * STANDARD_GRAVITY, F64))
 
 
 def check_capacity(capacity: Any) -> int:
@@ -162,12 +184,21 @@ def _pair_ids(n_balls: int) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 def update_events(carry: CollisionCarry, grid: ContactGrid, step: jax.Array) -> CollisionCarry:
     """One rollout step (``step``: its index since the rollout's start): close the events
-    whose impulse stopped acting (written to the table), open the new ones, accumulate."""
+    whose contact stopped touching (written to the table), open the new ones, accumulate.
+
+    A pair touches in a step when its impulse acts (the gate) with a normal force of at least
+    ``min_force_per_kg * m*``. The dissipation of a gated step below that floor belongs to the
+    pair's event that closes in it, else waits in ``pending`` for the pair's next event: every
+    joule of the model's ledger lands in an event or, at the end, in the pending total."""
     n = carry.open.shape[0]
     capacity = carry.floats.shape[0]
-    acting = grid.acting
-    close = (carry.open & ~acting).reshape(-1)
+    fresh = grid.values.astype(F64)
+    touching = grid.acting & (fresh[..., 3] >= carry.min_force_per_kg * fresh[..., 4])
+    below = grid.acting & ~touching
+    close_grid = carry.open & ~touching
+    close = close_grid.reshape(-1)
     n_close = jnp.sum(close, dtype=I32)
+    energy = fresh[..., 5:7]
 
     def emit(tables):
         table_f, table_i = tables
@@ -178,8 +209,9 @@ def update_events(carry: CollisionCarry, grid: ContactGrid, step: jax.Array) -> 
         ints = jnp.stack([ball, partner, wall.astype(I32), carry.start, step - carry.start,
                           flags], axis=-1).reshape(-1, _N_INT)
         start_s = carry.t0 + carry.start.astype(F64) * carry.dt
-        floats = jnp.concatenate([carry.acc, start_s[..., None]],
-                                 axis=-1).reshape(-1, _N_FLOAT + 1)
+        # a closing event takes the energy of its last, below-floor step
+        acc = carry.acc.at[..., 5:7].add(jnp.where(below[..., None], energy, 0.0))
+        floats = jnp.concatenate([acc, start_s[..., None]], axis=-1).reshape(-1, _N_FLOAT + 1)
         return (table_f.at[row].set(floats, mode="drop"),
                 table_i.at[row].set(ints, mode="drop"))
 
@@ -188,16 +220,20 @@ def update_events(carry: CollisionCarry, grid: ContactGrid, step: jax.Array) -> 
                                     (carry.floats, carry.ints))
     count = carry.count + n_close
 
-    fresh = grid.values.astype(F64)
-    new = acting & ~carry.open
+    new = touching & ~carry.open
     # continuing: first-step fields kept, the largest overlap and force, the energies summed
-    # (one elementwise pass over the columns, by column masks)
+    # (one elementwise pass over the columns, by column masks); a new event takes the pair's
+    # pending energy
     old = carry.acc
     cont = jnp.where(_LARGEST, jnp.maximum(old, fresh), jnp.where(_SUMMED, old + fresh, old))
-    acc = jnp.where(new[..., None], fresh, cont)
+    first = fresh.at[..., 5:7].add(carry.pending)
+    acc = jnp.where(new[..., None], first, cont)
+    pending = jnp.where(new[..., None], 0.0,
+                        carry.pending + jnp.where((below & ~carry.open)[..., None], energy, 0.0))
     began = jnp.where(new, (step == 0) & (fresh[..., 2] > 0), carry.began)
-    return carry.replace(open=acting, acc=acc, start=jnp.where(new, step, carry.start),
-                         began=began, floats=table_f, ints=table_i, count=count)
+    return carry.replace(open=touching, acc=acc, start=jnp.where(new, step, carry.start),
+                         began=began, floats=table_f, ints=table_i, count=count,
+                         pending=pending)
 
 
 def collision_arrays(carry: CollisionCarry, final_step: Any | None = None,
@@ -229,6 +265,13 @@ def collision_arrays(carry: CollisionCarry, final_step: Any | None = None,
         floats = np.concatenate([floats, open_f.reshape(-1, _N_FLOAT + 1)])
         ints = np.concatenate([ints, open_i.reshape(-1, _N_INT)])
     return event_table(floats, ints, float(carry.dt))
+
+
+def pending_energy(carry: CollisionCarry) -> np.ndarray:
+    """(2,) J, host: the dissipation (normal part, tangential part) of below-floor steps that
+    no event has taken yet (:func:`update_events`); the events plus this add up to the model's
+    ledger."""
+    return np.asarray(jax.device_get(carry.pending), np.float64).reshape(-1, 2).sum(axis=0)
 
 
 def event_table(floats: np.ndarray, ints: np.ndarray, dt: float) -> dict[str, np.ndarray]:
@@ -272,5 +315,6 @@ __all__ = [
     "contact_grid",
     "event_table",
     "init_collisions",
+    "pending_energy",
     "update_events",
 ]

@@ -67,6 +67,7 @@ from sgn_jax.surrogate.collisions import (
     check_capacity,
     collision_arrays,
     init_collisions,
+    pending_energy,
     update_events,
 )
 from sgn_jax.surrogate.graph import (
@@ -192,6 +193,19 @@ class RolloutResult:
         if batched:
             final = jax.tree_util.tree_map(lambda a: a[packing], final)
         return collision_arrays(final.collisions, int(final.step) if flush else None)
+
+    def collision_pending(self, packing: int | None = None) -> np.ndarray:
+        """(2,) J: the dissipation of below-floor contact steps that no event has taken at the
+        end of this call (:func:`sgn_jax.surrogate.collisions.pending_energy`); the events of
+        :meth:`collision_arrays` plus this add up to the model's ledger."""
+        final = self.final
+        if final.collisions is None:
+            raise RolloutError("this rollout recorded no collision events: run it with "
+                               "collisions=True (a contact model; RolloutOptions)")
+        carry = final.collisions
+        if packing is not None:
+            carry = jax.tree_util.tree_map(lambda a: a[packing], carry)
+        return pending_energy(carry)
 
     def prediction_arrays(self) -> dict[str, np.ndarray]:
         """The arrays of :func:`sgn_jax.records.prediction.save_prediction` (unbatched result)."""
