@@ -288,3 +288,33 @@ def test_the_cli_refuses_a_capacity_below_one(tmp_path, capsys):
                  "--out", str(tmp_path / "p.npz"), "--collisions", "--collision-capacity", "0"])
     assert code == 2
     assert "--collision-capacity must be >= 1" in capsys.readouterr().err
+
+
+def test_a_design_study_gives_a_collision_statistic_and_its_gradient(contact_short_packings):
+    """sj.design_study's collision statistics: events of the measurement interval only, the
+    estimate the packings' mean, a finite central-difference gradient; a jar parameter and an
+    unknown statistic refused."""
+    import sgn_jax.api as sj
+    from sgn_jax.analysis.collisions import collision_statistics
+    from sgn_jax.design import DesignError
+
+    model, cfg, packings = contact_short_packings
+    study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=0.04, burn_in=0.02,
+                            n_segments=2)
+    tables = study.collision_tables()
+    t0 = float(packings.t0)
+    assert len(tables) == len(packings)
+    for table in tables:
+        assert table.record_duration_s == pytest.approx(0.02)
+        assert np.all(table.start_s >= t0 + 0.02 - 1e-12) and np.all(table.start_s < t0 + 0.04)
+    est = study.collision_estimate("frequency_per_ball_hz[all]", steps={"motion.rpm": 60.0})
+    per_packing = [collision_statistics(t)["frequency_per_ball_hz[all]"] for t in tables]
+    assert est["value"] == pytest.approx(np.mean(per_packing), rel=1e-9)
+    assert est["value"] > 0 and np.isfinite(est["gradient"]["motion.rpm"]["value"])
+    assert est["gradient"]["motion.rpm"]["step"] == 60.0
+    with pytest.raises(DesignError, match="scalar collision statistic"):
+        study.collision_estimate("dissipation_power_W")
+    jar_study = sj.design_study(model, cfg, ["jar.radius"], packings, duration=0.04,
+                                burn_in=0.02, n_segments=2, start="packing")
+    with pytest.raises(DesignError, match="motion parameters"):
+        jar_study.collision_tables()
