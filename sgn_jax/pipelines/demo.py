@@ -65,6 +65,11 @@ from sgn_jax.analysis.metrics import (
 from sgn_jax.config import resolve_config
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.pipelines.configure import jar_mesh_from_config
+from sgn_jax.analysis.collisions import (
+    DEFAULT_THRESHOLD_J,
+    collision_statistics,
+    events_from_record,
+)
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.rollout_run import config_at_model_step, run_rollout
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
@@ -187,8 +192,10 @@ def run_demo(
     # ---- 2. surrogate rollout from the DEM's first full window
     log(f"model: {n_steps} steps of {dt:g} s from the DEM window ending at t = {window * dt:g} s")
     pred_path = out / "prediction.npz"
+    # a model with a collision ledger (the contact kind) records its collisions too
+    has_ledger = callable(getattr(trained.model, "collision_terms", None))
     rollout = run_rollout(trained, traj, window, n_steps * dt, pred_path, case_cfg,
-                          progress=progress, checkpoint_path=str(ckpt))
+                          progress=progress, checkpoint_path=str(ckpt), collisions=has_ledger)
     prediction = load_prediction(pred_path)
 
     # ---- 3. comparison, plots, animation
@@ -288,11 +295,30 @@ def run_demo(
     last_ref = int(round((float(prediction.t_pos[-1]) - float(traj.t[0])) / traj.dt))
     summary["position"]["mse_final_check_m2"] = float(
         position_mse(prediction.pos[-1:], traj.pos[last_ref:last_ref + 1])[0])
+    summary["collisions"] = (_collision_summary(traj, prediction)
+                             if has_ledger and "collision_ball" in traj.arrays else None)
     summary["machine"] = _machine()
     summary["wall_time_s"] = time.perf_counter() - t_start
     files["summary"] = str(out / "summary.json")
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _collision_summary(traj: Any, prediction: Any) -> dict[str, Any]:
+    """The DEM's and the model's collision statistics over the rollout's interval (one
+    packing; docs/collisions.md)."""
+    model = events_from_record(prediction)
+    start = model.record_start_s
+    dem = events_from_record(traj).window(start, start + model.record_duration_s)
+    out: dict[str, Any] = {"threshold_J": DEFAULT_THRESHOLD_J}
+    for name, table in (("dem", dem), ("model", model)):
+        stats = collision_statistics(table)
+        out[name] = {"per_ball_per_s": stats["frequency_per_ball_hz[all]"],
+                     "mean_stress_energy_J": stats["mean_stress_energy_J[all]"],
+                     "normal_share": stats["normal_share[all]"],
+                     "power_above_W": stats["power_above_W"],
+                     "power_W": stats["power_W[all]"]}
+    return out
 
 
 def _interval_sum(cumulative: np.ndarray, alignment: Any) -> float:
@@ -382,12 +408,28 @@ def format_report(summary: dict[str, Any]) -> str:
         f"edge skin per ball: DEM {_fmt(r['pairs_within_skin_per_ball_dem'], '.2f')}, model "
         f"{_fmt(r['pairs_per_ball_sgn'], '.2f')}; one trajectory of a multistable charge: "
         "judge dissipation on ensembles (docs/conventions.md section 7)",
+        *_collision_lines(summary.get("collisions")),
         f"  wrote      {out}/: summary.json, {names}",
         f"  total      {summary['wall_time_s']:.1f} s",
     ]
     lines += [f"  warning    {w}" for w in summary["warnings"]]
     lines += [f"  {line}" for line in motion_warning_lines(motion_warnings)]
     return "\n".join(lines)
+
+
+def _collision_lines(collisions: dict[str, Any] | None) -> list[str]:
+    """The "collisions" line of the report (docs/collisions.md), DEM vs model."""
+    if not collisions:
+        return []
+    d, m = collisions["dem"], collisions["model"]
+    return [
+        f"  collisions per ball per s: DEM {d['per_ball_per_s']:.0f}, model "
+        f"{m['per_ball_per_s']:.0f}; mean stress energy DEM "
+        f"{1e6 * d['mean_stress_energy_J']:.3g} uJ, model {1e6 * m['mean_stress_energy_J']:.3g} "
+        f"uJ; normal share DEM {100 * d['normal_share']:.0f} %, model "
+        f"{100 * m['normal_share']:.0f} %; power above {collisions['threshold_J']:g} J DEM "
+        f"{d['power_above_W']:.3g} W, model {m['power_above_W']:.3g} W (`sgn-jax spectra` "
+        "for the spectra)"]
 
 
 def _motion_check_lines(checks: list[dict[str, Any]]) -> list[str]:
