@@ -2,8 +2,9 @@
 
 The standard case (24 balls, 300 rpm), a settled bed after 0.05 s of motion (seed 0), advanced
 ``--steps`` DEM steps by the jitted scan with the ledger off (``collision_capacity = 0``) and
-on; the timings alternate, best of ``--repeats`` each, compile time apart. With ``--rollout``
-the same for the shipped contact model's rollout (collisions off / on).
+on; the timings alternate, best of ``--repeats`` each, compile time apart. The same for the
+shipped contact model's rollout (collisions off / on, ``--rollout-steps`` steps of 2e-4 s;
+benchmarks/bench_surrogate_collisions.py).
 
     taskset -c 0 python benchmarks/bench_collisions.py [--steps 50000] [--markdown docs/benchmarks.md]
 
@@ -74,11 +75,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=50_000)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--rollout-steps", type=int, default=5000)
     parser.add_argument("--out", default="benchmarks/results/bench_collisions.json")
     parser.add_argument("--markdown", default=None,
                         help="replace the table between this script's markers in this file")
     args = parser.parse_args()
     rows = dem_rows(args.steps, args.repeats)
+    from bench_surrogate_collisions import rollout_cost   # this folder is on sys.path
+
+    r = rollout_cost(args.rollout_steps, args.repeats)
+    rows.append({"what": "contact model rollout, standard case", "steps": r["steps"],
+                 "off_s": r["ms_per_step_off"] * 1e-3 * r["steps"],
+                 "on_s": r["ms_per_step_on"] * 1e-3 * r["steps"],
+                 "off_steps_per_s": 1e3 / r["ms_per_step_off"],
+                 "on_steps_per_s": 1e3 / r["ms_per_step_on"], "slowdown": r["slowdown"],
+                 "compile_off_s": r["compile_s_off"], "compile_on_s": r["compile_s_on"],
+                 "events": r["events"]})
     machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                "affinity": sorted(os.sched_getaffinity(0)), "jax": jax.__version__}
     result = {"benchmark": "collision_ledger_cost", "commit": git_commit(),
@@ -86,11 +98,13 @@ def main() -> None:
     write_json(args.out, result)
     lines = [f"Commit {result['commit']}, jax {machine['jax']}, affinity {machine['affinity']} "
              f"(`{args.out}`):", "",
-             "| run | ledger off (steps/s) | ledger on (steps/s) | slowdown | events |",
-             "|---|---|---|---|---|"]
+             "| run | steps timed | ledger off (steps/s) | ledger on (steps/s) | slowdown | "
+             "compile off / on (s) | events |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['what']} | {r['off_steps_per_s']:,.0f} | {r['on_steps_per_s']:,.0f} "
-                     f"| {100 * r['slowdown']:+.1f} % | {r['events']} |")
+        lines.append(f"| {r['what']} | {r['steps']:,} | {r['off_steps_per_s']:,.0f} | "
+                     f"{r['on_steps_per_s']:,.0f} | {100 * r['slowdown']:+.1f} % | "
+                     f"{r['compile_off_s']:.1f} / {r['compile_on_s']:.1f} | {r['events']} |")
     table = "\n".join(lines)
     print(json.dumps(rows))
     print(table)
