@@ -77,7 +77,8 @@ def main() -> None:
     rows = []
     for dtype in args.dtypes.split(","):
         for mode in args.modes.split(","):
-            spec = dataclasses.replace(setup.spec, pair_mode=mode, dtype=dtype)
+            spec = dataclasses.replace(setup.spec, pair_mode=mode, dtype=dtype,
+                                       collision_capacity=0)  # the ledger: bench_collisions.py
             start = init_state(spec, setup.params, state.pos, state.vel, state.omega,
                                step=int(state.step))
             start = start.replace(pw_history=state.pw_history.astype(dtype))

@@ -342,25 +342,27 @@ def _pair_keys(spec: DEMSpec, i: jnp.ndarray, j: jnp.ndarray, valid: jnp.ndarray
     return jnp.where(valid, i.astype(jnp.int64) * n + j, n * n)
 
 
-def _rebuild_pairs(spec: DEMSpec, params: DEMParams, state: DEMState) -> DEMState:
-    """Rebuild the Verlet list and carry each surviving pair's history to its new slot."""
-    i, j, valid, count = _build_verlet_list(spec, params.radius, state.pos)
-    old = state.pairs
+def _rebuild_pairs(spec: DEMSpec, radius: Any, pos: jnp.ndarray, parts: tuple) -> tuple:
+    """Rebuild the Verlet list and carry each surviving pair's history (and the event in
+    progress of the collision ledger, if any) to its new slot.
+
+    ``parts`` = ``(pairs, pp_history, pp_track)`` (``pp_track`` None without a ledger): only
+    what a rebuild changes goes through its ``lax.cond``, whose operands XLA copies."""
+    old, old_history, track = parts
+    i, j, valid, count = _build_verlet_list(spec, radius, pos)
     # Both lists are sorted by key (triangular order, sentinels last): match by binary search.
     old_keys = _pair_keys(spec, old.i, old.j, old.valid)
     new_keys = _pair_keys(spec, i, j, valid)
     where = jnp.clip(jnp.searchsorted(old_keys, new_keys), 0, old_keys.shape[0] - 1)
     found = valid & (old_keys[where] == new_keys)
-    history = jnp.where(found[:, None], state.pp_history[where], 0.0)
-    pairs = PairList(i=i, j=j, valid=valid, ref_pos=state.pos,
+    history = jnp.where(found[:, None], old_history[where], 0.0)
+    pairs = PairList(i=i, j=j, valid=valid, ref_pos=pos,
                      overflow=old.overflow | (count > spec.n_pair_slots),
                      rebuilds=old.rebuilds + 1,
                      max_candidates=jnp.maximum(old.max_candidates, count))
-    state = state.replace(pairs=pairs, pp_history=history)
-    if state.collisions is not None:
-        tracks = coll.carry_pp_track(state.collisions.pp, where, found)
-        state = state.replace(collisions=state.collisions.replace(pp=tracks))
-    return state
+    if track is not None:
+        track = coll.carry_pp_track(track, where, found)
+    return pairs, history, track
 
 
 def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray) -> PairList:
@@ -522,8 +524,14 @@ def make_dem_step(
     def step(params: DEMParams, state: DEMState) -> DEMState:
         if mode == "neighbour":
             moved = jnp.max(jnp.sum((state.pos - state.pairs.ref_pos) ** 2, axis=-1))
-            state = jax.lax.cond(moved > (0.5 * spec.neighbour_skin) ** 2,
-                                 lambda s: _rebuild_pairs(spec, params, s), lambda s: s, state)
+            track = None if state.collisions is None else state.collisions.pp
+            pairs, history, track = jax.lax.cond(
+                moved > (0.5 * spec.neighbour_skin) ** 2,
+                lambda parts: _rebuild_pairs(spec, params.radius, state.pos, parts),
+                lambda parts: parts, (state.pairs, state.pp_history, track))
+            state = state.replace(pairs=pairs, pp_history=history)
+            if track is not None:
+                state = state.replace(collisions=state.collisions.replace(pp=track))
         pos, vel, omega = state.pos, state.vel, state.omega
         radius = jnp.asarray(params.radius, dtype)
         pairs = state.pairs
