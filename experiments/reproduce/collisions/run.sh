@@ -1,0 +1,47 @@
+#!/bin/bash
+# The collision ledgers and spectra (docs/collisions.md, "How well it does"): the DEM's records
+# of the six held-out envelope motions (8 packings each) with their collision tables, the
+# surrogate ledger's force floor fitted on three training runs, the contact model's collision
+# statistics against the DEM's on the held-out motions, and the DEM's statistics at dt and
+# dt/2. Resumable (finished records and rollouts are kept). JOBS=1 for one core.
+set -euo pipefail
+cd "$(dirname "$0")/../../.."
+JOBS=${JOBS:-2}
+OUT=${OUT:-runs/collisions_eval}
+D=data/collisions
+HELDOUT=heldout_c00,heldout_c01,heldout_c02,heldout_h00,heldout_h01,heldout_h02
+CONFIGS=experiments/envelope/configs
+
+# 1. The DEM's held-out records ([dem] collisions = true, the default, writes the events).
+python experiments/tools/generate_data.py --ensembles experiments/envelope/ensembles.toml \
+    --cases $HELDOUT --split eval --jobs "$JOBS" --out $D/envelope
+
+# 2. Three training runs (training motions and packings) and the force floor fitted on them.
+mkdir -p $D/calibration $D/halfstep
+dem() {  # CONFIG SEED OUT [extra args]: one DEM run unless its record exists
+    [ -f "$3" ] || sgn-jax dem --config "$1" --duration 1.5 --seed "$2" --out "$3" \
+        --no-progress "${@:4}" > "$3.json"
+}
+dem $CONFIGS/train_c00.toml 1000 $D/calibration/train_c00_seed1000.npz &
+dem $CONFIGS/train_c01.toml 1010 $D/calibration/train_c01_seed1010.npz
+wait
+dem $CONFIGS/train_h00.toml 1120 $D/calibration/train_h00_seed1120.npz
+python experiments/tools/calibrate_event_floor.py --data $D/calibration \
+    --fractions 0.01,0.03,0.1,0.3 --out $OUT/calibration.json
+
+# 3. The contact model's statistics against the DEM's, with the figures of each motion.
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/ensembles.toml \
+    --cases $HELDOUT --data $D/envelope --out $OUT --name heldout --figures
+
+# 4. The DEM at half its step: four packings of heldout_c01.
+for seed in 4 5 6 7; do
+    dem $CONFIGS/heldout_c01.toml $seed $D/halfstep/heldout_c01_seed$seed.npz --dt-dem 4.75e-7 &
+    if [ $((seed % JOBS)) -eq $((JOBS - 1)) ]; then wait; fi
+done
+wait
+python experiments/tools/compare_collision_steps.py \
+    --a "$D/envelope/heldout_c01_seed[4-7].npz" --b "$D/halfstep/heldout_c01_seed*.npz" \
+    --out $OUT/halfstep.json
+
+# 5. The DEM's events against its energy ledger.
+python experiments/tools/collision_closure.py "$D/envelope/*.npz" "$D/calibration/*.npz"
