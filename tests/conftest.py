@@ -50,6 +50,8 @@ LONGEST_FILES_FIRST = (
     "test_sharding.py",         # ~36 s (the two-device process)
     "test_sweep.py",            # ~28 s; contact_short_packings
     "test_dem_driver.py",       # ~26 s
+    "test_surrogate_collisions.py",  # ~35 s; contact_short_packings
+    "test_dem_collisions.py",   # ~25 s
     "test_motion.py",           # ~20 s
     "test_extension_contact_law.py",  # ~18 s
     "test_contact_train.py",    # ~17 s
