@@ -43,5 +43,9 @@ python experiments/tools/compare_collision_steps.py \
     --a "$D/envelope/heldout_c01_seed[4-7].npz" --b "$D/halfstep/heldout_c01_seed*.npz" \
     --out $OUT/halfstep.json
 
-# 5. The DEM's events against its energy ledger.
+# 5. A design study of the power above 1e-4 J against the rpm, beside DEM ensembles.
+python experiments/tools/spectrum_gradient.py --config emax_300rpm --step 30 \
+    --seeds 4,5,6,7,8,9,10,11 --data $D/gradient --out $OUT/gradient.json --jobs "$JOBS"
+
+# 6. The DEM's events against its energy ledger.
 python experiments/tools/collision_closure.py "$D/envelope/*.npz" "$D/calibration/*.npz"
