@@ -47,7 +47,7 @@ ROWS = [
     (False, 0.5, 1.0, 2e-3, energy(8e-4, 2e-4), 0),                # hard impact: 1e-3 J
     (False, 1.0, 0.1, 2e-3, energy(5e-6, 0.0, 5e-6), 0),           # 1e-5 J
     (True, 1.2, 0.5, 4e-3, energy(1e-4), 0),                       # exactly 1e-4 J
-    (True, 1.9, 0.2, 4e-3, energy(2e-5), C.FLAG_STILL_OPEN),       # 2e-5 J
+    (True, 1.9, 0.2, 4e-3, energy(2e-5), C.FLAG_OPEN_AT_END),       # 2e-5 J
 ]
 
 

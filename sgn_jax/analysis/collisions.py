@@ -38,7 +38,10 @@ from typing import Any
 
 import numpy as np
 
-from sgn_jax.dem.engine import DISSIPATION_KINDS
+from sgn_jax.dem.collisions import COLLISION_FIELDS as EVENT_FIELDS
+from sgn_jax.dem.collisions import COLLISION_PREFIX as PREFIX
+from sgn_jax.dem.collisions import FLAG_BEGAN_BEFORE, FLAG_OPEN_AT_END
+from sgn_jax.dem.contact import DISSIPATION_KINDS
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.records.prediction import Prediction, load_prediction
 from sgn_jax.records.trajectory import Trajectory, load_trajectory
@@ -61,31 +64,6 @@ ENERGY_COLUMNS: tuple[str, ...] = tuple(DISSIPATION_KINDS)
 """The columns of ``energy`` (E, 5): the DEM's dissipation kinds. Column 0 is the normal
 (impact) part; the others (tangential damping, Coulomb slip, rolling friction, stiffness) are
 the tangential (shear) part."""
-
-FLAG_BEGAN_BEFORE = 1
-"""Flag bit: the event was already in contact when the record began."""
-FLAG_STILL_OPEN = 2
-"""Flag bit: the event was still in contact when the record ended."""
-
-PREFIX = "collision_"
-"""The prefix of the event arrays in a record's ``.npz``."""
-
-EVENT_FIELDS: dict[str, tuple[str, str]] = {
-    "ball": ("int32", "ball index i"),
-    "partner": ("int32", "the other ball j > i (ball-ball) or the wall patch (ball-wall)"),
-    "wall": ("bool", "True for a ball-wall event"),
-    "start_s": ("float64", "s, motion time of the first touching step"),
-    "duration_s": ("float64", "s, first touching step to the first step apart"),
-    "impact_normal": ("float64", "m/s, normal approach speed at first touch (> 0 approaching)"),
-    "impact_tangential": ("float64", "m/s, tangential speed of the contact point at first touch"),
-    "max_overlap": ("float64", "m, deepest overlap (NaN where the ledger does not know it)"),
-    "peak_force": ("float64", "N, largest normal force (NaN where unknown)"),
-    "mass_eff": ("float64", "kg, reduced mass of the pair (the ball's mass for a wall)"),
-    "energy": ("float64", "J dissipated, (E, 5) by ENERGY_COLUMNS"),
-    "flags": ("int8", "bit 0: began before the record; bit 1: still open at its end"),
-}
-"""Field -> (dtype, meaning) of the event table, stored as ``collision_<field>``."""
-
 
 def log_edges(lo: float = 1e-10, hi: float = 1e-1, per_decade: int = 4) -> np.ndarray:
     """Decade-aligned logarithmic bin edges from ``lo`` to ``hi``, ``per_decade`` bins a decade.
@@ -152,7 +130,7 @@ class EventTable:
         max_overlap: (E,) float64 m; peak_force: (E,) float64 N (NaN where unknown).
         mass_eff: (E,) float64 kg.
         energy: (E, 5) float64 J, columns :data:`ENERGY_COLUMNS`.
-        flags: (E,) int8, :data:`FLAG_BEGAN_BEFORE` | :data:`FLAG_STILL_OPEN`.
+        flags: (E,) int8, :data:`FLAG_BEGAN_BEFORE` | :data:`FLAG_OPEN_AT_END`.
         record_duration_s: s, the time the record spans (the statistics' time base).
         record_start_s: s, motion time at which the record begins.
         n_balls: N, balls in the charge.
@@ -835,7 +813,7 @@ __all__ = [
     "ENERGY_EDGES",
     "EVENT_FIELDS",
     "FLAG_BEGAN_BEFORE",
-    "FLAG_STILL_OPEN",
+    "FLAG_OPEN_AT_END",
     "KINDS",
     "PAIR_KINDS",
     "PREFIX",

@@ -7,7 +7,7 @@ many events of which energy (docs/collisions.md). It is recorded inside the jitt
 - every contact slot (a ball-ball slot of the pair list, a (ball, wall patch) pair) carries a
   :class:`ContactTrack`: whether it is touching, the step it began, its speeds at first touch,
   its deepest overlap and largest normal force so far and the energy it has dissipated, by
-  kind (:data:`EVENT_ENERGY_KINDS`, the kinds of the energy ledger);
+  kind (:data:`~sgn_jax.dem.contact.DISSIPATION_KINDS`, the kinds of the energy ledger);
 - on the step a contact opens, its row goes into a fixed-capacity event buffer
   (:class:`CollisionBuffer`) and the slot is cleared. The buffer's ``count`` keeps counting past
   its capacity, so an overflow is seen (the host driver raises; nothing is dropped silently);
@@ -31,21 +31,46 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-EVENT_ENERGY_KINDS = ("normal", "tangential", "slip", "rolling", "stiffness")
-"""Columns of an event's energy, the kinds of the DEM's energy ledger (J)."""
+from sgn_jax.dem.contact import DISSIPATION_KINDS
+
+# --------------------------------------------------------------------------------------------
+# The collision table: the one format of both ledgers' events (the DEM's here, the contact
+# model's in sgn_jax.surrogate.collisions), of the records that store them and of the
+# statistics that read them (docs/collisions.md).
+
+COLLISION_PREFIX = "collision_"
+"""The prefix of the event arrays in a record's ``.npz``."""
+
+COLLISION_FIELDS: dict[str, tuple[str, str]] = {
+    "ball": ("int32", "ball index i"),
+    "partner": ("int32", "the other ball j > i (ball-ball) or the wall patch (ball-wall)"),
+    "wall": ("bool", "True for a ball-wall event"),
+    "start_s": ("float64", "s, motion time of the first touching step"),
+    "duration_s": ("float64", "s, first touching step to the first step apart"),
+    "impact_normal": ("float64", "m/s, normal approach speed at first touch (> 0 approaching)"),
+    "impact_tangential": ("float64", "m/s, tangential speed of the contact point at first touch"),
+    "max_overlap": ("float64", "m, deepest overlap (NaN where the ledger does not know it)"),
+    "peak_force": ("float64", "N, largest normal force (NaN where unknown)"),
+    "mass_eff": ("float64", "kg, reduced mass of the pair (the ball's mass for a wall)"),
+    "energy": ("float64", "J dissipated, (E, 5) by the kinds of DISSIPATION_KINDS"),
+    "flags": ("int8", "bit 0: began before the record; bit 1: still open at its end"),
+}
+"""Field -> (dtype, meaning) of the event table, stored as ``collision_<field>``; ``energy`` is
+(E, 5), the others (E,)."""
+
+FLAG_BEGAN_BEFORE = 1
+"""Event flag bit: the contact began before the recorded window (its energy counts from its
+start)."""
+FLAG_OPEN_AT_END = 2
+"""Event flag bit: the contact was still open when the record ended."""
 
 # Columns of CollisionBuffer.floats (ContactTrack.values).
 IMPACT_NORMAL, IMPACT_TANGENTIAL_SQ, MAX_OVERLAP, PEAK_FORCE = 0, 1, 2, 3
 ENERGY0 = 4
-N_FLOATS = ENERGY0 + len(EVENT_ENERGY_KINDS)
+N_FLOATS = ENERGY0 + len(DISSIPATION_KINDS)
 # Columns of CollisionBuffer.ints.
 BALL, PARTNER, WALL, START_STEP, END_STEP, FLAGS = range(6)
 N_INTS = 6
-
-FLAG_BEGAN_BEFORE = 1
-"""Event flag bit: the contact began before the recorded window (its energy counts from t = 0)."""
-FLAG_OPEN_AT_END = 2
-"""Event flag bit: the contact was still open when the record ended."""
 
 
 @flax.struct.dataclass
@@ -66,7 +91,7 @@ class ContactTrack:
         max_overlap: float64 m, the deepest overlap so far.
         peak_force: float64 N, the largest normal force so far.
         energy: tuple of 5 float64 arrays, the energy dissipated so far by kind (J,
-            :data:`EVENT_ENERGY_KINDS`).
+            :data:`~sgn_jax.dem.contact.DISSIPATION_KINDS`).
         spring: float64 J, the tangential spring energy stored after the last step (the
             stiffness term of the next step is measured against it).
     """
@@ -125,7 +150,7 @@ def empty_track(shape: tuple[int, ...]) -> ContactTrack:
     return ContactTrack(active=jnp.zeros(shape, bool), start=jnp.zeros(shape, jnp.int32),
                         impact_normal=zero(),
                         impact_tangential=zero(), max_overlap=zero(), peak_force=zero(),
-                        energy=tuple(zero() for _ in EVENT_ENERGY_KINDS), spring=zero())
+                        energy=tuple(zero() for _ in DISSIPATION_KINDS), spring=zero())
 
 
 def empty_ledger(n_pair_slots: int, n_balls: int, capacity: int) -> CollisionLedger:

@@ -329,6 +329,11 @@ def assemble_contact_forces(
     )
 
 
+DISSIPATION_KINDS = ("normal", "tangential", "slip", "rolling", "stiffness")
+"""The kinds of the DEM's energy ledger: the four of :class:`ContactDissipation` and the energy
+the tangential spring releases as its stiffness changes (formed by the engine)."""
+
+
 class ContactDissipation(NamedTuple):
     """Energy dissipated by K contacts over one step (J, each (K,))."""
 

@@ -46,10 +46,10 @@ import numpy as np
 
 from sgn_jax import motion as motion_mod
 from sgn_jax.dem import collisions as coll
+from sgn_jax.dem.contact import DISSIPATION_KINDS  # noqa: F401  (re-exported: the ledger's kinds)
 from sgn_jax.dem.laws import HERTZ_MINDLIN, ContactLawError, resolve_contact_law
 from sgn_jax.errors import SGNJaxError
 
-DISSIPATION_KINDS = ("normal", "tangential", "slip", "rolling", "stiffness")
 PAIR_MODES = ("auto", "nxn", "pairs", "neighbour")
 
 WallFn = Callable[[Any, jnp.ndarray], tuple[jnp.ndarray, jnp.ndarray]]

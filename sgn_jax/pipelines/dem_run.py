@@ -159,28 +159,19 @@ def collision_table(setup: DEMSetup, ints: np.ndarray, floats: np.ndarray) -> di
     start = ints[:, coll.START_STEP]
     flags = ints[:, coll.FLAGS] | np.where(start < 0, coll.FLAG_BEGAN_BEFORE, 0)
     mass_eff = np.where(wall, float(setup.params.pw.mass_eff), float(setup.params.pp.mass_eff))
-    return {
-        "collision_ball": ints[:, coll.BALL].astype(np.int32),
-        "collision_partner": ints[:, coll.PARTNER].astype(np.int32),
-        "collision_wall": wall,
-        "collision_start_s": start * dt_dem,
-        "collision_duration_s": (ints[:, coll.END_STEP] - start) * dt_dem,
-        "collision_impact_normal": floats[:, coll.IMPACT_NORMAL],
-        "collision_impact_tangential": np.sqrt(np.maximum(floats[:, coll.IMPACT_TANGENTIAL_SQ],
-                                                          0.0)),
-        "collision_max_overlap": floats[:, coll.MAX_OVERLAP],
-        "collision_peak_force": floats[:, coll.PEAK_FORCE],
-        "collision_mass_eff": mass_eff.astype(np.float64),
-        "collision_energy": floats[:, coll.ENERGY0:],
-        "collision_flags": flags.astype(np.int8),
+    columns = {
+        "ball": ints[:, coll.BALL], "partner": ints[:, coll.PARTNER], "wall": wall,
+        "start_s": start * dt_dem, "duration_s": (ints[:, coll.END_STEP] - start) * dt_dem,
+        "impact_normal": floats[:, coll.IMPACT_NORMAL],
+        "impact_tangential": np.sqrt(np.maximum(floats[:, coll.IMPACT_TANGENTIAL_SQ], 0.0)),
+        "max_overlap": floats[:, coll.MAX_OVERLAP], "peak_force": floats[:, coll.PEAK_FORCE],
+        "mass_eff": mass_eff, "energy": floats[:, coll.ENERGY0:], "flags": flags,
     }
+    return {coll.COLLISION_PREFIX + key: np.array(columns[key], dtype=dtype)
+            for key, (dtype, _) in coll.COLLISION_FIELDS.items()}
 
 
-COLLISION_ARRAYS = (
-    "collision_ball", "collision_partner", "collision_wall", "collision_start_s",
-    "collision_duration_s", "collision_impact_normal", "collision_impact_tangential",
-    "collision_max_overlap", "collision_peak_force", "collision_mass_eff", "collision_energy",
-    "collision_flags")
+COLLISION_ARRAYS = tuple(coll.COLLISION_PREFIX + name for name in coll.COLLISION_FIELDS)
 """The names of the collision table's arrays in a trajectory record."""
 
 

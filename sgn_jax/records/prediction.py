@@ -31,8 +31,8 @@ whose rotational energy its ledger counts.
 
 Optional collision table (a contact model's rollout with ``collisions=True``,
 :mod:`sgn_jax.surrogate.collisions`): one row per collision event, E rows, the arrays
-``collision_<key>`` for every key of :data:`COLLISION_FIELDS` (``energy`` is (E, 5), the others
-(E,)); all of them or none. Its meta entry ``collisions`` says what the energies count.
+``collision_<key>`` for every key of :data:`sgn_jax.dem.collisions.COLLISION_FIELDS`
+(``energy`` is (E, 5), the others (E,)); all of them or none. Its meta entry ``collisions`` says what the energies count.
 
 The rollout starts at ``t_start = t_step[0] - dt``: the time of the newest true sample of the
 initial window; step s ends at ``t_start + (s + 1) dt``. Frames may include ``t_start`` itself.
@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from sgn_jax.dem.collisions import COLLISION_FIELDS, COLLISION_PREFIX
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.pairs import pairs_within
 from sgn_jax.records import base as records
@@ -87,12 +88,6 @@ REQUIRED_ARRAYS: dict[str, ArraySpec] = {
 
 REQUIRED_META: tuple[str, ...] = ("dt", "save_every", "init_index", "config")
 
-COLLISION_FIELDS: dict[str, str] = {
-    "ball": "int", "partner": "int", "wall": "bool", "start_s": "float", "duration_s": "float",
-    "impact_normal": "float", "impact_tangential": "float", "max_overlap": "float",
-    "peak_force": "float", "mass_eff": "float", "energy": "float", "flags": "int",
-}
-"""The collision table's keys (stored as ``collision_<key>``) and their dtype kinds."""
 # NaN there means "not known by this ledger" (the event table's convention)
 _MAY_BE_NAN = ("collision_max_overlap", "collision_peak_force")
 
@@ -219,23 +214,26 @@ def validate_prediction(arrays: Mapping[str, Any], meta: Mapping[str, Any],
 
 def _check_collisions(arrays: Mapping[str, np.ndarray], where: str) -> None:
     """The optional collision table: all its arrays or none, one length E, energy (E, 5)."""
-    present = [k for k in COLLISION_FIELDS if f"collision_{k}" in arrays]
+    p = COLLISION_PREFIX
+    present = [k for k in COLLISION_FIELDS if p + k in arrays]
     if not present:
         return
-    missing = [f"collision_{k}" for k in COLLISION_FIELDS if k not in present]
+    missing = [p + k for k in COLLISION_FIELDS if k not in present]
     if missing:
         raise PredictionError(f"{where}: the collision table is incomplete, {missing} missing; "
                               "write all collision_* arrays or none (" + _FIX_HINT + ")")
-    n_events = arrays["collision_ball"].shape[0] if arrays["collision_ball"].ndim else -1
-    for key, kind in COLLISION_FIELDS.items():
-        value = arrays[f"collision_{key}"]
+    n_events = arrays[p + "ball"].shape[0] if arrays[p + "ball"].ndim else -1
+    for key, (dtype, _) in COLLISION_FIELDS.items():
+        value = arrays[p + key]
         shape = (n_events, 5) if key == "energy" else (n_events,)
+        # the dtype's kind, not its width: a writer may store int64 or float32
+        kind = {"i": "int", "b": "bool", "f": "float"}[np.dtype(dtype).kind]
         ok = {"int": np.issubdtype(value.dtype, np.integer) and value.dtype != bool,
               "bool": value.dtype == bool,
               "float": np.issubdtype(value.dtype, np.floating)}[kind]
         if value.shape != shape or not ok:
-            raise PredictionError(f"{where}: array 'collision_{key}' must be {kind} of shape "
-                                  f"{shape} (E = {n_events} events, from 'collision_ball'), "
+            raise PredictionError(f"{where}: array '{p}{key}' must be {kind} of shape "
+                                  f"{shape} (E = {n_events} events, from '{p}ball'), "
                                   f"got {value.dtype} {value.shape}")
 
 
@@ -361,7 +359,6 @@ def prediction_from_trajectory(traj: Any, start_index: int, n_steps: int, *,
 
 
 __all__ = [
-    "COLLISION_FIELDS",
     "COUNT_ARRAYS",
     "REQUIRED_ARRAYS",
     "REQUIRED_META",

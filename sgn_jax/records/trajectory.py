@@ -37,6 +37,7 @@ import numpy as np
 
 import sgn_jax
 from sgn_jax.config import config_to_dict
+from sgn_jax.dem.collisions import COLLISION_PREFIX
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.records import base as records
 from sgn_jax.records.base import ArrayRecord, ArraySpec, RecordFormat
@@ -243,10 +244,6 @@ def _split_kinds(spec: str, allowed: tuple[str, ...], argument: str) -> tuple[st
         raise ValueError(f"{argument}={spec!r}: unknown part(s) {unknown}; use '+'-joined "
                          f"names from {list(allowed)} or 'all'")
     return parts
-
-
-COLLISION_PREFIX = "collision_"
-"""Names of the collision table's arrays (docs/collisions.md): one row per contact event."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

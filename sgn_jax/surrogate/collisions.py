@@ -45,6 +45,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.dem.collisions import (
+    COLLISION_FIELDS,
+    COLLISION_PREFIX,
+    FLAG_BEGAN_BEFORE,
+    FLAG_OPEN_AT_END,
+)
+from sgn_jax.dem.contact import DISSIPATION_KINDS
 from sgn_jax.errors import SGNJaxError
 
 F64 = jnp.float64
@@ -58,7 +65,6 @@ _LARGEST = np.array([f in ("max_overlap", "peak_force") for f in GRID_FIELDS])
 _SUMMED = np.array([f.startswith("energy") for f in GRID_FIELDS])
 # Integer columns of the table: ball, partner, wall, start step, steps, flags.
 _N_INT = 6
-ENERGY_COLUMNS = 5   # DISSIPATION_KINDS of the DEM: normal, tangential, slip, rolling, stiffness
 EVENT_FORCE_FRACTION = 0.1
 """A contact is touching in a step when its normal force (impulse / dt) is at least this
 fraction of the weight of its reduced mass, ``EVENT_FORCE_FRACTION * m* * STANDARD_GRAVITY``
@@ -207,7 +213,7 @@ def update_events(carry: CollisionCarry, grid: ContactGrid, step: jax.Array) -> 
         rank = jnp.cumsum(close, dtype=I32) - 1
         row = jnp.where(close, carry.count + rank, capacity)   # past the table: dropped
         ball, partner, wall = _pair_ids(n)
-        flags = carry.began.astype(I32)
+        flags = jnp.where(carry.began, FLAG_BEGAN_BEFORE, 0).astype(I32)
         ints = jnp.stack([ball, partner, wall.astype(I32), carry.start, step - carry.start,
                           flags], axis=-1).reshape(-1, _N_INT)
         start_s = carry.t0 + carry.start.astype(F64) * carry.dt
@@ -261,7 +267,8 @@ def collision_arrays(carry: CollisionCarry, final_step: Any | None = None,
         dt, t0 = float(carry.dt), float(carry.t0)
         open_f = np.concatenate([np.asarray(carry.acc)[ball, col], (t0 + start * dt)[:, None]],
                                 axis=1)
-        flags = np.asarray(carry.began)[ball, col].astype(np.int64) | 2
+        flags = (np.where(np.asarray(carry.began)[ball, col], FLAG_BEGAN_BEFORE, 0)
+                 | FLAG_OPEN_AT_END).astype(np.int64)
         open_i = np.stack([ball, np.where(col == n, 0, col), (col == n).astype(np.int64), start,
                            int(final_step) - start, flags], axis=1)
         floats = np.concatenate([floats, open_f.reshape(-1, _N_FLOAT + 1)])
@@ -281,20 +288,14 @@ def event_table(floats: np.ndarray, ints: np.ndarray, dt: float) -> dict[str, np
     time, then ball, wall and partner."""
     order = np.lexsort((ints[:, 1], ints[:, 2], ints[:, 0], ints[:, 3]))
     f, i = floats[order], ints[order]
-    energy = np.zeros((len(f), ENERGY_COLUMNS))
+    energy = np.zeros((len(f), len(DISSIPATION_KINDS)))
     energy[:, :2] = f[:, 5:7]
-    return {"collision_ball": i[:, 0].astype(np.int32),
-            "collision_partner": i[:, 1].astype(np.int32),
-            "collision_wall": i[:, 2].astype(bool),
-            "collision_start_s": f[:, 7].copy(),
-            "collision_duration_s": i[:, 4] * float(dt),
-            "collision_impact_normal": f[:, 0].copy(),
-            "collision_impact_tangential": f[:, 1].copy(),
-            "collision_max_overlap": f[:, 2].copy(),
-            "collision_peak_force": f[:, 3].copy(),
-            "collision_mass_eff": f[:, 4].copy(),
-            "collision_energy": energy,
-            "collision_flags": i[:, 5].astype(np.int8)}
+    columns = {"ball": i[:, 0], "partner": i[:, 1], "wall": i[:, 2], "start_s": f[:, 7],
+               "duration_s": i[:, 4] * float(dt), "impact_normal": f[:, 0],
+               "impact_tangential": f[:, 1], "max_overlap": f[:, 2], "peak_force": f[:, 3],
+               "mass_eff": f[:, 4], "energy": energy, "flags": i[:, 5]}
+    return {COLLISION_PREFIX + key: np.array(columns[key], dtype=dtype)
+            for key, (dtype, _) in COLLISION_FIELDS.items()}
 
 
 def concat_tables(tables: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
