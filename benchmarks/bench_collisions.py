@@ -62,7 +62,7 @@ def dem_rows(steps: int, repeats: int) -> list[dict]:
     best = {c: float("inf") for c in runs}
     for _ in range(repeats):  # alternate, so that a busy spell hits both
         for c, (compiled, start, _) in runs.items():
-            best[c] = min(best[c], _best(lambda: compiled(setup.params, start), 1))
+            best[c] = min(best[c], _best(lambda c_=compiled, s=start: c_(setup.params, s), 1))
     events = int(runs[CAP][0](setup.params, runs[CAP][1]).collisions.buffer.count)
     off, on = best[0], best[CAP]
     return [{"what": "DEM, standard case", "steps": steps, "off_s": off, "on_s": on,
@@ -81,7 +81,7 @@ def main() -> None:
                         help="replace the table between this script's markers in this file")
     args = parser.parse_args()
     rows = dem_rows(args.steps, args.repeats)
-    from bench_surrogate_collisions import rollout_cost   # this folder is on sys.path
+    from bench_surrogate_collisions import rollout_cost  # this folder is on sys.path
 
     r = rollout_cost(args.rollout_steps, args.repeats)
     rows.append({"what": "contact model rollout, standard case", "steps": r["steps"],

@@ -52,6 +52,11 @@ from typing import Any
 import numpy as np
 
 from sgn_jax.analysis.animation import select_frames, write_comparison_gif
+from sgn_jax.analysis.collisions import (
+    DEFAULT_THRESHOLD_J,
+    collision_statistics,
+    events_from_record,
+)
 from sgn_jax.analysis.metrics import (
     MOTION_MSE_FLOOR_MAX_RATIO,
     MOTION_OVERLAP_MAX_M,
@@ -65,11 +70,6 @@ from sgn_jax.analysis.metrics import (
 from sgn_jax.config import resolve_config
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.pipelines.configure import jar_mesh_from_config
-from sgn_jax.analysis.collisions import (
-    DEFAULT_THRESHOLD_J,
-    collision_statistics,
-    events_from_record,
-)
 from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.rollout_run import config_at_model_step, run_rollout
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope

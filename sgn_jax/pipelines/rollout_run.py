@@ -31,9 +31,9 @@ from sgn_jax.records.prediction import save_prediction
 from sgn_jax.records.trajectory import DatasetError
 from sgn_jax.surrogate.collisions import (
     DEFAULT_CAPACITY,
-    check_capacity,
     EVENT_FORCE_FRACTION,
     STANDARD_GRAVITY,
+    check_capacity,
     collision_arrays,
     concat_tables,
     pending_energy,
