@@ -4,14 +4,15 @@ The energy ledger (:class:`sgn_jax.dem.engine.EnergyLedger`) says how much energ
 dissipate; this ledger says how it arrives: in which contacts, at which impact speeds, in how
 many events of which energy (docs/collisions.md). It is recorded inside the jitted step:
 
-- every contact slot (a ball-ball slot of the pair list, a (ball, wall patch) pair) carries a
-  :class:`ContactTrack`: whether it is touching, the step it began, its speeds at first touch,
-  its deepest overlap and largest normal force so far and the energy it has dissipated, by
-  kind (:data:`~sgn_jax.dem.contact.DISSIPATION_KINDS`, the kinds of the energy ledger);
+- every contact slot (a ball-ball slot of the pair list; a ball against the jar, whatever wall
+  patches it touches) carries a :class:`ContactTrack`: whether it is touching, the step it
+  began, its speeds at first touch, its deepest overlap and largest normal force so far and the
+  energy it has dissipated, by kind (:data:`~sgn_jax.dem.contact.DISSIPATION_KINDS`, the kinds
+  of the energy ledger);
 - on the step a contact opens, its row goes into a fixed-capacity event buffer
-  (:class:`CollisionBuffer`) and the slot is cleared. The buffer's ``count`` keeps counting past
-  its capacity, so an overflow is seen (the host driver raises; nothing is dropped silently);
-  the host empties the buffer after each chunk of steps.
+  (:class:`CollisionBuffer`); the slot's values are restarted when its next contact begins. The
+  buffer's ``count`` keeps counting past its capacity, so an overflow is seen (the host driver
+  raises; nothing is dropped silently); the host empties the buffer after each chunk of steps.
 
 Each step adds to a slot exactly the terms the energy ledger adds for that contact (its
 normal and tangential damping, slip and rolling losses, and the energy its tangential spring
@@ -77,8 +78,8 @@ N_INTS = 6
 class ContactTrack:
     """The event in progress in each contact slot (slots of any shape S).
 
-    Every field has the slots' shape (separate arrays of one shape, so that the per-step update
-    is one fused loop).
+    Every field has the slots' shape: separate arrays, the layout that measured cheapest per step
+    on XLA:CPU (one packed (S, 9) array was slower).
 
     Attributes:
         active: bool, the slot was touching at the last step.
@@ -176,7 +177,7 @@ def carry_pp_track(track: ContactTrack, where: jnp.ndarray, found: jnp.ndarray) 
 
 def update_track(track: ContactTrack, step: jnp.ndarray, in_contact: jnp.ndarray,
                  overlap: jnp.ndarray, normal_force: jnp.ndarray, approach_speed: jnp.ndarray,
-                 tangential_speed_sq: jnp.ndarray, energy: jnp.ndarray, spring_old_now: jnp.ndarray,
+                 tangential_speed_sq: jnp.ndarray, energy: tuple, spring_old_now: jnp.ndarray,
                  spring_new: jnp.ndarray) -> tuple[ContactTrack, jnp.ndarray]:
     """Advance the tracks by one step; returns ``(track, ended)``.
 
