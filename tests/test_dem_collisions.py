@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
+from test_dem_contact import _ode_impact  # the contact law's head-on ODE, the tests' reference
 
 import sgn_jax  # noqa: F401  (enables x64)
 from sgn_jax.config import builtin_config_path, load_config, replace_section
@@ -34,24 +34,6 @@ def _params(restitution, walls, gravity=(0.0, 0.0, 0.0), motion=None):
     motion = motion or CircleMotion(rpm=0.0, amplitude=0.0)
     return make_params(RADIUS, 7700.0, restitution=restitution, gravity=gravity,
                        geometry=walls, motion=motion, **STEEL)
-
-
-def _ode_duration(law, speed):
-    """Duration of m* d'' = -(F_s(d) + gamma_n(d) d'), d(0) = 0, d'(0) = speed (s)."""
-    def rhs(_t, y):
-        d = max(y[0], 0.0)
-        gamma = law.damping_factor * np.sqrt(2 * law.young_eff * np.sqrt(law.radius_eff * d)
-                                             * law.mass_eff)
-        force = 4 / 3 * law.young_eff * np.sqrt(law.radius_eff) * d**1.5 + gamma * y[1]
-        return [y[1], -force / law.mass_eff]
-
-    def leave(_t, y):
-        return y[0]
-
-    leave.terminal, leave.direction = True, -1
-    sol = solve_ivp(rhs, [0.0, 1.0], [0.0, speed], method="DOP853", rtol=1e-12, atol=1e-16,
-                    events=leave, first_step=1e-10)
-    return float(sol.t_events[0][-1])
 
 
 def _events(state):
@@ -95,7 +77,7 @@ def test_a_head_on_impact_is_one_event_with_the_analytic_speed_and_energy(partne
     # The event lasts as long as the contact law's impact (an accurate ODE solution), to a
     # step or two; its deepest overlap and force are below the undamped Hertz peaks.
     duration = (ints[0, coll.END_STEP] - ints[0, coll.START_STEP]) * DT_DEM
-    assert duration == pytest.approx(_ode_duration(law, speed), abs=2.5 * DT_DEM)
+    assert duration == pytest.approx(_ode_impact(law, speed)[0], abs=2.5 * DT_DEM)
     undamped_overlap = (15 * law.mass_eff * speed**2
                         / (16 * law.young_eff * np.sqrt(law.radius_eff))) ** 0.4
     assert 0.7 * undamped_overlap < floats[0, coll.MAX_OVERLAP] < undamped_overlap
