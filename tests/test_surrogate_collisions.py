@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_contact import random_params  # random output layers: every impulse nonzero
 
 from sgn_jax.motion import CircleMotion
 from sgn_jax.surrogate.collisions import CollisionCapacityError
@@ -54,17 +55,7 @@ def random_net(window, spin=False, seed=4):
                           rolling_friction=0.045)
     net = ContactNet(physics=phys, hidden=32, mlp_layers=3, spin=spin)
     graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query())
-    params = net.init(jax.random.PRNGKey(seed), graph)["params"]
-    key = jax.random.PRNGKey(seed + 1)
-
-    def perturb(path, leaf):
-        nonlocal key
-        key, sub = jax.random.split(key)
-        if len(path) == 3 and path[-1].key == "kernel" and leaf.shape[-1] == 2:
-            return 0.5 * jax.random.normal(sub, leaf.shape, leaf.dtype)
-        return leaf
-
-    return net, jax.tree_util.tree_map_with_path(perturb, params)
+    return net, random_params(net, graph, seed)
 
 
 @pytest.fixture(scope="module")
