@@ -27,6 +27,7 @@ import numpy as np
 from sgn_jax.analysis.collisions import (
     DEFAULT_THRESHOLD_J,
     EVENT_FIELDS,
+    PREFIX,
     EventTable,
     collision_statistics,
 )
@@ -182,12 +183,15 @@ def check_study_sizes(duration: float, burn_in: float, packings: int | None = No
 @dataclasses.dataclass(frozen=True)
 class _SurrogateFrame:
     """What a surrogate needs to roll ``packings`` out under ``cfg``: its graph spec, the motion
-    and jar pytrees, and the windows anchored to that motion (K leading)."""
+    and jar pytrees, the windows anchored to that motion (K leading), and the motion the
+    packings' windows are anchored from (``made_under``: theirs, or ``motion`` for another
+    motion kind)."""
 
     spec: GraphSpec
     motion: Motion
     jar: JarParams
     windows: Window | None
+    made_under: Motion
 
 
 def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
@@ -219,7 +223,7 @@ def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
     windows = (None if packings.windows is None
                else _reanchor(packings, base_motion, motion, float(cfg.dem.dt)))
     return _SurrogateFrame(spec=spec, motion=motion, jar=jar_params_from_config(cfg.jar),
-                           windows=windows)
+                           windows=windows, made_under=base_motion)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -263,7 +267,7 @@ class DesignStudy:
         if self._source is None:
             raise DesignError("this study holds no packings to roll out (build it with "
                               "sj.design_study)")
-        surrogate, cfg, packings, start = self._source
+        surrogate, cfg, packings, start, frame = self._source
         jar_names = [n for n in self.names if not n.startswith("motion.")]
         if jar_names or start != "packing":
             raise DesignError(f"collision statistics of a design study take motion parameters "
@@ -274,13 +278,8 @@ class DesignStudy:
             raise DesignError(f"theta has shape {np.shape(theta)}, the study's parameters "
                               f"{list(self.names)} need {np.shape(self.theta0)}")
         capacity = check_capacity(collision_capacity)
-        frame = _surrogate_frame(surrogate, cfg, packings)
         motion, jar = apply_parameters(self.names, jnp.asarray(theta), frame.motion, frame.jar)
-        dt = float(cfg.dem.dt)
-        base = motion_from_config(packings.config.motion)
-        if type(base) is not type(motion):
-            base = frame.motion
-        windows = _reanchor(packings, base, motion, dt)
+        windows = _reanchor(packings, frame.made_under, motion, float(cfg.dem.dt))
         run = _ensemble_runner(surrogate, cfg, self.duration, None, "map", False, capacity)
         result = jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats, motion,
                                               jar, jnp.asarray(packings.t0))))
@@ -289,7 +288,7 @@ class DesignStudy:
         tables = []
         for k in range(len(packings)):
             arrays = result.collision_arrays(packing=k)
-            table = EventTable(**{name: arrays["collision_" + name] for name in EVENT_FIELDS},
+            table = EventTable(**{name: arrays[PREFIX + name] for name in EVENT_FIELDS},
                                record_duration_s=self.duration, record_start_s=t0,
                                n_balls=int(cfg.balls.count),
                                total_mass_kg=mass * int(cfg.balls.count), source="surrogate")
@@ -457,7 +456,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
     return DesignStudy(names=names, theta0=theta0,
                        power=power_of_theta, ensemble=ensemble, duration=float(duration),
                        burn_in=float(burn_in), _args=args,
-                       _source=(surrogate, cfg, packings, start))
+                       _source=(surrogate, cfg, packings, start, frame))
 
 
 def _packing_start(start: str, surrogate: TrainedModel, cfg: Config, spec: GraphSpec,
