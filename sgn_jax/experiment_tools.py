@@ -25,6 +25,7 @@ from sgn_jax.analysis.collisions import (
     decade_comparison,
     ensemble_statistics,
     events_from_arrays,
+    mean_and_se,
 )
 from sgn_jax.analysis.metrics import (
     align,
@@ -129,6 +130,7 @@ __all__ = [
     "decade_comparison",
     "ensemble_statistics",
     "events_from_arrays",
+    "mean_and_se",
     # configs, checkpoints and the shipped models
     "config_from_dict",
     "config_to_dict",

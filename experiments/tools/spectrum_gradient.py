@@ -20,15 +20,12 @@ import math
 import subprocess
 from pathlib import Path
 
-import numpy as np
-
 import sgn_jax.api as sj
 import sgn_jax.experiment_tools as tools
 
 
 def mean_se(values) -> tuple[float, float]:
-    v = np.asarray(values, np.float64)
-    return float(np.mean(v)), float(np.std(v, ddof=1) / math.sqrt(len(v)))
+    return tuple(float(x) for x in tools.mean_and_se(values))
 
 
 def main() -> None:

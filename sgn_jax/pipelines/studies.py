@@ -30,6 +30,7 @@ from sgn_jax.analysis.collisions import (
     PREFIX,
     EventTable,
     collision_statistics,
+    mean_and_se,
 )
 from sgn_jax.config import Config, replace_section
 from sgn_jax.dem.engine import DISSIPATION_KINDS, make_sampler, reset_ledger_totals
@@ -321,15 +322,11 @@ class DesignStudy:
                 values.append(float(stats[statistic]))
             return np.asarray(values)
 
-        def mean_se(values: np.ndarray) -> tuple[float, float]:
-            se = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else math.nan
-            return float(np.mean(values)), se
-
         unknown = sorted(set(steps or {}) - set(self.names))
         if unknown:
             raise DesignError(f"steps given for {unknown}, not parameters of this study "
                               f"({list(self.names)})")
-        value, se = mean_se(per_packing(theta))
+        value, se = (float(x) for x in mean_and_se(per_packing(theta)))
         out: dict[str, Any] = {"statistic": statistic, "theta": theta.tolist(),
                                "names": list(self.names), "value": value, "se": se,
                                "threshold_J": threshold, "threshold_by": threshold_by,
@@ -339,7 +336,8 @@ class DesignStudy:
             plus, minus = theta.copy(), theta.copy()
             plus[i] += h
             minus[i] -= h
-            g, g_se = mean_se((per_packing(plus) - per_packing(minus)) / (2 * h))
+            g, g_se = (float(x) for x in mean_and_se((per_packing(plus) - per_packing(minus))
+                                                      / (2 * h)))
             out["gradient"][name] = {"value": g, "se": g_se, "step": h}
         return out
 
