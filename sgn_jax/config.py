@@ -188,31 +188,82 @@ class MotionConfig:
 
 
 @dataclass(frozen=True)
-class BallsConfig:
-    """The grinding balls (all identical).
+class BallClassConfig:
+    """A further ball class of a mixed charge (``[[balls.mix]]``, docs/charge.md).
 
     Attributes:
-        count: number of balls (>= 1).
-        radius: m, ball radius.
-        density: kg/m^3, ball density.
+        count: number of balls of this class (>= 1).
+        radius: m, their radius.
+        density: kg/m^3, their density.
+        material: name of their material ("" = the ``[material]`` section's, the jar's).
     """
 
     count: int
     radius: float
     density: float
+    material: str = ""
 
     def __post_init__(self) -> None:
-        if self.count < 1:
-            raise ConfigError(f"[balls] count must be >= 1, got {self.count}")
-        if self.radius <= 0 or self.density <= 0:
-            raise ConfigError("[balls] radius and density must be > 0")
+        _check_ball_class("[[balls.mix]]", self.count, self.radius, self.density)
+
+
+def _check_ball_class(where: str, count: int, radius: float, density: float) -> None:
+    if count < 1:
+        raise ConfigError(f"{where} count must be >= 1, got {count}")
+    if not (radius > 0 and density > 0):
+        raise ConfigError(f"{where} radius and density must be > 0 (m, kg/m^3), got radius = "
+                          f"{radius}, density = {density}")
+
+
+@dataclass(frozen=True)
+class BallsConfig:
+    """The grinding balls: one class, or several (a mixed charge, docs/charge.md).
+
+    Attributes:
+        count: number of balls of the first class (>= 1).
+        radius: m, their radius.
+        density: kg/m^3, their density.
+        material: name of their material ("" = the ``[material]`` section's, the jar's).
+        mix: further ball classes (``[[balls.mix]]`` tables), each its own count, radius,
+            density and material; the balls are numbered class by class.
+    """
+
+    count: int
+    radius: float
+    density: float
+    material: str = ""
+    mix: tuple[BallClassConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        _check_ball_class("[balls]", self.count, self.radius, self.density)
+
+    @property
+    def classes(self) -> tuple[BallClassConfig, ...]:
+        """Every ball class, the ``[balls]`` one first."""
+        first = BallClassConfig(count=self.count, radius=self.radius, density=self.density,
+                                material=self.material)
+        return (first, *self.mix)
+
+    @property
+    def n_balls(self) -> int:
+        """N, the number of balls of all classes."""
+        return self.count + sum(c.count for c in self.mix)
+
+    @property
+    def single_class(self) -> bool:
+        """One ball class (one size, density and material)."""
+        return not self.mix
 
 
 @dataclass(frozen=True)
 class MaterialConfig:
-    """Contact material, the same for ball-ball and ball-wall (docs/conventions.md section 2).
+    """A contact material (docs/charge.md). ``[material]`` is the jar's and the default ball
+    material; ``[[materials]]`` tables add ball materials. Restitution, friction and rolling
+    friction are those of a contact of the material with itself; two materials meet through
+    ``[[interactions]]`` or, where none is given, the mean of their values.
 
     Attributes:
+        name: the name ``[balls] material`` and ``[[interactions]]`` refer to it by.
         young: Pa, Young's modulus (Hertz-Mindlin stiffness).
         poisson: Poisson's ratio, dimensionless, in (-1, 0.5).
         restitution: coefficient of normal restitution, in (0, 1] (sets the contact damping).
@@ -225,8 +276,11 @@ class MaterialConfig:
     restitution: float
     friction: float
     rolling_friction: float
+    name: str = "steel"
 
     def __post_init__(self) -> None:
+        if not self.name:
+            raise ConfigError("[material] name must not be empty")
         if not 0 < self.restitution <= 1:
             raise ConfigError(f"[material] restitution must be in (0, 1], got {self.restitution}")
         if self.young <= 0:
@@ -235,6 +289,32 @@ class MaterialConfig:
             raise ConfigError(f"[material] poisson must be in (-1, 0.5), got {self.poisson}")
         if self.friction < 0 or self.rolling_friction < 0:
             raise ConfigError("[material] friction and rolling_friction must be >= 0")
+
+
+@dataclass(frozen=True)
+class InteractionConfig:
+    """The restitution, friction and rolling friction of contacts between two named materials
+    (``[[interactions]]``; pairs not listed take the mean of the two materials' values).
+
+    Attributes:
+        materials: the two material names (a material with itself: the name twice).
+        restitution: coefficient of normal restitution, in (0, 1].
+        friction: Coulomb coefficient (>= 0).
+        rolling_friction: rolling friction coefficient (>= 0).
+    """
+
+    materials: tuple[str, str]
+    restitution: float
+    friction: float
+    rolling_friction: float
+
+    def __post_init__(self) -> None:
+        if not 0 < self.restitution <= 1:
+            raise ConfigError(f"[[interactions]] {list(self.materials)}: restitution must be in "
+                              f"(0, 1], got {self.restitution}")
+        if self.friction < 0 or self.rolling_friction < 0:
+            raise ConfigError(f"[[interactions]] {list(self.materials)}: friction and "
+                              "rolling_friction must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -712,8 +792,10 @@ class Config:
         case: identification of the case.
         jar: the milling jar (parametric Emax-like cavity or an STL mesh).
         motion: the jar's translation over time.
-        balls: the grinding balls.
-        material: contact material of balls and walls.
+        balls: the grinding balls (one class, or a mix).
+        material: the jar's material, also the balls' unless they name another.
+        materials: further ball materials (``[[materials]]``).
+        interactions: explicit rules for pairs of materials (``[[interactions]]``).
         dem: DEM solver settings.
         sdf: SDF grid sampling for the surrogate.
         graph: the SGN graph featurizer.
@@ -733,12 +815,47 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     rollout: RolloutConfig = field(default_factory=RolloutConfig)
+    materials: tuple[MaterialConfig, ...] = ()
+    interactions: tuple[InteractionConfig, ...] = ()
 
     def __post_init__(self) -> None:
+        self._check_materials()
         if self.train.stages and self.model.kind != "contact":
             raise ConfigError(f"[[train.stages]] trains the contact-impulse surrogate ([model] "
                               f"kind = 'contact'), got kind = {self.model.kind!r}; an SGN "
                               "trains for [train] epochs: remove the stages")
+
+    def material_named(self, name: str) -> MaterialConfig:
+        """The material called ``name`` ("" = ``[material]``)."""
+        if not name or name == self.material.name:
+            return self.material
+        for m in self.materials:
+            if m.name == name:
+                return m
+        raise ConfigError(f"unknown material {name!r}; defined: "
+                          f"{[self.material.name] + [m.name for m in self.materials]} "
+                          "(add a [[materials]] table with this name)")
+
+    def _check_materials(self) -> None:
+        names = [self.material.name] + [m.name for m in self.materials]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"material names must be unique, got {names} ([material] name "
+                              "and [[materials]] names)")
+        for where, c in [("[balls]", self.balls)] + [("[[balls.mix]]", m)
+                                                      for m in self.balls.mix]:
+            if c.material and c.material not in names:
+                raise ConfigError(f"{where} material = {c.material!r} is not defined; defined: "
+                                  f"{names} (add a [[materials]] table with this name)")
+        seen: set[frozenset[str]] = set()
+        for rule in self.interactions:
+            for name in rule.materials:
+                if name not in names:
+                    raise ConfigError(f"[[interactions]] materials = {list(rule.materials)} "
+                                      f"names {name!r}, which is not defined; defined: {names}")
+            key = frozenset(rule.materials)
+            if key in seen:
+                raise ConfigError(f"two [[interactions]] for materials {list(rule.materials)}")
+            seen.add(key)
 
 
 # --------------------------------------------------------------------------------------------

@@ -84,6 +84,20 @@ class SectionDoc(NamedTuple):
     required: bool
     description: str
     keys: tuple[KeyDoc, ...]
+    array: bool = False  # an array of tables ([[name]]), each one of ``cls``
+
+    @property
+    def heading(self) -> str:
+        return f"[[{self.name}]]" if self.array else f"[{self.name}]"
+
+
+def table_class(tp: Any) -> type | None:
+    """The dataclass of an array of tables (``tuple[SomeConfig, ...]``), else None."""
+    args = typing.get_args(tp)
+    if (typing.get_origin(tp) is tuple and len(args) == 2 and args[1] is Ellipsis
+            and dataclasses.is_dataclass(args[0])):
+        return args[0]
+    return None
 
 
 def parse_attributes(doc: str | None) -> dict[str, str]:
@@ -159,7 +173,7 @@ def _default_text(f: dataclasses.Field) -> str:
 
 
 def _section_doc(section: dataclasses.Field, hints: dict[str, Any]) -> SectionDoc:
-    cls = hints[section.name]
+    cls = table_class(hints[section.name]) or hints[section.name]
     field_hints = typing.get_type_hints(cls, vars(config_module))
     attrs = parse_attributes(cls.__doc__)
     keys = tuple(KeyDoc(f.name, type_name(field_hints[f.name]), _default_text(f),
@@ -167,7 +181,8 @@ def _section_doc(section: dataclasses.Field, hints: dict[str, Any]) -> SectionDo
                  for f in dataclasses.fields(cls))
     required = (section.default is dataclasses.MISSING
                 and section.default_factory is dataclasses.MISSING)
-    return SectionDoc(section.name, cls, required, docstring_prose(cls.__doc__), keys)
+    return SectionDoc(section.name, cls, required, docstring_prose(cls.__doc__), keys,
+                      array=table_class(hints[section.name]) is not None)
 
 
 def config_sections() -> tuple[SectionDoc, ...]:
@@ -215,9 +230,12 @@ def _jar_keys_by_kind(section: SectionDoc) -> dict[str, list[str]]:
 
 
 def _section_markdown(section: SectionDoc) -> list[str]:
-    status = ("Required section" if section.required
-              else "Optional section (every key has a default)")
-    lines = [f"## `[{section.name}]`", "",
+    if section.array:
+        status = "Optional array of tables (none by default), each table"
+    else:
+        status = ("Required section" if section.required
+                  else "Optional section (every key has a default)")
+    lines = [f"## `{section.heading}`", "",
              f"{status}; `sgn_jax.config.{section.cls.__name__}`.", "",
              section.description, "",
              "| key | type | default | description |", "|---|---|---|---|"]
@@ -233,17 +251,21 @@ def _section_markdown(section: SectionDoc) -> list[str]:
         lines += ["Keys by motion kind (`kind` plus these; a key of another kind is an error, and "
                   "the saved config keeps only its kind's keys):", ""]
         lines += _keys_by_kind_table(kinds) + [""]
-    if section.name == "train":
-        stage_hints = typing.get_type_hints(TrainStage, vars(config_module))
-        stage_attrs = parse_attributes(TrainStage.__doc__)
-        lines += ["### `[[train.stages]]`", "",
-                  f"`sgn_jax.config.TrainStage`. {_cell(docstring_prose(TrainStage.__doc__))}",
+    section_hints = typing.get_type_hints(section.cls, vars(config_module))
+    for key in section.keys:  # arrays of tables inside the section ([[train.stages]], ...)
+        inner = table_class(section_hints[key.name])
+        if inner is None:
+            continue
+        inner_hints = typing.get_type_hints(inner, vars(config_module))
+        inner_attrs = parse_attributes(inner.__doc__)
+        lines += [f"### `[[{section.name}.{key.name}]]`", "",
+                  f"`sgn_jax.config.{inner.__name__}`. {_cell(docstring_prose(inner.__doc__))}",
                   "", "| key | type | default | description |", "|---|---|---|---|"]
-        for f in dataclasses.fields(TrainStage):
+        for f in dataclasses.fields(inner):
             default = _default_text(f)
-            lines.append(f"| `{f.name}` | `{_cell(type_name(stage_hints[f.name]))}` | "
+            lines.append(f"| `{f.name}` | `{_cell(type_name(inner_hints[f.name]))}` | "
                          f"{'required' if default == 'required' else f'`{_cell(default)}`'} | "
-                         f"{_cell(stage_attrs.get(f.name, ''))} |")
+                         f"{_cell(inner_attrs.get(f.name, ''))} |")
         lines.append("")
     if section.name == "jar":
         lines += ["Keys by jar kind (`kind` plus these; the other kind's keys are not used):",
@@ -289,7 +311,7 @@ def config_reference_markdown() -> str:
         "",
     ]
     for s in sections:
-        lines.append(f"- [`[{s.name}]`](#{s.name}): {section_attrs.get(s.name, '')}"
+        lines.append(f"- [`{s.heading}`](#{s.name}): {section_attrs.get(s.name, '')}"
                      f"{'' if s.required else ' (optional)'}")
     lines.append("")
     for s in sections:

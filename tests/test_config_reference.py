@@ -7,7 +7,7 @@ import typing
 from pathlib import Path
 
 from sgn_jax import config as config_module
-from sgn_jax.config import Config, MotionConfig, TrainStage, config_from_dict
+from sgn_jax.config import BallClassConfig, Config, MotionConfig, TrainStage, config_from_dict
 from sgn_jax.config_reference import (
     EXAMPLE_TOML,
     REGENERATE_COMMAND,
@@ -16,6 +16,7 @@ from sgn_jax.config_reference import (
     documentation_problems,
     main,
     parse_attributes,
+    table_class,
 )
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "config.md"
@@ -23,7 +24,8 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "config.md"
 
 def _section_classes() -> dict[str, type]:
     hints = typing.get_type_hints(Config, vars(config_module))
-    return {f.name: hints[f.name] for f in dataclasses.fields(Config)}
+    return {f.name: table_class(hints[f.name]) or hints[f.name]
+            for f in dataclasses.fields(Config)}
 
 
 def _markdown_rows(markdown: str) -> dict[str, dict[str, list[str]]]:
@@ -31,7 +33,7 @@ def _markdown_rows(markdown: str) -> dict[str, dict[str, list[str]]]:
     rows: dict[str, dict[str, list[str]]] = {}
     section = None
     for line in markdown.splitlines():
-        m = re.fullmatch(r"## `\[(\w+)\]`", line) or re.fullmatch(
+        m = re.fullmatch(r"## `\[\[?(\w+)\]\]?`", line) or re.fullmatch(
             r"### `\[\[(\w+\.\w+)\]\]`", line)
         if m:
             section = m.group(1)
@@ -48,9 +50,11 @@ def test_every_field_of_every_section_is_documented():
     assert documentation_problems() == []
     rows = _markdown_rows(config_reference_markdown())
     sections = _section_classes()
-    stage_keys = rows.pop("train.stages")     # the array of tables inside [train]
-    assert list(stage_keys) == [f.name for f in dataclasses.fields(TrainStage)]
-    assert all(cells[2] for cells in stage_keys.values()), "a stage key has no description"
+    # The arrays of tables inside sections.
+    for name, cls in (("train.stages", TrainStage), ("balls.mix", BallClassConfig)):
+        inner_keys = rows.pop(name)
+        assert list(inner_keys) == [f.name for f in dataclasses.fields(cls)]
+        assert all(cells[2] for cells in inner_keys.values()), f"a {name} key has no description"
     assert list(rows) == list(sections)
     for name, cls in sections.items():
         fields = [f.name for f in dataclasses.fields(cls)]

@@ -15,6 +15,7 @@ from sgn_jax.config import ConfigError, builtin_config_path, load_config, replac
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError
 from sgn_jax.pipelines import dem_run as driver
 from sgn_jax.pipelines.validation import (
+    charge_dt_dem_max,
     check_dem_config,
     check_duration,
     envelope_notes,
@@ -150,15 +151,18 @@ def test_check_samples_names_sample_ball_and_cause(setup3):
 def test_a_run_with_an_unresolved_contact_stops_with_the_time_and_keeps_the_valid_part(
         std, tmp_path):
     cfg = replace_section(std, "balls", count=4)
-    # A DEM step of 25 us resolves Hertz contacts only below about 0.02 m/s: the config is
-    # refused; with the check switched off the run starts and must stop by itself as soon as
-    # the falling balls exceed that speed (while settling).
+    # A DEM step of 25 us resolves Hertz contacts only below about 0.02 m/s. As a config's
+    # bound it is lowered to the charge's step; chosen on purpose (dt_dem=) it is refused;
+    # with the check switched off the run starts and must stop by itself as soon as the
+    # falling balls exceed that speed (while settling).
     cfg = replace_section(cfg, "dem", dt_dem_max=2.5e-5, settle_time=0.01, chunk_samples=20)
+    assert driver.setup_from_config(cfg).dt_dem <= charge_dt_dem_max(cfg)
     with pytest.raises(ConfigError):
-        driver.run_dem(cfg, duration=0.2, progress=False)      # refused before any work
+        driver.run_dem(cfg, duration=0.2, dt_dem=2.5e-5, progress=False)   # before any work
     out = tmp_path / "run.npz"
     with pytest.raises(driver.DEMRunError) as info:
-        driver.run_dem(cfg, duration=0.2, out_path=out, progress=False, check=False)
+        driver.run_dem(cfg, duration=0.2, dt_dem=2.5e-5, out_path=out, progress=False,
+                       check=False)
     err = info.value
     assert err.cause == "unresolved-contact"
     assert f"ball {err.ball}" in str(err) and "need >= 20" in str(err)

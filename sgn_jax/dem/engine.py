@@ -153,6 +153,14 @@ class DEMSpec:
 class DEMParams:
     """Everything numeric that a run depends on (vmappable).
 
+    Two layouts (:mod:`sgn_jax.dem.charge` builds either from a charge):
+
+    - identical balls (``ball_class`` None, the fast path): ``radius``, ``mass``, ``inertia``
+      scalars, ``pp`` / ``pw`` the law's scalar parameters;
+    - several ball classes (``ball_class`` (N,) int32): ``radius``, ``mass``, ``inertia`` (N,)
+      per ball, every leaf of ``pp`` a (C, C) table over pairs of classes and of ``pw`` a
+      (C,) table over classes, gathered per contact at every step.
+
     Attributes:
         radius: ball radius R (m).
         mass: ball mass m (kg).
@@ -162,6 +170,7 @@ class DEMParams:
         gravity: (3,) m/s^2.
         geometry: pytree given to ``wall_fn`` (JarParams, SDFGrid, test planes, ...).
         motion: pytree given to ``offset_fn`` / ``velocity_fn`` (a sgn_jax.motion Motion).
+        ball_class: None, or (N,) int32 class of each ball (several classes).
     """
 
     radius: Any
@@ -172,6 +181,33 @@ class DEMParams:
     gravity: Any
     geometry: Any
     motion: Any
+    ball_class: Any = None
+
+    @property
+    def polydisperse(self) -> bool:
+        """Several ball classes: per-ball radii and masses, per-class-pair contact tables."""
+        return self.ball_class is not None
+
+
+def _column(x: Any) -> Any:
+    """A per-ball (N,) value as (N, 1), to broadcast against (N, 3) or (N, P); a scalar as is."""
+    return x[:, None] if jnp.ndim(x) == 1 else x
+
+
+def contact_law_per_slot(params: DEMParams, pairs: PairList | None) -> tuple[Any, Any]:
+    """The contact law's parameters of every ball-ball slot and ball-wall contact: the scalar
+    parameters themselves for identical balls, else gathered from the class-pair tables, (K,)
+    per slot (``pairs`` None: the nxn layout, (N, N)) and (N, 1) per ball against the wall."""
+    if not params.polydisperse:
+        return params.pp, params.pw
+    cls = params.ball_class
+    if pairs is None:
+        ci, cj = cls[:, None], cls[None, :]
+    else:
+        ci, cj = cls[pairs.i], cls[pairs.j]
+    pp = jax.tree_util.tree_map(lambda t: jnp.asarray(t)[ci, cj], params.pp)
+    pw = jax.tree_util.tree_map(lambda t: jnp.asarray(t)[cls][:, None], params.pw)
+    return pp, pw
 
 
 def make_params(
@@ -326,7 +362,10 @@ def _build_verlet_list(spec: DEMSpec, radius: Any, pos: jnp.ndarray
         return zero, zero, jnp.zeros(spec.n_pair_slots, bool), jnp.zeros((), jnp.int32)
     d = pos[ju] - pos[iu]
     dist_sq = jnp.sum(d * d, axis=-1)
-    cutoff = 2 * radius + spec.neighbour_skin
+    if jnp.ndim(radius) == 1:  # per-ball radii: the pair's own cutoff
+        cutoff = radius[iu] + radius[ju] + spec.neighbour_skin
+    else:
+        cutoff = 2 * radius + spec.neighbour_skin
     candidate = dist_sq < cutoff * cutoff
     count = jnp.sum(candidate, dtype=jnp.int32)
     (slots,) = jnp.nonzero(candidate, size=spec.n_pair_slots, fill_value=0)
@@ -426,28 +465,44 @@ def init_state(
 class _PairGeometry(NamedTuple):
     overlap: jnp.ndarray  # (K,)
     normal: jnp.ndarray  # (K,3) from i to j
-    arm: jnp.ndarray  # (K,)
+    arm: jnp.ndarray  # (K,) distance from i's centre to the contact point
+    arm_j: jnp.ndarray  # (K,) the same from j's centre (= arm for two equal balls)
 
 
-def _pair_geometry(radius: Any, xi: jnp.ndarray, xj: jnp.ndarray, valid: Any) -> _PairGeometry:
-    """Overlap, unit normal i -> j and contact arm; xi, xj broadcast to (..., 3)."""
+def _pair_geometry(radius_i: Any, radius_j: Any, xi: jnp.ndarray, xj: jnp.ndarray,
+                   valid: Any) -> _PairGeometry:
+    """Overlap, unit normal i -> j and contact arms; xi, xj broadcast to (..., 3), the radii
+    to their leading shape. The contact point is the middle of the overlap, R_i - d/2 from
+    i's centre and R_j - d/2 from j's."""
     r = xj - xi
     dist_sq = jnp.sum(r * r, axis=-1)
     ok = dist_sq > 0
     dist = jnp.sqrt(jnp.where(ok, dist_sq, 1.0))
     normal = r / dist[..., None]
-    overlap = jnp.where(ok & valid, 2 * radius - dist, -1.0)
-    arm = radius - 0.5 * jnp.maximum(overlap, 0.0)
-    return _PairGeometry(overlap=overlap, normal=normal, arm=arm)
+    overlap = jnp.where(ok & valid, radius_i + radius_j - dist, -1.0)
+    half = 0.5 * jnp.maximum(overlap, 0.0)
+    return _PairGeometry(overlap=overlap, normal=normal, arm=radius_i - half,
+                         arm_j=radius_j - half)
+
+
+def _slot_radii(radius: Any, pairs: PairList | None) -> tuple[Any, Any]:
+    """(R_i, R_j) of every slot: per-ball radii gathered (pairs None: the nxn layout (N,1),
+    (1,N)), a scalar radius as is."""
+    if jnp.ndim(radius) == 0:
+        return radius, radius
+    if pairs is None:
+        return radius[:, None], radius[None, :]
+    return radius[pairs.i], radius[pairs.j]
 
 
 def _wall_geometry(wall_fn: WallFn, geometry: Any, radius: Any, pos: jnp.ndarray,
                    offset: jnp.ndarray) -> _PairGeometry:
     x_jar = pos - offset.astype(pos.dtype)
     phi, normal = wall_fn(geometry, x_jar)
+    radius = _column(radius)
     overlap = radius + phi.astype(pos.dtype)
     arm = radius - 0.5 * jnp.maximum(overlap, 0.0)
-    return _PairGeometry(overlap=overlap, normal=normal.astype(pos.dtype), arm=arm)
+    return _PairGeometry(overlap=overlap, normal=normal.astype(pos.dtype), arm=arm, arm_j=arm)
 
 
 def _default_motion_fns(offset_fn: MotionFn | None, velocity_fn: MotionFn | None
@@ -494,29 +549,40 @@ def make_dem_step(
 
     def pair_geometry(radius: Any, pos: jnp.ndarray, pairs: PairList) -> _PairGeometry:
         if mode == "nxn":
-            return _pair_geometry(radius, pos[:, None, :], pos[None, :, :], off_diagonal)
-        return _pair_geometry(radius, pos[pairs.i], pos[pairs.j], pairs.valid)
+            r_i, r_j = _slot_radii(radius, None)
+            return _pair_geometry(r_i, r_j, pos[:, None, :], pos[None, :, :], off_diagonal)
+        r_i, r_j = _slot_radii(radius, pairs)
+        return _pair_geometry(r_i, r_j, pos[pairs.i], pos[pairs.j], pairs.valid)
 
-    def relative_kinematics(vel: jnp.ndarray, omega: jnp.ndarray, arm_vec: jnp.ndarray,
-                            pairs: PairList) -> tuple[jnp.ndarray, jnp.ndarray]:
+    def relative_kinematics(vel: jnp.ndarray, omega: jnp.ndarray, geo: _PairGeometry,
+                            pairs: PairList, poly: bool) -> tuple[jnp.ndarray, jnp.ndarray]:
         """Contact-point velocity of i relative to j, and omega_i - omega_j, per slot."""
         if mode == "nxn":
             vi, vj, wi, wj = vel[:, None], vel[None, :], omega[:, None], omega[None, :]
         else:
             vi, vj, wi, wj = vel[pairs.i], vel[pairs.j], omega[pairs.i], omega[pairs.j]
-        # arm_j = -arm_i for equal radii, so w_i x arm_i - w_j x arm_j = (w_i + w_j) x arm_i.
-        return vi - vj + jnp.cross(wi + wj, arm_vec), wi - wj
+        # The contact point is a_i n from i's centre and -a_j n from j's:
+        # w_i x (a_i n) - w_j x (-a_j n) = (a_i w_i + a_j w_j) x n; for equal balls a_i = a_j.
+        if poly:
+            spin = geo.arm[..., None] * wi + geo.arm_j[..., None] * wj
+            return vi - vj + jnp.cross(spin, geo.normal), wi - wj
+        return vi - vj + jnp.cross(wi + wj, geo.arm[..., None] * geo.normal), wi - wj
 
     def per_ball(force: jnp.ndarray, torque_tangential: jnp.ndarray,
-                 torque_rolling: jnp.ndarray, pairs: PairList) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """Per-ball force and torque from per-slot values on i (the reaction goes to j)."""
+                 torque_rolling: jnp.ndarray, pairs: PairList, arm_ratio: Any = None
+                 ) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """Per-ball force and torque from per-slot values on i (the reaction goes to j);
+        ``arm_ratio`` (K,) a_j / a_i of unequal balls (None: equal)."""
         if mode == "nxn":  # slot [i, j] already holds the value on i
             return (jnp.sum(force, axis=1),
                     jnp.sum(torque_tangential + torque_rolling, axis=1))
         # One scatter-add for everything (three separate ones cost 4x as much on CPU). Ball j
-        # gets -F, the same tangential torque (its arm and force both flip) and -tau_r.
+        # gets -F, the tangential torque (a_j n) x F_t (its arm and force both flip, its arm
+        # a_j long) and -tau_r.
+        torque_j = (torque_tangential if arm_ratio is None
+                    else arm_ratio[..., None] * torque_tangential)
         on_i = jnp.concatenate([force, torque_tangential + torque_rolling], axis=-1)
-        on_j = jnp.concatenate([-force, torque_tangential - torque_rolling], axis=-1)
+        on_j = jnp.concatenate([-force, torque_j - torque_rolling], axis=-1)
         index = jnp.concatenate([pairs.i, pairs.j])
         total = jnp.zeros((n, 6), force.dtype).at[index].add(jnp.concatenate([on_i, on_j]))
         return total[:, :3], total[:, 3:]
@@ -535,31 +601,40 @@ def make_dem_step(
         pos, vel, omega = state.pos, state.vel, state.omega
         radius = jnp.asarray(params.radius, dtype)
         pairs = state.pairs
+        poly = params.polydisperse
+        law_pp, law_pw = contact_law_per_slot(params, None if mode == "nxn" else pairs)
         offset_next, v_wall = jar_kinematics(params, state.step)
 
         # Ball-ball contacts.
         pp = pair_geometry(radius, pos, pairs)
-        arm_vec = pp.arm[..., None] * pp.normal
-        v_rel, omega_rel = relative_kinematics(vel, omega, arm_vec, pairs)
-        f_pp = law.forces(params.pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
+        v_rel, omega_rel = relative_kinematics(vel, omega, pp, pairs, poly)
+        f_pp = law.forces(law_pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
                           state.pp_history, dt, spec.clip_attractive)
+        arm_ratio = None
+        if poly:
+            # Unequal balls: the law's rolling torque used i's arm; the pair's rolling radius
+            # is the harmonic mean of both arms (the arm itself for equal balls), so that the
+            # torque is the same seen from either ball.
+            arm_ratio = pp.arm_j / pp.arm
+            f_pp = f_pp._replace(torque_rolling=f_pp.torque_rolling
+                                 * (2.0 * arm_ratio / (1.0 + arm_ratio))[..., None])
 
         # Ball-wall contacts, one per (ball, patch).
         pw = _wall_geometry(wall_fn, params.geometry, radius, pos, state.offset)
         arm_w = pw.arm[..., None] * pw.normal
         v_rel_w = vel[:, None, :] + jnp.cross(omega[:, None, :], arm_w) - v_wall
         omega_rel_w = jnp.broadcast_to(omega[:, None, :], arm_w.shape)
-        f_pw = law.forces(params.pw, pw.overlap, pw.normal, pw.arm, v_rel_w, omega_rel_w,
+        f_pw = law.forces(law_pw, pw.overlap, pw.normal, pw.arm, v_rel_w, omega_rel_w,
                           state.pw_history, dt, spec.clip_attractive)
 
         force, torque = per_ball(f_pp.force, f_pp.torque_tangential, f_pp.torque_rolling,
-                                 pairs)
+                                 pairs, arm_ratio)
         force = force + jnp.sum(f_pw.force, axis=1)
         torque = torque + jnp.sum(f_pw.torque_tangential + f_pw.torque_rolling, axis=1)
 
         gravity = jnp.asarray(params.gravity, dtype)
-        mass = jnp.asarray(params.mass, dtype)
-        inertia = jnp.asarray(params.inertia, dtype)
+        mass = _column(jnp.asarray(params.mass, dtype))
+        inertia = _column(jnp.asarray(params.inertia, dtype))
         vel_new = vel + dt * (force / mass + gravity)
         omega_new = omega + dt * (torque / inertia)
         pos_new = pos + dt * vel_new
@@ -569,7 +644,7 @@ def make_dem_step(
         omega_mid = 0.5 * (omega + omega_new)
         d_offset = offset_next - state.offset
         v_wall_mid = (d_offset / dt).astype(dtype)
-        v_rel_mid, omega_rel_mid = relative_kinematics(vel_mid, omega_mid, arm_vec, pairs)
+        v_rel_mid, omega_rel_mid = relative_kinematics(vel_mid, omega_mid, pp, pairs, poly)
         d_pp = law.dissipation(f_pp, pp.normal, v_rel_mid, omega_rel_mid, dt)
         v_rel_w_mid = vel_mid[:, None, :] + jnp.cross(omega_mid[:, None, :], arm_w) - v_wall_mid
         omega_rel_w_mid = jnp.broadcast_to(omega_mid[:, None, :], arm_w.shape)
@@ -674,7 +749,8 @@ def contact_overlaps(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: D
     """Overlaps (m, > 0 in contact) of every ball-ball slot and every (ball, patch) now."""
     radius = jnp.asarray(params.radius, spec.jnp_dtype)
     pairs = state.pairs
-    pp = _pair_geometry(radius, state.pos[pairs.i], state.pos[pairs.j], pairs.valid)
+    r_i, r_j = _slot_radii(radius, pairs)
+    pp = _pair_geometry(r_i, r_j, state.pos[pairs.i], state.pos[pairs.j], pairs.valid)
     pw = _wall_geometry(wall_fn, params.geometry, radius, state.pos, state.offset)
     return Contacts(pp_overlap=pp.overlap, pw_overlap=pw.overlap)
 
@@ -691,13 +767,16 @@ def energies(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
     vel = state.vel.astype(f64)
     omega = state.omega.astype(f64)
     pos = state.pos.astype(f64)
-    ke_trans = 0.5 * params.mass * jnp.sum(vel * vel)
-    ke_rot = 0.5 * params.inertia * jnp.sum(omega * omega)
-    pe = -params.mass * jnp.sum(pos @ jnp.asarray(params.gravity, f64))
+    mass = _column(jnp.asarray(params.mass, f64))
+    inertia = _column(jnp.asarray(params.inertia, f64))
+    ke_trans = 0.5 * jnp.sum(mass * vel * vel)
+    ke_rot = 0.5 * jnp.sum(inertia * omega * omega)
+    pe = -jnp.sum(jnp.asarray(params.mass, f64) * (pos @ jnp.asarray(params.gravity, f64)))
     ov = contact_overlaps(spec, wall_fn, params, state)
     law = spec.contact_law
-    e_el = (jnp.sum(law.elastic_energy(params.pp, ov.pp_overlap.astype(f64)))
-            + jnp.sum(law.elastic_energy(params.pw, ov.pw_overlap.astype(f64)))
+    law_pp, law_pw = contact_law_per_slot(params, state.pairs)
+    e_el = (jnp.sum(law.elastic_energy(law_pp, ov.pp_overlap.astype(f64)))
+            + jnp.sum(law.elastic_energy(law_pw, ov.pw_overlap.astype(f64)))
             + state.ledger.spring_pp + state.ledger.spring_pw)
     return {"ke_trans": ke_trans, "ke_rot": ke_rot, "pe_grav": pe, "e_elastic": e_el}
 

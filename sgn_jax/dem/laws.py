@@ -57,9 +57,13 @@ class ContactModel(Protocol):
 
     def make_params(self, *, young: float, poisson: float, restitution: float,
                     friction: float, rolling_friction: float, radius_1: float, mass_1: float,
-                    radius_2: float = math.inf, mass_2: float = math.inf) -> Any:
+                    radius_2: float = math.inf, mass_2: float = math.inf,
+                    young_2: float | None = None, poisson_2: float | None = None) -> Any:
         """The law's parameter pytree for body 1 against body 2 (a wall: radius_2 = mass_2 =
-        inf), both of the given material."""
+        inf). Body 2 has body 1's elastic constants unless ``young_2`` / ``poisson_2`` are
+        given (two materials: :mod:`sgn_jax.dem.charge` passes them only when they differ,
+        so a law of one material still serves every single-material charge); restitution,
+        friction and rolling friction are the pair's."""
         ...
 
     def forces(self, params: Any, overlap: jnp.ndarray, normal: jnp.ndarray, arm: jnp.ndarray,
@@ -111,10 +115,11 @@ class HertzMindlin:
 
     def make_params(self, *, young: float, poisson: float, restitution: float,
                     friction: float, rolling_friction: float, radius_1: float, mass_1: float,
-                    radius_2: float = math.inf, mass_2: float = math.inf) -> Any:
+                    radius_2: float = math.inf, mass_2: float = math.inf,
+                    young_2: float | None = None, poisson_2: float | None = None) -> Any:
         return make_contact_law(young, poisson, restitution, friction, rolling_friction,
                                 radius_1=radius_1, mass_1=mass_1, radius_2=radius_2,
-                                mass_2=mass_2)
+                                mass_2=mass_2, young_2=young_2, poisson_2=poisson_2)
 
     def forces(self, params: Any, overlap: jnp.ndarray, normal: jnp.ndarray, arm: jnp.ndarray,
                v_rel: jnp.ndarray, omega_rel: jnp.ndarray, history: jnp.ndarray, dt: float,

@@ -2,8 +2,10 @@
 
 Candidates are drawn uniformly in the cavity's bounding box (``numpy.random.default_rng(seed)``,
 so a seed always gives the same packing); a candidate is accepted when it is inside the cavity
-with a clearance (``phi < -R - gap``) and at least ``2R + gap`` from every ball accepted so far.
-The balls start at rest; the DEM then lets them settle with the jar at rest.
+with a clearance (``phi < -R - gap``) and at least ``R_i + R_j + gap`` from every ball accepted
+so far. Balls of several sizes are placed largest first (the small ones fill the gaps the large
+ones leave), each keeping its index. The balls start at rest; the DEM then lets them settle with
+the jar at rest.
 """
 
 from __future__ import annotations
@@ -75,7 +77,7 @@ def place_balls(
     lower: np.ndarray,
     upper: np.ndarray,
     n_balls: int,
-    radius: float,
+    radius: float | np.ndarray,
     seed: int,
     gap: float = PLACEMENT_GAP,
     batch: int = PLACEMENT_BATCH,
@@ -87,7 +89,8 @@ def place_balls(
         sdf_fn: combined jar SDF, ``phi (M,) = sdf_fn(x (M,3))`` in the jar frame (negative
             inside the cavity).
         lower, upper: (3,) corners of a box containing the cavity (m).
-        n_balls, radius: how many balls of which radius (m).
+        n_balls, radius: how many balls of which radius (m): one radius for all, or (N,) one
+            per ball (placed largest first; row k of the result is ball k).
         seed: integer seed of the candidate stream.
         gap: clearance (m) kept from the wall and between balls.
         batch: candidates drawn (and SDF-evaluated) at a time.
@@ -96,32 +99,44 @@ def place_balls(
     Raises:
         PlacementError saying how many balls fitted and what to change.
     """
-    if n_balls < 1 or radius <= 0 or gap < 0:
+    radii = np.broadcast_to(np.asarray(radius, np.float64), (n_balls,)) if n_balls >= 1 else None
+    if n_balls < 1 or not np.all(radii > 0) or gap < 0:
         raise PlacementError(f"need n_balls >= 1, radius > 0, gap >= 0; got {n_balls}, {radius}, "
                              f"{gap}")
     lower = np.asarray(lower, np.float64)
     upper = np.asarray(upper, np.float64)
     rng = np.random.default_rng(seed)
     sdf_jit = jax.jit(sdf_fn)
+    # Largest first; a stable sort keeps one size's balls in index order (one size: as is).
+    order = np.argsort(-radii, kind="stable")
     placed: list[np.ndarray] = []
-    min_dist_sq = (2 * radius + gap) ** 2
+    placed_radii: list[float] = []
     drawn = 0
     while len(placed) < n_balls and drawn < max_candidates:
         cand = lower + (upper - lower) * rng.random((batch, 3))
         drawn += batch
         phi = np.asarray(sdf_jit(jnp.asarray(cand)))
-        for x in cand[phi < -radius - gap]:
+        for x, phi_x in zip(cand, phi, strict=True):
+            r = radii[order[len(placed)]]
+            if not phi_x < -r - gap:
+                continue
             if placed:
                 d = np.asarray(placed) - x
-                if np.min(np.einsum("ij,ij->i", d, d)) < min_dist_sq:
+                reach = np.asarray(placed_radii) + r + gap
+                if np.any(np.einsum("ij,ij->i", d, d) < reach * reach):
                     continue
             placed.append(x)
+            placed_radii.append(r)
             if len(placed) == n_balls:
                 break
     if len(placed) < n_balls:
+        sizes = (f"radius {radii[0]} m" if np.all(radii == radii[0])
+                 else f"radii {sorted(set(radii.tolist()), reverse=True)} m")
         raise PlacementError(
-            f"could place only {len(placed)} of {n_balls} balls of radius {radius} m with a gap "
+            f"could place only {len(placed)} of {n_balls} balls of {sizes} with a gap "
             f"of {gap} m after {drawn} random candidates; the jar is too small or too full for "
             "random insertion: use fewer or smaller balls, or a smaller gap"
         )
-    return np.asarray(placed)
+    out = np.empty((n_balls, 3))
+    out[order] = np.asarray(placed)
+    return out

@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgn_jax.config import ConfigError, MotionConfig
-from sgn_jax.dem.engine import DEMParams, make_params
+from sgn_jax.dem.charge import BallClass, Charge, ChargeError, Material, PairRule, charge_params
+from sgn_jax.dem.engine import DEMParams
 from sgn_jax.dem.laws import ContactLawError, contact_law
 from sgn_jax.geometry import GeometryError, JarParams, SDFGrid, check_closed_mesh
 from sgn_jax.geometry.jar import jar_mesh, jar_volume
@@ -68,6 +69,7 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
     ``node_walls`` follows the ``[model] kind`` (``ModelFactory.node_walls``; a config without
     a ``[model]`` section gets the paper's True).
     """
+    check_surrogate_charge(cfg)
     n = cfg.balls.count if n_particles is None else int(n_particles)
     return GraphSpec(
         n_particles=n,
@@ -81,6 +83,25 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
         wall_patches=cfg.graph.wall_patches,
         node_walls=_kind_reads_node_walls(cfg),
     )
+
+
+def check_surrogate_charge(cfg: Any) -> None:
+    """ConfigError unless the config's charge is one the surrogates take: one ball class of
+    the jar's material (``[balls]`` without ``[[balls.mix]]`` and without a ``material`` of its
+    own). The DEM runs every charge (docs/charge.md)."""
+    balls = getattr(cfg, "balls", None)
+    if balls is None or not hasattr(balls, "single_class"):
+        return
+    if not balls.single_class:
+        raise ConfigError(
+            f"the surrogates model one ball class, and this charge has {len(balls.classes)} "
+            "([[balls.mix]]); run the DEM for mixed charges (`sgn-jax dem`), or remove "
+            "[[balls.mix]]")
+    if balls.material and balls.material != cfg.material.name:
+        raise ConfigError(
+            f"the surrogates model balls of the jar's material ([material] "
+            f"{cfg.material.name!r}), and [balls] material = {balls.material!r}; run the DEM "
+            "for this charge (`sgn-jax dem`), or give the balls the jar's material")
 
 
 def _kind_reads_node_walls(cfg: Any) -> bool:
@@ -243,19 +264,46 @@ def contact_law_from_config(cfg: Any) -> Any:
         raise ConfigError(f"[dem] contact_law: {exc}") from None
 
 
+def material_from_config(material_cfg: Any) -> Material:
+    """The core :class:`sgn_jax.dem.charge.Material` of a ``[material]`` / ``[[materials]]``
+    table."""
+    m = material_cfg
+    try:
+        return Material(name=m.name, young=m.young, poisson=m.poisson,
+                        restitution=m.restitution, friction=m.friction,
+                        rolling_friction=m.rolling_friction)
+    except ChargeError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def charge_from_config(cfg: Any) -> Charge:
+    """The charge of a config (docs/charge.md): ``[balls]`` and its ``[[balls.mix]]`` classes,
+    each of its named material (``[material]`` when it names none), in a jar of ``[material]``,
+    with the ``[[interactions]]`` pair rules."""
+    try:
+        classes = tuple(BallClass(count=c.count, radius=c.radius, density=c.density,
+                                  material=material_from_config(cfg.material_named(c.material)))
+                        for c in cfg.balls.classes)
+        rules = tuple(((r.materials[0], r.materials[1]),
+                       PairRule(r.restitution, r.friction, r.rolling_friction))
+                      for r in cfg.interactions)
+        # A rule may name a defined material that no ball uses: it has nothing to act on.
+        used = {c.material.name for c in classes} | {cfg.material.name}
+        rules = tuple(r for r in rules if set(r[0]) <= used)
+        return Charge(classes=classes, wall=material_from_config(cfg.material), pair_rules=rules)
+    except ChargeError as exc:
+        raise ConfigError(str(exc)) from None
+
+
 def params_from_config(cfg: Any, geometry: Any = None, motion: Any = None) -> DEMParams:
-    """DEMParams of an experiment config (balls, material, gravity, jar patches, motion)."""
+    """DEMParams of an experiment config (the charge, gravity, jar patches, motion)."""
     if geometry is None:
         geometry = geometry_from_config(cfg).geometry
     if motion is None:
         motion = motion_from_config(cfg.motion)
-    m = cfg.material
-    return make_params(
-        radius=cfg.balls.radius, density=cfg.balls.density, young=m.young, poisson=m.poisson,
-        restitution=m.restitution, friction=m.friction, rolling_friction=m.rolling_friction,
-        gravity=tuple(cfg.dem.gravity), geometry=geometry, motion=motion,
-        contact_law=contact_law_from_config(cfg),
-    )
+    return charge_params(charge_from_config(cfg), gravity=tuple(cfg.dem.gravity),
+                         geometry=geometry, motion=motion,
+                         contact_law=contact_law_from_config(cfg))
 
 
 def geometry_from_config(cfg: Any) -> JarGeometry:

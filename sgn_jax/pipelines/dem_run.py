@@ -36,6 +36,7 @@ import numpy as np
 
 from sgn_jax.config import Config, config_to_dict, replace_section
 from sgn_jax.dem import collisions as coll
+from sgn_jax.dem.charge import pair_params
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import (
     DISSIPATION_KINDS,
@@ -55,7 +56,7 @@ from sgn_jax.pipelines.configure import (
     geometry_from_config,
     params_from_config,
 )
-from sgn_jax.pipelines.validation import check_dem_config, check_duration
+from sgn_jax.pipelines.validation import check_dem_config, check_duration, with_charge_step
 from sgn_jax.records.cache import settled_dir
 from sgn_jax.records.io_utils import atomic_write
 from sgn_jax.records.trajectory import DatasetError, build_meta, save_trajectory
@@ -108,19 +109,24 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
                       pair_mode: str = "auto") -> DEMSetup:
     """Build spec, params and jar of a config.
 
-    ``dt_dem`` (optional) overrides ``[dem] dt_dem_max``: the step used is dt / k with the
-    smallest integer k such that dt / k <= dt_dem, so every sample falls on a step
-    (docs/conventions.md section 2).
+    The step used is dt / k with the smallest integer k such that dt / k is at most the bound,
+    so every sample falls on a step (docs/conventions.md section 2). The bound is ``[dem]
+    dt_dem_max``, lowered for a charge of small or light balls to the step that resolves its
+    shortest contact as finely as the standard case's
+    (:func:`sgn_jax.pipelines.validation.with_charge_step`); ``dt_dem`` (optional) replaces
+    both (a step chosen on purpose, e.g. a dt against dt/2 study).
     """
     if dt_dem is not None:
         if not dt_dem > 0:
             raise DEMError(f"dt_dem must be > 0, got {dt_dem}")
         cfg = replace_section(cfg, "dem", dt_dem_max=float(dt_dem))
+    else:
+        cfg = with_charge_step(cfg)
     if dtype is not None:
         cfg = replace_section(cfg, "dem", dtype=dtype)
     jar = geometry_from_config(cfg)
     params = params_from_config(cfg, geometry=jar.geometry)
-    n = cfg.balls.count
+    n = cfg.balls.n_balls
     spec = DEMSpec(n_balls=n, n_patches=len(jar.patch_names), dt_dem=cfg.dem.dt_dem,
                    dtype=cfg.dem.dtype, clip_attractive=cfg.dem.clip_attractive,
                    pair_mode=pair_mode, neighbour_capacity=cfg.dem.neighbour_capacity,
@@ -147,7 +153,7 @@ def collision_capacity(cfg: Any) -> int:
     if cfg.dem.collision_capacity:
         return int(cfg.dem.collision_capacity)
     chunk_s = cfg.dem.chunk_samples * cfg.dem.dt
-    return max(4096, math.ceil(COLLISION_RATE_BOUND * cfg.balls.count * chunk_s))
+    return max(4096, math.ceil(COLLISION_RATE_BOUND * cfg.balls.n_balls * chunk_s))
 
 
 def collision_table(setup: DEMSetup, ints: np.ndarray, floats: np.ndarray) -> dict[str, np.ndarray]:
@@ -158,7 +164,7 @@ def collision_table(setup: DEMSetup, ints: np.ndarray, floats: np.ndarray) -> di
     wall = ints[:, coll.WALL].astype(bool)
     start = ints[:, coll.START_STEP]
     flags = ints[:, coll.FLAGS] | np.where(start < 0, coll.FLAG_BEGAN_BEFORE, 0)
-    mass_eff = np.where(wall, float(setup.params.pw.mass_eff), float(setup.params.pp.mass_eff))
+    mass_eff = event_mass_eff(setup.params, ints[:, coll.BALL], ints[:, coll.PARTNER], wall)
     columns = {
         "ball": ints[:, coll.BALL], "partner": ints[:, coll.PARTNER], "wall": wall,
         "start_s": start * dt_dem, "duration_s": (ints[:, coll.END_STEP] - start) * dt_dem,
@@ -169,6 +175,19 @@ def collision_table(setup: DEMSetup, ints: np.ndarray, floats: np.ndarray) -> di
     }
     return {coll.COLLISION_PREFIX + key: np.array(columns[key], dtype=dtype)
             for key, (dtype, _) in coll.COLLISION_FIELDS.items()}
+
+
+def event_mass_eff(params: Any, ball: np.ndarray, partner: np.ndarray, wall: np.ndarray
+                   ) -> np.ndarray:
+    """(E,) kg, the effective mass m* of each event's contact: the pair's (ball-ball) or the
+    ball's (ball-wall, where ``partner`` is a wall patch)."""
+    pp_m = np.asarray(params.pp.mass_eff, np.float64)
+    pw_m = np.asarray(params.pw.mass_eff, np.float64)
+    if not params.polydisperse:
+        return np.where(wall, float(pw_m), float(pp_m))
+    cls = np.asarray(params.ball_class)
+    partner_cls = cls[np.where(wall, 0, partner)]
+    return np.where(wall, pw_m[cls[ball]], pp_m[cls[ball], partner_cls])
 
 
 COLLISION_ARRAYS = tuple(coll.COLLISION_PREFIX + name for name in coll.COLLISION_FIELDS)
@@ -183,7 +202,8 @@ def initial_state(setup: DEMSetup, seed: int, gap: float = PLACEMENT_GAP) -> DEM
     """Balls placed at rest from ``seed``, at DEM step -settle_steps (jar at rest)."""
     jar = setup.jar
     x_jar = place_balls(lambda x: jar.sdf_fn(jar.geometry, x), jar.lower, jar.upper,
-                        setup.spec.n_balls, float(setup.params.radius), seed, gap=gap)
+                        setup.spec.n_balls, np.asarray(setup.params.radius, np.float64), seed,
+                        gap=gap)
     x_lab = x_jar + np.asarray(_offset_jit(setup.params.motion, 0.0))
     settle_samples = settle_sample_count(setup)
     return init_state(setup.spec, setup.params, x_lab, step=-settle_samples * setup.substeps)
@@ -263,6 +283,7 @@ def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
 
 _DEM_DIR = Path(__file__).resolve().parent.parent / "dem"
 _DEM_SOURCES = (_DEM_DIR / "engine.py", _DEM_DIR / "contact.py", _DEM_DIR / "laws.py",
+                _DEM_DIR / "charge.py",
                 _DEM_DIR / "placement.py", _DEM_DIR / "walls.py", _DEM_DIR / "collisions.py",
                 Path(__file__).resolve())
 
@@ -287,6 +308,7 @@ def settle_key(setup: DEMSetup, seed: int) -> str:
            if k not in ("duration", "chunk_samples", "seed", "kick_speed")}  # not in settling
     rest = [float(v).hex() for v in np.asarray(_offset_jit(setup.params.motion, 0.0))]
     key = {"jar": cfg["jar"], "balls": cfg["balls"], "material": cfg["material"], "dem": dem,
+           "materials": cfg["materials"], "interactions": cfg["interactions"],
            "seed": int(seed), "dt_dem": setup.dt_dem, "pp_capacity": setup.pp_capacity,
            "collision_capacity": setup.spec.collision_capacity,
            "pair_mode": setup.spec.resolved_pair_mode, "format": PARTIAL_FORMAT,
@@ -385,7 +407,9 @@ def run_dem(
     duration = cfg.dem.duration if duration is None else float(duration)
     check_duration(duration, "duration", dt=cfg.dem.dt)
     if check:
-        check_dem_config(cfg)
+        check_dem_config(cfg if dt_dem is None
+                         else replace_section(cfg, "dem", dt_dem_max=float(dt_dem)),
+                         step_given=dt_dem is not None)
     chunk = int(chunk_samples or cfg.dem.chunk_samples)
     if chunk < 1:
         raise DEMError(f"chunk_samples must be >= 1, got {chunk}")
@@ -618,14 +642,28 @@ def check_samples(setup: DEMSetup, samples: dict[str, np.ndarray], sdf: Any
                       "wall"))
     v = np.where(ok_rows[:, None, None], vel, 0.0)
     v_wall = np.linalg.norm(v - samples["offset_vel"][:, None, :], axis=-1)      # (S, N)
-    v_pair = np.linalg.norm(v[:, :, None, :] - v[:, None, :, :], axis=-1).max(axis=2)
     law = setup.spec.contact_law
-    laws = {"ball-wall": (setup.params.pw, v_wall), "ball-ball": (setup.params.pp, v_pair)}
-    for name, (law_params, speed) in laws.items():
-        # t_c(v) < k dt_dem  <=>  v > v_limit (Hertz: t_c decreases as v^(-1/5))
-        v_limit = law.max_speed_for_duration(law_params, MIN_CONTACT_STEPS * setup.dt_dem)
-        hit = _first(speed > v_limit)
+    # t_c(v) < k dt_dem  <=>  v > v_limit (Hertz: t_c decreases as v^(-1/5)); with several
+    # ball classes each contact kind has its own limit.
+    limit_wall, limit_pair = resolved_speed_limits(setup)
+    # Per ball: the partner whose relative speed most exceeds its limit, in blocks of samples
+    # ((S, N, N, 3) at once is a gigabyte for 200 balls).
+    excess, partner, v_pair = (np.empty(v_wall.shape), np.empty(v_wall.shape, int),
+                               np.empty(v_wall.shape))
+    for a in range(0, v.shape[0], 64):
+        block = v[a:a + 64]
+        speeds = np.linalg.norm(block[:, :, None, :] - block[:, None, :, :], axis=-1)
+        over = speeds - limit_pair
+        partner[a:a + 64] = np.argmax(over, axis=2)
+        excess[a:a + 64] = np.take_along_axis(over, partner[a:a + 64, :, None], 2)[..., 0]
+        v_pair[a:a + 64] = np.take_along_axis(speeds, partner[a:a + 64, :, None], 2)[..., 0]
+    laws = {"ball-wall": (v_wall, limit_wall, None), "ball-ball": (v_pair, excess, partner)}
+    for name, (speed, limit, partner_of) in laws.items():
+        over = (speed > limit) if partner_of is None else (limit > 0)
+        hit = _first(over)
         if hit:
+            other = None if partner_of is None else int(partner_of[hit])
+            law_params = contact_kind_params(setup.params, hit[1], other)
             t_c = float(law.contact_time(law_params, float(speed[hit])))
             found.append((*hit, "unresolved-contact",
                           f"a {name} relative speed of {speed[hit]:.4g} m/s, where a "
@@ -658,6 +696,37 @@ def _stop_invalid(setup: DEMSetup, chunks: list[dict[str, np.ndarray]], samples:
     kept_text = (f"; the {t_bad:.4g} s before it are in {valid_path}" if valid_path else "")
     return DEMRunError(f"the DEM run stopped {where}: ball {ball}: {detail} [{cause}]{kept_text}",
                        time_s=t_bad, ball=ball, cause=cause, valid=valid, valid_path=valid_path)
+
+
+def contact_kind_params(params: Any, ball: int, partner: int | None) -> Any:
+    """The scalar contact-law parameters of ball ``ball`` against ball ``partner`` (None: the
+    wall)."""
+    if not params.polydisperse:
+        return params.pw if partner is None else params.pp
+    cls = np.asarray(params.ball_class)
+    return pair_params(params.pw if partner is None else params.pp, int(cls[ball]),
+                       None if partner is None else int(cls[partner]))
+
+
+def resolved_speed_limits(setup: DEMSetup) -> tuple[np.ndarray, np.ndarray]:
+    """The largest relative speeds (m/s) whose contacts last at least
+    :data:`MIN_CONTACT_STEPS` DEM steps: per ball against the wall (N,) and per ball pair
+    (N, N) (the diagonal inf)."""
+    law, params, n = setup.spec.contact_law, setup.params, setup.spec.n_balls
+    span = MIN_CONTACT_STEPS * setup.dt_dem
+    if params.polydisperse:
+        cls = np.asarray(params.ball_class)
+        n_cls = int(cls.max()) + 1
+        wall = np.array([law.max_speed_for_duration(pair_params(params.pw, a), span)
+                         for a in range(n_cls)])[cls]
+        table = np.array([[law.max_speed_for_duration(pair_params(params.pp, a, b), span)
+                           for b in range(n_cls)] for a in range(n_cls)])
+        pair = table[cls[:, None], cls[None, :]]
+    else:
+        wall = np.full(n, law.max_speed_for_duration(params.pw, span))
+        pair = np.full((n, n), law.max_speed_for_duration(params.pp, span))
+    np.fill_diagonal(pair, np.inf)
+    return wall, pair
 
 
 def assemble_arrays(setup: DEMSetup, chunks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

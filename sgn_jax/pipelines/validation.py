@@ -33,13 +33,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from sgn_jax.config import Config, ConfigError
+from sgn_jax.config import Config, ConfigError, replace_section
+from sgn_jax.dem.charge import contact_params, pair_params
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
-from sgn_jax.dem.engine import make_params
 from sgn_jax.errors import EnvelopeWarning
 from sgn_jax.geometry import jar_volume
 from sgn_jax.motion import acceleration, frequency_hz, velocity
 from sgn_jax.pipelines.configure import (
+    charge_from_config,
     contact_law_from_config,
     jar_params_from_config,
     motion_from_config,
@@ -118,16 +119,49 @@ def motion_peaks(motion_cfg: Any, samples: int = 2048) -> MotionPeaks:
 # Physical checks of a config
 
 
-def _contact_laws(cfg: Config) -> tuple[Any, dict[str, Any]]:
-    """The DEM's contact law of ``cfg`` ([dem] contact_law) and its ball-ball and ball-wall
-    parameters (sgn_jax.dem.engine)."""
-    m = cfg.material
+def contact_kinds(cfg: Config) -> tuple[Any, dict[str, tuple[Any, float]]]:
+    """The DEM's contact law of ``cfg`` ([dem] contact_law) and every kind of contact of its
+    charge: name -> (the law's scalar parameters, the smaller radius of the two bodies, m).
+    One ball class: "ball-ball" and "ball-wall"; several: "ball-ball a-b" for every pair of
+    classes a <= b and "ball-wall a" for every class (classes numbered from 0, ``[balls]``
+    first)."""
     law = contact_law_from_config(cfg)
-    params = make_params(radius=cfg.balls.radius, density=cfg.balls.density, young=m.young,
-                         poisson=m.poisson, restitution=m.restitution, friction=m.friction,
-                         rolling_friction=m.rolling_friction, gravity=cfg.dem.gravity,
-                         geometry=None, motion=None, contact_law=law)
-    return law, {"ball-ball": params.pp, "ball-wall": params.pw}
+    charge = charge_from_config(cfg)
+    pp, pw = contact_params(charge, law)
+    radii = [c.radius for c in charge.classes]
+    if charge.monodisperse:
+        return law, {"ball-ball": (pp, radii[0]), "ball-wall": (pw, radii[0])}
+    kinds: dict[str, tuple[Any, float]] = {}
+    for a in range(len(radii)):
+        for b in range(a, len(radii)):
+            kinds[f"ball-ball {a}-{b}"] = (pair_params(pp, a, b), min(radii[a], radii[b]))
+        kinds[f"ball-wall {a}"] = (pair_params(pw, a), radii[a])
+    return law, kinds
+
+
+CONTACT_STEPS_AT_1MS = 200
+"""The DEM step resolves the charge's shortest contact, a head-on impact at 1 m/s, in at least
+this many steps (the standard case's 10 mm steel balls: 204 steps at dt_dem = 9.5e-7 s): a
+charge of smaller or lighter balls gets a proportionally smaller step
+(:func:`charge_dt_dem_max`), so that every charge is resolved as finely as the validated one."""
+
+
+def charge_dt_dem_max(cfg: Config) -> float:
+    """The largest DEM step (s) the charge allows: the shortest elastic contact time of its
+    contact kinds at 1 m/s over :data:`CONTACT_STEPS_AT_1MS`. The DEM runs at the smaller of
+    this and ``[dem] dt_dem_max`` (:func:`with_charge_step`)."""
+    law, kinds = contact_kinds(cfg)
+    return min(float(law.contact_time(params, 1.0)) for params, _ in kinds.values()
+               ) / CONTACT_STEPS_AT_1MS
+
+
+def with_charge_step(cfg: Config) -> Config:
+    """``cfg`` with ``[dem] dt_dem_max`` lowered to :func:`charge_dt_dem_max` where the charge
+    needs a smaller step (unchanged otherwise, as for the standard case)."""
+    limit = charge_dt_dem_max(cfg)
+    if cfg.dem.dt_dem_max <= limit:
+        return cfg
+    return replace_section(cfg, "dem", dt_dem_max=limit)
 
 
 def hertz_peak_overlap(law: Any, speed: float) -> float:
@@ -148,10 +182,10 @@ def max_resolved_impact_speed(cfg: Config) -> tuple[float, str]:
     """
     dt_dem = cfg.dem.dt_dem
     best = (math.inf, "")
-    law, laws = _contact_laws(cfg)
-    for name, law_params in laws.items():
+    law, kinds = contact_kinds(cfg)
+    for name, (law_params, radius) in kinds.items():
         v_time = law.max_speed_for_duration(law_params, MIN_CONTACT_STEPS * dt_dem)
-        overlap = MAX_OVERLAP_FRACTION * cfg.balls.radius
+        overlap = MAX_OVERLAP_FRACTION * radius
         v_overlap = law.max_speed_for_overlap(law_params, overlap)
         if v_time < best[0]:
             best = (v_time, f"a {name} contact must last >= {MIN_CONTACT_STEPS} DEM steps "
@@ -173,16 +207,39 @@ def check_fill(cfg: Config) -> float:
     if cfg.jar.kind != "emax":
         return float("nan")  # an STL cavity's volume needs the mesh; placement will say
     volume = float(jar_volume(jar_params_from_config(cfg.jar)))
-    solid = cfg.balls.count * 4.0 / 3.0 * math.pi * cfg.balls.radius**3
+    solid = sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 for c in cfg.balls.classes)
     fraction = solid / volume
     if fraction > RSA_FILL_LIMIT:
-        most = int(RSA_FILL_LIMIT * volume / (4.0 / 3.0 * math.pi * cfg.balls.radius**3))
+        if cfg.balls.single_class:
+            most = int(RSA_FILL_LIMIT * volume / (4.0 / 3.0 * math.pi * cfg.balls.radius**3))
+            what = (f"[balls] count = {cfg.balls.count} balls of radius {cfg.balls.radius:g} m "
+                    f"fill")
+            remedy = f"(here about {most} balls): use count <= {most}, smaller"
+        else:
+            what = f"the {cfg.balls.n_balls} balls of [balls] and [[balls.mix]] fill"
+            remedy = "of the cavity: use fewer or smaller"
         raise ConfigError(
-            f"[balls] count = {cfg.balls.count} balls of radius {cfg.balls.radius:g} m fill "
-            f"{fraction:.0%} of the jar's {volume * 1e6:.1f} ml; random insertion places at most "
-            f"{RSA_FILL_LIMIT:.0%} (here about {most} balls): use count <= {most}, smaller "
-            "balls or a larger jar")
+            f"{what} {fraction:.0%} of the jar's {volume * 1e6:.1f} ml; random insertion places "
+            f"at most {RSA_FILL_LIMIT:.0%} {remedy} balls or a larger jar")
     return fraction
+
+
+def check_resolution(cfg: Config) -> None:
+    """ConfigError when a ball is too small for the jar's SDF grid: an STL jar is read from a
+    grid of ``[sdf] spacing``, and a ball's contact with it is only as accurate as the grid
+    is fine against the ball (at least :data:`GRID_POINTS_PER_RADIUS` spacings per radius).
+    The parametric jar's walls are exact, but the surrogate's features sample the same grid,
+    so the rule holds for every jar."""
+    smallest = min(c.radius for c in cfg.balls.classes)
+    if smallest < GRID_POINTS_PER_RADIUS * cfg.sdf.spacing:
+        raise ConfigError(
+            f"a ball radius of {smallest:g} m is below {GRID_POINTS_PER_RADIUS} [sdf] spacings "
+            f"({cfg.sdf.spacing:g} m): the jar's SDF grid cannot resolve it; use [sdf] spacing "
+            f"<= {smallest / GRID_POINTS_PER_RADIUS:.3g} m or larger balls")
+
+
+GRID_POINTS_PER_RADIUS = 4
+"""A ball's radius spans at least this many SDF grid spacings (the standard 5 mm ball: 10)."""
 
 
 def check_motion(cfg: Config) -> list[str]:
@@ -226,11 +283,15 @@ def _describe_motion(m: Any) -> str:
     return f"spline period = {m.period:g} s"
 
 
-def check_dem_config(cfg: Config, *, warn: bool = True) -> list[str]:
+def check_dem_config(cfg: Config, *, warn: bool = True, step_given: bool = False
+                     ) -> list[str]:
     """All physical checks of a DEM run of ``cfg`` (raises ConfigError); returns the
-    envelope notes, also issued as :class:`EnvelopeWarning` when ``warn``."""
+    envelope notes, also issued as :class:`EnvelopeWarning` when ``warn``. The contacts are
+    checked at the step the run takes: the charge's (:func:`with_charge_step`), or ``[dem]
+    dt_dem_max`` as it is when ``step_given`` (a step chosen on purpose)."""
     check_fill(cfg)
-    notes = check_motion(cfg)
+    check_resolution(cfg)
+    notes = check_motion(cfg if step_given else with_charge_step(cfg))
     if warn:
         for note in notes:
             warnings.warn(note, EnvelopeWarning, stacklevel=2)

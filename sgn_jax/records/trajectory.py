@@ -198,18 +198,27 @@ def build_meta(config: Any, *, seed: int | None = None, extra: Mapping[str, Any]
     ball radius and mass from ``config.balls``, ``code_version`` is the package version and git
     commit, ``created`` the current UTC time. ``extra`` entries are added (and may override).
     """
-    radius = float(config.balls.radius)
+    classes = config.balls.classes
+    counts = [c.count for c in classes]
+    radii = np.repeat([float(c.radius) for c in classes], counts)
+    masses = np.repeat([float(4.0 / 3.0 * math.pi * c.radius**3 * c.density) for c in classes],
+                       counts)
     meta = {
         "config": config_to_dict(config),
         "dt": float(config.dem.dt),
         "dt_dem": float(config.dem.dt_dem),
         "seed": int(config.dem.seed if seed is None else seed),
-        "ball_radius": radius,
-        "ball_mass": float(4.0 / 3.0 * math.pi * radius**3 * config.balls.density),
-        "n_balls": int(config.balls.count),
+        # A mixed charge: the largest radius and the mean mass (n_balls * ball_mass is the
+        # charge's mass), and every ball's own in ball_radii / ball_masses.
+        "ball_radius": float(radii.max()),
+        "ball_mass": float(masses.mean()) if len(classes) > 1 else float(masses[0]),
+        "n_balls": int(config.balls.n_balls),
         "code_version": f"sgn_jax {sgn_jax.__version__} ({git_commit()})",
         "created": datetime.datetime.now(datetime.UTC).isoformat(),
     }
+    if len(classes) > 1:
+        meta["ball_radii"] = radii.tolist()
+        meta["ball_masses"] = masses.tolist()
     meta.update(extra or {})
     return meta
 
