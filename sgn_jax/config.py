@@ -280,15 +280,16 @@ class MaterialConfig:
 
     def __post_init__(self) -> None:
         if not self.name:
-            raise ConfigError("[material] name must not be empty")
+            raise ConfigError("[material] / [[materials]] name must not be empty")
+        where = f"material {self.name!r}"
         if not 0 < self.restitution <= 1:
-            raise ConfigError(f"[material] restitution must be in (0, 1], got {self.restitution}")
+            raise ConfigError(f"{where}: restitution must be in (0, 1], got {self.restitution}")
         if self.young <= 0:
-            raise ConfigError(f"[material] young must be > 0, got {self.young}")
+            raise ConfigError(f"{where}: young must be > 0, got {self.young}")
         if not -1 < self.poisson < 0.5:
-            raise ConfigError(f"[material] poisson must be in (-1, 0.5), got {self.poisson}")
+            raise ConfigError(f"{where}: poisson must be in (-1, 0.5), got {self.poisson}")
         if self.friction < 0 or self.rolling_friction < 0:
-            raise ConfigError("[material] friction and rolling_friction must be >= 0")
+            raise ConfigError(f"{where}: friction and rolling_friction must be >= 0")
 
 
 @dataclass(frozen=True)

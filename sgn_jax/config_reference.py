@@ -22,7 +22,7 @@ import typing
 from typing import Any, NamedTuple
 
 from sgn_jax import config as config_module
-from sgn_jax.config import Config, MotionConfig, TrainStage
+from sgn_jax.config import Config, MotionConfig
 from sgn_jax.records.io_utils import atomic_write
 
 REGENERATE_COMMAND = "python -m sgn_jax.config_reference --out docs/config.md"
