@@ -4,9 +4,13 @@ what is merely outside what was validated (a warning), for the DEM and the surro
 The rules, each with its reason (docs/validation.md has the table and the numbers):
 
 - **Durations** are > 0 and a whole number of samples ``dt`` (a zero-length run has no power).
-- **Fill**: the balls' solid volume must stay below :data:`RSA_FILL_LIMIT` (38 %) of the
-  cavity's: random sequential insertion, which places the balls, jams near 38 % in 3-D, and no
-  packing of spheres exceeds 74 %.
+- **Fill**: the balls' solid volume (all classes) must stay below :data:`RSA_FILL_LIMIT` (38 %)
+  of the cavity's: random sequential insertion, which places the balls, jams near 38 % in 3-D,
+  and no packing of spheres exceeds 74 %.
+- **Charge** (docs/charge.md): every ball radius spans at least :data:`GRID_POINTS_PER_RADIUS`
+  SDF grid spacings; the DEM step resolves the charge's shortest contact as finely as the
+  standard case's (:func:`with_charge_step`), and the contact rules below hold for every pair
+  of ball classes.
 - **Contact resolution** (impossible motions): a ball hit by the wall meets it at up to
   ``v_impact = 2 v_jar,max + sqrt(2 g H)`` (the jar's peak speed reversed, plus a fall through
   the jar's height). At that speed the Hertz contact must last at least
