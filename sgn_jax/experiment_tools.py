@@ -44,6 +44,7 @@ from sgn_jax.config import (
 )
 from sgn_jax.dem.contact import head_on_normal_force
 from sgn_jax.design import anchored_window, apply_parameters
+from sgn_jax.geometry import jar_volume
 from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import params_from_config as dem_params_from_config
 from sgn_jax.pipelines.configure import surrogate_walls_from_config
@@ -67,7 +68,9 @@ from sgn_jax.pipelines.experiments import (
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
 from sgn_jax.pipelines.studies import over_packings, resolve_start
+from sgn_jax.pipelines.validation import check_dem_config
 from sgn_jax.records.cache import enable_compilation_cache
+from sgn_jax.records.charge_envelope import latin_hypercube_charges, load_charge_envelope
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.ensembles import Case, EnsembleError, load_ensembles, select_cases
 from sgn_jax.records.envelope import latin_hypercube_motions, load_envelope, motion_label
@@ -137,6 +140,11 @@ __all__ = [
     "config_to_toml",
     "resolve_config",
     "save_config",
+    # the charge envelope and its designs (docs/charge.md)
+    "load_charge_envelope",
+    "latin_hypercube_charges",
+    "check_dem_config",
+    "jar_volume",
     "load_trained_model",
     "resolve_checkpoint",
     "best_checkpoint_step",

@@ -18,11 +18,14 @@ from pathlib import Path
 
 import tomli_w
 
-from sgn_jax.config import builtin_config_path, load_config, save_config
-from sgn_jax.geometry import jar_volume
-from sgn_jax.pipelines.configure import jar_params_from_config
-from sgn_jax.pipelines.validation import check_dem_config
-from sgn_jax.records.charge_envelope import latin_hypercube_charges, load_charge_envelope
+import sgn_jax.api as sj
+from sgn_jax.experiment_tools import (
+    check_dem_config,
+    jar_volume,
+    latin_hypercube_charges,
+    load_charge_envelope,
+    save_config,
+)
 
 HERE = Path(__file__).resolve().parent
 
@@ -35,8 +38,8 @@ def main() -> None:
     parser.add_argument("--out", default=str(HERE / "design.toml"))
     args = parser.parse_args()
     env = load_charge_envelope()
-    base = load_config(builtin_config_path("emax_300rpm"))
-    volume = float(jar_volume(jar_params_from_config(base.jar)))
+    base = sj.load_config("emax_300rpm")
+    volume = float(jar_volume(sj.jar_params_from_config(base.jar)))
     share = env.mixture_share
     train = latin_hypercube_charges(env, args.train, args.seed, volume, prefix="train",
                                     max_balls=args.max_train_balls)
