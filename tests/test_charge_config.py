@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sgn_jax.analysis.collisions import collision_statistics, load_events
 from sgn_jax.config import ConfigError, config_from_dict, config_to_dict, load_config
 from sgn_jax.config import builtin_config_path as builtin
 from sgn_jax.pipelines import dem_run as driver
@@ -116,3 +117,13 @@ def test_a_short_dem_run_of_a_mixture(tmp_path):
     assert abs(residual) < 1e-3 * max(diss, 1e-9), (residual, diss)
     closure = run.summary["collisions"]
     assert closure["events"] > 0 and closure["worst_rel"] < 1e-3, closure
+    # Statistics per pair of ball classes, adding up to the pair kinds.
+    table = load_events(tmp_path / "mix.npz")
+    assert table.class_kinds == ("ball-ball 0-0", "ball-ball 0-1", "ball-ball 1-1",
+                                 "ball-wall 0", "ball-wall 1")
+    stats = collision_statistics(table)
+    for kind, parts in (("ball-ball", ("0-0", "0-1", "1-1")), ("ball-wall", ("0", "1"))):
+        for name in ("power_W", "frequency_per_ball_hz"):
+            total = sum(stats[f"{name}[{kind} {p}]"] for p in parts)
+            assert total == pytest.approx(stats[f"{name}[{kind}]"], rel=1e-12)
+    assert stats["power_W[ball-wall 1]"] > 0 and stats["power_W[ball-ball 0-1]"] > 0

@@ -137,6 +137,9 @@ class EventTable:
         total_mass_kg: kg, the mass of all balls (specific power).
         source: ``"dem"`` or ``"surrogate"``.
         path: the record file, or None.
+        ball_class: None (one ball class), or (N,) int the class of each ball of a charge of
+            several (docs/charge.md): the table then also has the kinds of
+            :attr:`class_kinds`, ``"ball-ball a-b"`` (a <= b) and ``"ball-wall a"``.
     """
 
     ball: np.ndarray
@@ -157,9 +160,15 @@ class EventTable:
     total_mass_kg: float
     source: str
     path: str | None = None
+    ball_class: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         where = self.path or "event table"
+        if self.ball_class is not None:
+            object.__setattr__(self, "ball_class", _as_read_only(self.ball_class, "int32"))
+            if self.ball_class.shape != (int(self.n_balls),):
+                raise CollisionDataError(f"{where}: ball_class has shape "
+                                         f"{self.ball_class.shape}, expected ({self.n_balls},)")
         for name, (dtype, _) in EVENT_FIELDS.items():
             object.__setattr__(self, name, _as_read_only(getattr(self, name), dtype))
         n_events = self.ball.shape[0] if self.ball.ndim == 1 else -1
@@ -208,9 +217,36 @@ class EventTable:
         """(E,) bool, events whose first touch lies inside the record."""
         return (self.flags & FLAG_BEGAN_BEFORE) == 0
 
+    @property
+    def class_kinds(self) -> tuple[str, ...]:
+        """The kinds by ball class of a charge of several classes (empty for one):
+        ``"ball-ball a-b"`` for every pair of classes a <= b, then ``"ball-wall a"``."""
+        if self.ball_class is None:
+            return ()
+        n = int(self.ball_class.max()) + 1 if self.ball_class.size else 0
+        if n < 2:
+            return ()
+        pairs = tuple(f"ball-ball {a}-{b}" for a in range(n) for b in range(a, n))
+        return pairs + tuple(f"ball-wall {a}" for a in range(n))
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        """Every kind a ``kind`` argument takes for this table: :data:`KINDS`, then
+        :attr:`class_kinds`."""
+        return KINDS + self.class_kinds
+
     def kind_mask(self, kind: str = "all") -> np.ndarray:
-        """(E,) bool, the events of a pair kind (:data:`KINDS`)."""
-        check_kind(kind)
+        """(E,) bool, the events of a kind (:attr:`kinds`)."""
+        if kind in self.class_kinds:
+            cls = self.ball_class
+            own = cls[self.ball]
+            if kind.startswith("ball-wall "):
+                return self.wall & (own == int(kind.split()[1]))
+            a, b = (int(x) for x in kind.split()[1].split("-"))
+            other = cls[np.where(self.wall, 0, self.partner)]
+            lo, hi = np.minimum(own, other), np.maximum(own, other)
+            return ~self.wall & (lo == a) & (hi == b)
+        check_kind(kind, self.kinds)
         if kind == "all":
             return np.ones(self.n_events, dtype=bool)
         return self.wall if kind == "ball-wall" else ~self.wall
@@ -239,10 +275,11 @@ class EventTable:
                                    record_start_s=start_s)
 
 
-def check_kind(kind: str) -> None:
-    """Raise ValueError unless ``kind`` is one of :data:`KINDS`."""
-    if kind not in KINDS:
-        raise ValueError(f"kind={kind!r}: use one of {list(KINDS)}")
+def check_kind(kind: str, kinds: tuple[str, ...] = KINDS) -> None:
+    """Raise ValueError unless ``kind`` is one of ``kinds`` (:data:`KINDS`, or a table's
+    :attr:`EventTable.kinds`)."""
+    if kind not in kinds:
+        raise ValueError(f"kind={kind!r}: use one of {list(kinds)}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -321,7 +358,21 @@ def events_from_arrays(arrays: Mapping[str, Any], meta: Mapping[str, Any], *, so
         **{name: np.asarray(arrays[PREFIX + name]) for name in EVENT_FIELDS},
         record_duration_s=record_end - record_start, record_start_s=record_start,
         n_balls=n_balls, total_mass_kg=n_balls * _ball_mass(meta, where), source=source,
-        path=None if path is None else str(path))
+        path=None if path is None else str(path), ball_class=_ball_classes(meta, n_balls))
+
+
+def _ball_classes(meta: Mapping[str, Any], n_balls: int) -> np.ndarray | None:
+    """(N,) the class of each ball from the record's config (``[balls]`` count, then each
+    ``[[balls.mix]]`` count), or None for a charge of one class."""
+    config = meta.get("config")
+    balls = config.get("balls") if isinstance(config, Mapping) else None
+    mix = balls.get("mix") if isinstance(balls, Mapping) else None
+    if not mix:
+        return None
+    counts = [int(balls["count"])] + [int(m["count"]) for m in mix]
+    if sum(counts) != n_balls:
+        return None
+    return np.repeat(np.arange(len(counts), dtype=np.int32), counts)
 
 
 def events_from_record(record: Trajectory | Prediction) -> EventTable:
@@ -613,12 +664,14 @@ def collision_statistics(table: EventTable, *, threshold: float = DEFAULT_THRESH
                          speed_edges: Any = SPEED_EDGES) -> dict[str, float | np.ndarray]:
     """Every statistic of one table, by name (units in :data:`STATISTIC_UNITS`).
 
-    Names ending in ``[kind]`` are given for each of :data:`KINDS`; the spectra and the
+    Names ending in ``[kind]`` are given for each of the table's kinds (:data:`KINDS`, and for a
+    charge of several ball classes each pair of classes, :attr:`EventTable.class_kinds`; every
+    frequency is per ball of the whole charge, so that the kinds add up); the spectra and the
     cumulative share are arrays on ``edges`` (the spectra (B,), the share (B + 1,) at each
     edge), the speed histogram on ``speed_edges``.
     """
     stats: dict[str, float | np.ndarray] = {}
-    for kind in KINDS:
+    for kind in table.kinds:
         stats[f"frequency_per_ball_hz[{kind}]"] = collision_frequency(table, kind)
         stats[f"power_W[{kind}]"] = dissipated_power(table, kind)
         stats[f"mean_stress_energy_J[{kind}]"] = mean_stress_energy(table, kind)
