@@ -51,6 +51,8 @@ __all__ = [
     "seed_packings",
     "Packings",
     "DEMEnsemble",
+    "charge_sweep",
+    "plot_charge_sweep",
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, sweeps, files
     "init_state",
     "make_rollout_step",

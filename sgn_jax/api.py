@@ -30,6 +30,7 @@ from sgn_jax.analysis.metrics import ensemble_summary, evaluate
 from sgn_jax.config import Config, ConfigError, replace_section, resolve_config
 from sgn_jax.design import DesignError, default_step, parameter_unit
 from sgn_jax.errors import EnvelopeWarning, SGNJaxError, SGNJaxWarning
+from sgn_jax.pipelines.charge_sweep import charge_sweep, plot_charge_sweep
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
@@ -102,6 +103,8 @@ __all__ = [
     "seed_packings",
     "Packings",
     "DEMEnsemble",
+    "charge_sweep",
+    "plot_charge_sweep",
     # the surrogate rollout: the init/step pair, the whole scan, ensembles, sweeps, files
     "init_state",
     "make_rollout_step",

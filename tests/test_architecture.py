@@ -33,6 +33,9 @@ DEFERRED_IMPORTS: dict[tuple[str, str], str] = {
     ("sgn_jax.experiment_tools", "sgn_jax.analysis.plots"):
         "the experiment scripts import sgn_jax.experiment_tools; only its figure helpers "
         "(new_figure, save_figure, plot_case_curves) need matplotlib",
+    ("sgn_jax.pipelines.charge_sweep", "sgn_jax.analysis.plots"):
+        "charge_sweep is imported by sgn_jax.api and sgn_jax.cli; only plot_charge_sweep draws "
+        "(matplotlib)",
     ("sgn_jax.pipelines.spectra", "sgn_jax.analysis.collision_plots"):
         "spectra is imported by sgn_jax.api and sgn_jax.cli; only CollisionSpectra.plot draws "
         "(matplotlib)",

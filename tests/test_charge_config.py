@@ -7,9 +7,21 @@ import numpy as np
 import pytest
 
 from sgn_jax.analysis.collisions import collision_statistics, load_events
-from sgn_jax.config import ConfigError, config_from_dict, config_to_dict, load_config
+from sgn_jax.config import (
+    ConfigError,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    replace_section,
+)
 from sgn_jax.config import builtin_config_path as builtin
 from sgn_jax.pipelines import dem_run as driver
+from sgn_jax.pipelines.charge_sweep import (
+    ball_fill,
+    charge_point,
+    charge_sweep,
+    plot_charge_sweep,
+)
 from sgn_jax.pipelines.configure import (
     charge_from_config,
     check_surrogate_charge,
@@ -127,3 +139,33 @@ def test_a_short_dem_run_of_a_mixture(tmp_path):
             total = sum(stats[f"{name}[{kind} {p}]"] for p in parts)
             assert total == pytest.approx(stats[f"{name}[{kind}]"], rel=1e-12)
     assert stats["power_W[ball-wall 1]"] > 0 and stats["power_W[ball-ball 0-1]"] > 0
+
+
+def test_charge_points_hold_the_filling_or_the_count():
+    std = load_config(builtin("emax_300rpm"))
+    fill = ball_fill(std)
+    small = charge_point(std, "diameter", 0.006)             # fixed filling: more balls
+    assert small.balls.radius == 0.003
+    assert abs(ball_fill(small) / fill - 1) < 0.02 and small.balls.count == 111  # 24 (5/3)^3
+    same_count = charge_point(std, "diameter", 0.006, hold="count")
+    assert same_count.balls.count == 24
+    fuller = charge_point(std, "fill", 0.15)
+    assert fuller.balls.radius == std.balls.radius and abs(ball_fill(fuller) - 0.15) < 0.005
+    with pytest.raises(ConfigError, match="fill"):
+        charge_point(std, "fill", 1.5)
+    with pytest.raises(ConfigError, match="mix"):
+        charge_point(config_from_dict(_mixed()), "fill", 0.1)
+
+
+def test_a_tiny_charge_sweep_against_its_own_dem_runs(tmp_path):
+    cfg = replace_section(load_config(builtin("emax_300rpm")), "dem", settle_time=0.02)
+    result = charge_sweep(cfg, "fill", [0.02, 0.04], packings=2, duration=0.02, burn_in=0.01)
+    assert [p["n_balls"] for p in result["points"]] == [5, 10]
+    for point in result["points"]:
+        assert len(point["powers_W"]) == 2
+        assert point["power_total_W"] >= point["power_W"] > 0
+        assert point["specific_W_per_kg"] == pytest.approx(point["power_total_W"]
+                                                           / point["mass_kg"])
+    assert plot_charge_sweep(result, tmp_path / "sweep.png").exists()
+    with pytest.raises(ConfigError, match="fill"):   # a point that cannot be placed
+        charge_sweep(cfg, "fill", [0.5], packings=2, duration=0.02, burn_in=0.01)

@@ -810,7 +810,8 @@ class DEMEnsemble:
     rests during settling); a motion whose start offset differs is given the packing translated
     with the jar. ``power(cfg, seed, duration, burn_in)`` returns one seed's mean power of
     normal + tangential damping (ball-ball + ball-wall; the surrogate's target) over
-    ``(burn_in, duration]`` seconds of motion, in W. One process; run one per core for speed.
+    ``(burn_in, duration]`` seconds of motion, in W, and as ``power_total_W`` that of every
+    dissipation kind. One process; run one per core for speed.
     """
 
     chunk_samples: int = 1000
@@ -839,8 +840,8 @@ class DEMEnsemble:
         in the user cache, :mod:`sgn_jax.records.cache`), in the lab frame of ``cfg``'s motion at
         t = 0."""
         setup = setup_from_config(cfg)
-        key = (_jar_key(cfg), cfg.balls, cfg.material, cfg.dem.settle_time, cfg.dem.dt,
-               cfg.dem.dt_dem_max, int(seed))
+        key = (_jar_key(cfg), cfg.balls, cfg.material, cfg.materials, cfg.interactions,
+               cfg.dem.settle_time, cfg.dem.dt, setup.dt_dem, int(seed))
         if key not in self._settled:
             state = load_settled(setup, int(seed))
             if state is None:
@@ -866,8 +867,10 @@ class DEMEnsemble:
         diss_pw = np.concatenate([c["diss_pw"] for c in chunks])
         cumulative = (diss_pp[:, list(_SURROGATE_KINDS)].sum(axis=1)
                       + diss_pw[:, list(_SURROGATE_KINDS)].sum(axis=1))
+        every_kind = diss_pp.sum(axis=1) + diss_pw.sum(axis=1)
         start = cumulative[n_burn - 1] if n_burn > 0 else 0.0
         energy = float(cumulative[-1] - start)
+        energy_total = float(every_kind[-1] - (every_kind[n_burn - 1] if n_burn > 0 else 0.0))
         pos = np.concatenate([c["pos"] for c in chunks])
         off = np.concatenate([c["offset"] for c in chunks])
         phi = np.asarray(jax.vmap(jax.vmap(lambda x: setup.jar.sdf_fn(setup.jar.geometry, x)))(
@@ -876,6 +879,7 @@ class DEMEnsemble:
             raise DesignError(f"the DEM run of seed {seed} left the jar or went non-finite "
                               f"(max phi {float(np.nanmax(phi)):.3g} m)")
         return {"seed": int(seed), "power_W": energy / ((n_total - n_burn) * dt),
+                "power_total_W": energy_total / ((n_total - n_burn) * dt),
                 "energy_J": energy, "max_phi_m": float(phi.max()),
                 "mean_pp_contacts": float(np.mean(np.concatenate(
                     [c["n_pp_contacts"] for c in chunks])))}
