@@ -46,37 +46,43 @@ def packed_balls(n: int, fraction: float, seed: int = 0) -> tuple[np.ndarray, fl
     return pos, side
 
 
-def median_us(fn, *args, repeats: int) -> tuple[float, float]:
-    """(compile + first call s, median warm call us)."""
+def compiled(fn, *args):
+    """(the compiled fn, compile s)."""
     start = time.perf_counter()
+    out = jax.jit(fn).lower(*args).compile()
+    return out, time.perf_counter() - start
+
+
+def median_us(fn, *args, repeats: int) -> float:
+    """Median warm call, us."""
     jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - start
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
-    return first, float(np.median(times)) * 1e6
+    return float(np.median(times)) * 1e6
 
 
 def bench(n: int, fraction: float, reach: int, repeats: int) -> dict:
     pos_np, side = packed_balls(n, fraction)
     pos = jnp.asarray(pos_np)
+    radius, skin, origin = jnp.asarray(RADIUS), jnp.asarray(SKIN), jnp.zeros(3)
     n_slots = max(1, min(n * (n - 1) // 2, math.ceil(SLOTS_PER_BALL * n / 2)))
     grid = cell_grid_for([0.0, 0.0, 0.0], [side] * 3, 2 * RADIUS + SKIN, RADIUS, n, reach=reach)
-    all_fn = jax.jit(functools.partial(build_pairs_all, n_slots))
-    cells_fn = jax.jit(functools.partial(build_pairs_cells, grid, n_slots))
-    origin = jnp.zeros(3)
-    ref = all_fn(pos, RADIUS, SKIN)
-    got = cells_fn(pos, RADIUS, SKIN, origin)
+    all_fn, all_compile = compiled(functools.partial(build_pairs_all, n_slots), pos, radius, skin)
+    cells_fn, cells_compile = compiled(functools.partial(build_pairs_cells, grid, n_slots),
+                                       pos, radius, skin, origin)
+    ref = all_fn(pos, radius, skin)
+    got = cells_fn(pos, radius, skin, origin)
     same = all(np.array_equal(a, b) for a, b in zip(ref, got[:4], strict=True))
     if not same or bool(got[4]) or int(ref[3]) > n_slots:
         raise RuntimeError(f"N={n}: the cell list disagrees with all pairs or overflowed")
-    all_first, all_us = median_us(all_fn, pos, RADIUS, SKIN, repeats=repeats)
-    cells_first, cells_us = median_us(cells_fn, pos, RADIUS, SKIN, origin, repeats=repeats)
     return {"n": n, "candidates": int(ref[3]), "dims": grid.dims,
-            "capacity": grid.cell_capacity, "all_us": all_us, "cells_us": cells_us,
-            "all_first_s": all_first, "cells_first_s": cells_first}
+            "capacity": grid.cell_capacity,
+            "all_us": median_us(all_fn, pos, radius, skin, repeats=repeats),
+            "cells_us": median_us(cells_fn, pos, radius, skin, origin, repeats=repeats),
+            "all_compile_s": all_compile, "cells_compile_s": cells_compile}
 
 
 def main() -> None:
@@ -92,12 +98,13 @@ def main() -> None:
     print(f"## Neighbour search: all pairs vs cell list (6 mm balls, volume fraction "
           f"{args.fraction}, skin {SKIN * 1e3:g} mm, reach {args.reach})\n")
     print("| N | candidates | cells (dims, capacity) | all-pairs us | cells us | "
-          "all-pairs / cells |")
-    print("|---:|---:|---|---:|---:|---:|")
+          "all-pairs / cells | compile all-pairs / cells s |")
+    print("|---:|---:|---|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['n']} | {r['candidates']} | {'x'.join(map(str, r['dims']))}, "
               f"{r['capacity']} | {r['all_us']:.1f} | {r['cells_us']:.1f} | "
-              f"{r['all_us'] / r['cells_us']:.2f} |")
+              f"{r['all_us'] / r['cells_us']:.2f} | {r['all_compile_s']:.2f} / "
+              f"{r['cells_compile_s']:.2f} |")
     print(f"\nMedian of {args.repeats} warm calls of one jitted build (compile apart). "
           f"Commit {machine['commit']}, {machine['processor']}, {machine['cores_used']} of "
           f"{machine['cpu_count']} cores, load {machine['load_average']}, jax {machine['jax']} "

@@ -140,18 +140,19 @@ def _radii(radius: Any, n: int, dtype: Any) -> jnp.ndarray:
     return jnp.broadcast_to(jnp.asarray(radius, dtype), (n,))
 
 
-def _compact(n: int, n_slots: int, candidate: jnp.ndarray, lo: jnp.ndarray, hi: jnp.ndarray,
-             presorted: bool) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+def _compact(n: int, n_slots: int, candidate: jnp.ndarray, pair_at: Any, presorted: bool
+             ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """The candidates of the flat mask ``candidate`` as ``n_slots`` slots sorted by the key
-    ``lo * N + hi``, and their count. Without overflow the slots hold every candidate; with it,
-    the first ``n_slots`` in the mask's order (the smallest keys when ``presorted``)."""
+    ``i * N + j``, and their count; ``pair_at(flat indices) -> (i, j)`` with i < j. Without
+    overflow the slots hold every candidate; with it, the first ``n_slots`` in the mask's order
+    (the smallest keys when ``presorted``)."""
     count = jnp.sum(candidate, dtype=jnp.int32)
     key_dtype = _key_dtype(n)
     sentinel = jnp.asarray(n * n, key_dtype)
     (slots,) = jnp.nonzero(candidate, size=n_slots, fill_value=0)
+    lo, hi = pair_at(slots)
     filled = jnp.arange(n_slots) < count
-    keys = jnp.where(filled, lo[slots].astype(key_dtype) * n + hi[slots].astype(key_dtype),
-                     sentinel)
+    keys = jnp.where(filled, lo.astype(key_dtype) * n + hi.astype(key_dtype), sentinel)
     if not presorted:
         keys = jnp.sort(keys)
     valid = keys < sentinel
@@ -189,7 +190,8 @@ def build_pairs_all(n_slots: int, pos: jnp.ndarray, radius: Any, skin: Any
     cutoff = r[iu] + r[ju] + skin
     candidate = dist_sq < cutoff * cutoff
     # triu_indices lists the pairs in key order already.
-    return _compact(n, n_slots, candidate, jnp.asarray(iu), jnp.asarray(ju), presorted=True)
+    iu, ju = jnp.asarray(iu, jnp.int32), jnp.asarray(ju, jnp.int32)
+    return _compact(n, n_slots, candidate, lambda s: (iu[s], ju[s]), presorted=True)
 
 
 def build_pairs_cells(grid: CellGrid, n_slots: int, pos: jnp.ndarray, radius: Any, skin: Any,
@@ -245,7 +247,7 @@ def build_pairs_cells(grid: CellGrid, n_slots: int, pos: jnp.ndarray, radius: An
     nb_start = start[nb]
     nb_count = jnp.where(on_grid, jnp.minimum(occupancy[nb], grid.cell_capacity), 0)
 
-    # Candidate slots (N,S,cap) in the sorted order; the positions travel sorted, so one gather.
+    # Candidate slots (N,S,cap): the k-th ball of each neighbour cell, in the sorted order.
     k = jnp.arange(grid.cell_capacity, dtype=jnp.int32)
     slot = jnp.minimum(nb_start[:, :, None] + k, n - 1)
     occupied = k < nb_count[:, :, None]
@@ -254,12 +256,18 @@ def build_pairs_cells(grid: CellGrid, n_slots: int, pos: jnp.ndarray, radius: An
     # Own cell (stencil 0): each pair once, from its smaller index.
     own = jnp.arange(stencil.shape[0]) == 0
     occupied = occupied & (~own[None, :, None] | (other > me))
-    lo, hi = jnp.minimum(me, other), jnp.maximum(me, other)
-    # The same arithmetic as build_pairs_all (x_hi - x_lo, r_lo + r_hi), so the same decisions.
-    d = pos[hi] - pos[lo]
+    # The same decisions as build_pairs_all: |x_me - x_other|^2 is bitwise |x_j - x_i|^2
+    # (negation is exact) and the sum of two radii does not depend on their order.
+    d = pos[other] - pos[:, None, None, :]
     dist_sq = jnp.sum(d * d, axis=-1)
-    cutoff = r[lo] + r[hi] + skin
-    candidate = occupied & (dist_sq < cutoff * cutoff)
-    i, j, valid, count = _compact(n, n_slots, candidate.reshape(-1), lo.reshape(-1),
-                                  hi.reshape(-1), presorted=False)
+    cutoff = r[:, None, None] + r[other] + skin
+    candidate = (occupied & (dist_sq < cutoff * cutoff)).reshape(-1)
+    other = other.reshape(-1)
+    row = other.shape[0] // n
+
+    def pair_at(slots: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        a, b = slots // row, other[slots]
+        return jnp.minimum(a, b), jnp.maximum(a, b)
+
+    i, j, valid, count = _compact(n, n_slots, candidate, pair_at, presorted=False)
     return i, j, valid, count, cell_overflow
