@@ -292,6 +292,9 @@ class MaterialConfig:
             raise ConfigError(f"{where}: friction and rolling_friction must be >= 0")
 
 
+NEIGHBOUR_SEARCHES = ("auto", "all_pairs", "cells")
+
+
 @dataclass(frozen=True)
 class InteractionConfig:
     """The restitution, friction and rolling friction of contacts between two named materials
@@ -340,6 +343,10 @@ class DEMConfig:
         pp_capacity: slots for touching ball pairs recorded per sample (pp_pairs), 0 = 3 * count.
         neighbour_capacity: Verlet list capacity in pairs per ball (ceil(capacity * N / 2) pairs).
         neighbour_skin: m, surface gap within which a ball pair enters the Verlet list.
+        neighbour_search: how the Verlet list is rebuilt: "all_pairs" (tests all N(N-1)/2
+            pairs), "cells" (a cell list, cost growing with N) or "auto" (cells from 500
+            balls, where the cell list becomes the faster; docs/charge.md). Both give the same
+            list, so the same run.
         contact_law: name of the contact law (sgn_jax.dem.laws registry); "hertz_mindlin" is
             the validated default, other laws are registered by code (docs/dem.md).
         kick_speed: m/s; 0 (the default): the motion starts from the settled bed at rest. > 0:
@@ -368,6 +375,7 @@ class DEMConfig:
     # Verlet list of the DEM (sgn_jax.dem): pairs per ball it can hold, and its skin (m).
     neighbour_capacity: int = 8
     neighbour_skin: float = 0.001
+    neighbour_search: str = "auto"
     # Contact law by registry name (sgn_jax.dem.laws); checked when the DEM is set up.
     contact_law: str = "hertz_mindlin"
     kick_speed: float = 0.0
@@ -382,6 +390,9 @@ class DEMConfig:
                               f"got {self.contact_law!r}")
         if self.neighbour_capacity < 1 or self.neighbour_skin < 0:
             raise ConfigError("[dem] neighbour_capacity must be >= 1 and neighbour_skin >= 0")
+        if self.neighbour_search not in NEIGHBOUR_SEARCHES:
+            raise ConfigError(f"[dem] neighbour_search must be one of {list(NEIGHBOUR_SEARCHES)}, "
+                              f"got {self.neighbour_search!r}")
         if self.collision_capacity < 0:
             raise ConfigError(f"[dem] collision_capacity must be >= 0 (0: sized from the chunk), "
                               f"got {self.collision_capacity}")

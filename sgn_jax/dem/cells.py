@@ -25,11 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sgn_jax.errors import SGNJaxError
+
 # Densest sphere packing (Kepler, proved by Hales): no packing fills more than pi / sqrt(18).
 _KEPLER_DENSITY = math.pi / math.sqrt(18.0)
 
 
-class CellGridError(ValueError):
+class CellGridError(SGNJaxError, ValueError):
     """An invalid cell grid or box."""
 
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from sgn_jax import motion as motion_mod
 from sgn_jax.dem import collisions as coll
+from sgn_jax.dem.cells import build_pairs_cells
 from sgn_jax.dem.contact import DISSIPATION_KINDS  # noqa: F401  (re-exported: the ledger's kinds)
 from sgn_jax.dem.laws import HERTZ_MINDLIN, ContactLawError, resolve_contact_law
 from sgn_jax.errors import SGNJaxError
@@ -93,6 +94,11 @@ class DEMSpec:
             collision ledger (:mod:`sgn_jax.dem.collisions`) whose buffer holds this many
             closed contacts between two emptyings by the host (pair modes "pairs" and
             "neighbour").
+        cell_grid: None (the default): the Verlet list is rebuilt from all N(N-1)/2 pairs,
+            the faster search below a few hundred balls. A :class:`sgn_jax.dem.cells.CellGrid`:
+            from a cell list whose cost grows with N (the same list; neighbour mode only; a
+            cell holding more balls than its capacity sets the list's overflow flag).
+        cell_lower: m, (3,) jar-frame corner of the cell grid (it moves with the jar's offset).
     """
 
     n_balls: int
@@ -105,6 +111,8 @@ class DEMSpec:
     neighbour_skin: float = 0.001
     contact_law: Any = HERTZ_MINDLIN
     collision_capacity: int = 0
+    cell_grid: Any = None
+    cell_lower: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         try:
@@ -127,6 +135,10 @@ class DEMSpec:
         if self.collision_capacity < 0:
             raise DEMError(f"collision_capacity must be >= 0 (0: no collision ledger), got "
                            f"{self.collision_capacity}")
+        if self.cell_grid is not None and self.resolved_pair_mode != "neighbour":
+            raise DEMError(f"a cell grid serves pair_mode 'neighbour' (a Verlet list), not "
+                           f"{self.pair_mode!r}")
+        object.__setattr__(self, "cell_lower", tuple(float(x) for x in self.cell_lower))
         if self.collision_capacity and self.resolved_pair_mode == "nxn":
             raise DEMError("the collision ledger needs pair_mode 'neighbour' or 'pairs' (each "
                            "ball pair in one slot), not 'nxn'")
@@ -274,8 +286,9 @@ class PairList:
         i, j: (K,) int32 ball indices, i < j for a valid slot (0, 0 for an empty slot).
         valid: (K,) bool.
         ref_pos: (N,3) positions at the last rebuild (neighbour mode).
-        overflow: () bool, sticky: more candidate pairs than slots at some rebuild (pairs
-            were dropped: the run is invalid; raise ``neighbour_capacity``).
+        overflow: () bool, sticky: more candidate pairs than slots at some rebuild, or a cell
+            of the cell list fuller than its capacity (pairs were dropped: the run is
+            invalid; raise ``neighbour_capacity``).
         rebuilds: () int32, number of rebuilds so far.
         max_candidates: () int32, the largest candidate count seen at a rebuild.
     """
@@ -353,13 +366,22 @@ def dense_pair_indices(n_balls: int) -> tuple[np.ndarray, np.ndarray]:
 # Verlet list (fixed capacity, overflow flag)
 
 
-def _build_verlet_list(spec: DEMSpec, radius: Any, pos: jnp.ndarray
-                       ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """Pairs i < j with surface gap < skin, in triangular order: (i, j, valid, count)."""
+def _build_verlet_list(spec: DEMSpec, radius: Any, pos: jnp.ndarray, offset: jnp.ndarray
+                       ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray,
+                                  jnp.ndarray]:
+    """Pairs i < j with surface gap < skin, in triangular order: (i, j, valid, count,
+    cell_overflow); from the cell list of ``spec.cell_grid`` (its corner at the jar's
+    ``offset`` + ``spec.cell_lower``) or from all pairs (``cell_overflow`` False)."""
+    if spec.cell_grid is not None:
+        origin = offset.astype(pos.dtype) + jnp.asarray(spec.cell_lower, pos.dtype)
+        return build_pairs_cells(spec.cell_grid, spec.n_pair_slots, pos, radius,
+                                 spec.neighbour_skin, origin)
+    no_cell_overflow = jnp.zeros((), bool)
     iu, ju = dense_pair_indices(spec.n_balls)
     if len(iu) == 0:  # a single ball: one empty slot
         zero = jnp.zeros(spec.n_pair_slots, jnp.int32)
-        return zero, zero, jnp.zeros(spec.n_pair_slots, bool), jnp.zeros((), jnp.int32)
+        return (zero, zero, jnp.zeros(spec.n_pair_slots, bool), jnp.zeros((), jnp.int32),
+                no_cell_overflow)
     d = pos[ju] - pos[iu]
     dist_sq = jnp.sum(d * d, axis=-1)
     if jnp.ndim(radius) == 1:  # per-ball radii: the pair's own cutoff
@@ -372,7 +394,7 @@ def _build_verlet_list(spec: DEMSpec, radius: Any, pos: jnp.ndarray
     valid = jnp.arange(spec.n_pair_slots) < count
     i = jnp.where(valid, jnp.asarray(iu)[slots], 0)
     j = jnp.where(valid, jnp.asarray(ju)[slots], 0)
-    return i.astype(jnp.int32), j.astype(jnp.int32), valid, count
+    return i.astype(jnp.int32), j.astype(jnp.int32), valid, count, no_cell_overflow
 
 
 def _pair_keys(spec: DEMSpec, i: jnp.ndarray, j: jnp.ndarray, valid: jnp.ndarray) -> jnp.ndarray:
@@ -381,14 +403,15 @@ def _pair_keys(spec: DEMSpec, i: jnp.ndarray, j: jnp.ndarray, valid: jnp.ndarray
     return jnp.where(valid, i.astype(jnp.int64) * n + j, n * n)
 
 
-def _rebuild_pairs(spec: DEMSpec, radius: Any, pos: jnp.ndarray, parts: tuple) -> tuple:
+def _rebuild_pairs(spec: DEMSpec, radius: Any, pos: jnp.ndarray, offset: jnp.ndarray,
+                   parts: tuple) -> tuple:
     """Rebuild the Verlet list and carry each surviving pair's history (and the event in
     progress of the collision ledger, if any) to its new slot.
 
     ``parts`` = ``(pairs, pp_history, pp_track)`` (``pp_track`` None without a ledger): only
     what a rebuild changes goes through its ``lax.cond``, whose operands XLA copies."""
     old, old_history, track = parts
-    i, j, valid, count = _build_verlet_list(spec, radius, pos)
+    i, j, valid, count, cell_overflow = _build_verlet_list(spec, radius, pos, offset)
     # Both lists are sorted by key (triangular order, sentinels last): match by binary search.
     old_keys = _pair_keys(spec, old.i, old.j, old.valid)
     new_keys = _pair_keys(spec, i, j, valid)
@@ -396,7 +419,7 @@ def _rebuild_pairs(spec: DEMSpec, radius: Any, pos: jnp.ndarray, parts: tuple) -
     found = valid & (old_keys[where] == new_keys)
     history = jnp.where(found[:, None], old_history[where], 0.0)
     pairs = PairList(i=i, j=j, valid=valid, ref_pos=pos,
-                     overflow=old.overflow | (count > spec.n_pair_slots),
+                     overflow=old.overflow | (count > spec.n_pair_slots) | cell_overflow,
                      rebuilds=old.rebuilds + 1,
                      max_candidates=jnp.maximum(old.max_candidates, count))
     if track is not None:
@@ -404,8 +427,10 @@ def _rebuild_pairs(spec: DEMSpec, radius: Any, pos: jnp.ndarray, parts: tuple) -
     return pairs, history, track
 
 
-def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray) -> PairList:
-    """The initial pair list (nxn, pairs: all i < j; neighbour: Verlet list of ``pos``)."""
+def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray, offset: jnp.ndarray
+               ) -> PairList:
+    """The initial pair list (nxn, pairs: all i < j; neighbour: Verlet list of ``pos``, the
+    jar at ``offset``)."""
     n = spec.n_balls
     zero = jnp.zeros((), jnp.int32)
     if spec.resolved_pair_mode in ("nxn", "pairs"):
@@ -413,8 +438,10 @@ def init_pairs(spec: DEMSpec, params: DEMParams, pos: jnp.ndarray) -> PairList:
         return PairList(i=jnp.asarray(i), j=jnp.asarray(j), valid=jnp.ones(len(i), bool),
                         ref_pos=pos, overflow=jnp.zeros((), bool), rebuilds=zero,
                         max_candidates=jnp.asarray(len(i), jnp.int32))
-    i, j, valid, count = _build_verlet_list(spec, jnp.asarray(params.radius, pos.dtype), pos)
-    return PairList(i=i, j=j, valid=valid, ref_pos=pos, overflow=count > spec.n_pair_slots,
+    i, j, valid, count, cell_overflow = _build_verlet_list(
+        spec, jnp.asarray(params.radius, pos.dtype), pos, offset)
+    return PairList(i=i, j=j, valid=valid, ref_pos=pos,
+                    overflow=(count > spec.n_pair_slots) | cell_overflow,
                     rebuilds=zero, max_candidates=count)
 
 
@@ -441,10 +468,10 @@ def init_state(
     omega = jnp.zeros_like(pos) if omega is None else jnp.asarray(omega, dtype=dtype)
     # Jitted, as one program each: op by op, the pair list and the motion's offset cost ~60
     # small compilations (~2 s) at the start of every process that runs the DEM.
-    pairs = _init_pairs_jit(spec, params, pos)
     t = max(step, 0) * spec.dt_dem
     offset = jnp.asarray(jax.jit(offset_fn)(params.motion, jnp.asarray(t, jnp.float64)),
                          jnp.float64)
+    pairs = _init_pairs_jit(spec, params, pos, offset)
     return DEMState(
         pos=pos, vel=vel, omega=omega,
         pp_history=jnp.zeros(pp_history_shape(spec), dtype),
@@ -593,7 +620,8 @@ def make_dem_step(
             track = None if state.collisions is None else state.collisions.pp
             pairs, history, track = jax.lax.cond(
                 moved > (0.5 * spec.neighbour_skin) ** 2,
-                lambda parts: _rebuild_pairs(spec, params.radius, state.pos, parts),
+                lambda parts: _rebuild_pairs(spec, params.radius, state.pos, state.offset,
+                                             parts),
                 lambda parts: parts, (state.pairs, state.pp_history, track))
             state = state.replace(pairs=pairs, pp_history=history)
             if track is not None:

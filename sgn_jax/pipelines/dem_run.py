@@ -36,6 +36,7 @@ import numpy as np
 
 from sgn_jax.config import Config, config_to_dict, replace_section
 from sgn_jax.dem import collisions as coll
+from sgn_jax.dem.cells import CellGrid, cell_grid_for
 from sgn_jax.dem.charge import pair_params
 from sgn_jax.dem.contact import MIN_CONTACT_STEPS
 from sgn_jax.dem.engine import (
@@ -127,15 +128,38 @@ def setup_from_config(cfg: Any, dt_dem: float | None = None, dtype: str | None =
     jar = geometry_from_config(cfg)
     params = params_from_config(cfg, geometry=jar.geometry)
     n = cfg.balls.n_balls
+    grid = (cell_grid_of(cfg, jar)
+            if pair_mode in ("auto", "neighbour") and uses_cell_list(cfg) else None)
     spec = DEMSpec(n_balls=n, n_patches=len(jar.patch_names), dt_dem=cfg.dem.dt_dem,
                    dtype=cfg.dem.dtype, clip_attractive=cfg.dem.clip_attractive,
                    pair_mode=pair_mode, neighbour_capacity=cfg.dem.neighbour_capacity,
                    neighbour_skin=cfg.dem.neighbour_skin,
                    contact_law=contact_law_from_config(cfg),
-                   collision_capacity=collision_capacity(cfg) if pair_mode != "nxn" else 0)
+                   collision_capacity=collision_capacity(cfg) if pair_mode != "nxn" else 0,
+                   cell_grid=grid, cell_lower=tuple(np.asarray(jar.lower, float)))
     capacity = cfg.dem.pp_capacity if cfg.dem.pp_capacity > 0 else 3 * n
     return DEMSetup(cfg=cfg, spec=spec, params=params, jar=jar, substeps=cfg.dem.substeps,
                     pp_capacity=capacity)
+
+
+CELL_LIST_FROM_BALLS = 500
+"""``[dem] neighbour_search = "auto"`` rebuilds the Verlet list from a cell list from this many
+balls on: below it testing all pairs is faster on a CPU core (docs/benchmarks.md, "Neighbour
+search"), above it the cell list (6.4x at 1,000 balls)."""
+
+
+def uses_cell_list(cfg: Any) -> bool:
+    """Whether the DEM of ``cfg`` rebuilds its Verlet list from a cell list."""
+    search = cfg.dem.neighbour_search
+    return search == "cells" or (search == "auto" and cfg.balls.n_balls >= CELL_LIST_FROM_BALLS)
+
+
+def cell_grid_of(cfg: Any, jar: JarGeometry) -> CellGrid:
+    """The cell grid of a config's charge over its jar's cavity box (jar frame): cells as wide
+    as the largest pair cutoff, capacity from the densest packing of the smallest balls."""
+    radii = [c.radius for c in cfg.balls.classes]
+    return cell_grid_for(jar.lower, jar.upper, 2 * max(radii) + cfg.dem.neighbour_skin,
+                         min(radii), cfg.balls.n_balls)
 
 
 COLLISION_RATE_BOUND = 1000.0
@@ -552,6 +576,13 @@ def run_dem(
         if np.any(samples["pp_overflow"]):
             first = int(np.argmax(samples["pp_overflow"]))
             t_bad = (done + first + 1) * setup.dt
+            if (bool(state.pairs.overflow) and spec.cell_grid is not None
+                    and int(state.pairs.max_candidates) <= spec.n_pair_slots):
+                raise DEMError(
+                    f"a cell of the DEM's cell list held more than "
+                    f"{spec.cell_grid.cell_capacity} balls by t = {t_bad:g} s (balls far "
+                    "outside the jar crowd its edge cells, or overlaps far deeper than the "
+                    "grid allows); check the run, or use [dem] neighbour_search = 'all_pairs'")
             if bool(state.pairs.overflow):
                 raise DEMError(
                     f"the DEM's Verlet list overflowed (more than {spec.n_pair_slots} pairs "
