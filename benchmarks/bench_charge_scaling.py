@@ -5,7 +5,8 @@ placed (seed 0), settled for ``--settle`` s and moved for ``--warm`` s; then ``-
 steps of the jitted scan (collision ledger on, as ``sgn-jax dem`` runs) are timed, best of
 ``--repeats``, compile time apart. The table gives the time per step, per simulated second, per
 ball-step and per contact-step (the mean number of touching ball-ball and ball-wall contacts
-over the timed steps, counted at its end and start), and the neighbour list's rebuilds.
+over the timed steps, counted at its end and start), and the neighbour list's rebuilds, for
+each neighbour search (``--searches``: all pairs, the cell list; the same run either way).
 
     taskset -c 0 python benchmarks/bench_charge_scaling.py [--markdown docs/benchmarks.md]
 
@@ -39,11 +40,11 @@ def _contacts(setup, state) -> int:
     return int(np.sum(np.asarray(ov.pp_overlap) > 0) + np.sum(np.asarray(ov.pw_overlap) > 0))
 
 
-def row(count: int, radius: float, steps: int, repeats: int, settle: float, warm: float
-        ) -> dict:
+def row(count: int, radius: float, steps: int, repeats: int, settle: float, warm: float,
+        search: str) -> dict:
     cfg = load_config(builtin_config_path("emax_300rpm"))
     cfg = replace_section(cfg, "balls", count=count, radius=radius)
-    cfg = replace_section(cfg, "dem", settle_time=settle)
+    cfg = replace_section(cfg, "dem", settle_time=settle, neighbour_search=search)
     setup = setup_from_config(cfg)
     state = initial_state(setup, seed=0)
     advance = make_advance(setup.spec, setup.jar.wall_fn)
@@ -59,7 +60,7 @@ def row(count: int, radius: float, steps: int, repeats: int, settle: float, warm
         best = min(best, time.perf_counter() - t0)
     contacts = 0.5 * (_contacts(setup, state) + _contacts(setup, final))
     per_step = best / steps
-    return {"balls": count, "radius_m": radius, "dt_dem_s": setup.dt_dem, "steps": steps,
+    return {"balls": count, "search": search, "radius_m": radius, "dt_dem_s": setup.dt_dem, "steps": steps,
             "us_per_step": 1e6 * per_step, "s_per_simulated_s": per_step / setup.dt_dem,
             "ns_per_ball_step": 1e9 * per_step / count,
             "contacts": contacts,
@@ -78,14 +79,18 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--settle", type=float, default=0.1)
     parser.add_argument("--warm", type=float, default=0.02)
+    parser.add_argument("--searches", nargs="+", default=["all_pairs", "cells"],
+                        choices=("all_pairs", "cells"))
     parser.add_argument("--out", default="benchmarks/results/bench_charge_scaling.json")
     parser.add_argument("--markdown", default=None,
                         help="replace the table between this script's markers in this file")
     args = parser.parse_args()
     rows = []
     for count in args.counts:
-        rows.append(row(count, args.radius, args.steps, args.repeats, args.settle, args.warm))
-        print(json.dumps(rows[-1]), flush=True)
+        for search in args.searches:
+            rows.append(row(count, args.radius, args.steps, args.repeats, args.settle,
+                            args.warm, search))
+            print(json.dumps(rows[-1]), flush=True)
     machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                "affinity": sorted(os.sched_getaffinity(0)), "jax": jax.__version__}
     result = {"benchmark": "charge_scaling", "commit": git_commit(),
@@ -93,11 +98,12 @@ def main() -> None:
     write_json(args.out, result)
     lines = [f"Commit {result['commit']}, jax {machine['jax']}, affinity {machine['affinity']}, "
              f"balls of radius {args.radius * 1e3:g} mm, 300 rpm (`{args.out}`):", "",
-             "| balls | dt_dem (s) | us / step | s / simulated s | contacts | ns / ball-step | "
-             "ns / contact-step | rebuilds / 1000 steps | compile (s) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| balls | search | dt_dem (s) | us / step | s / simulated s | contacts | "
+             "ns / ball-step | ns / contact-step | rebuilds / 1000 steps | compile (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['balls']} | {r['dt_dem_s']:.3g} | {r['us_per_step']:.1f} | "
+        lines.append(f"| {r['balls']} | {r['search']} | {r['dt_dem_s']:.3g} | "
+                     f"{r['us_per_step']:.1f} | "
                      f"{r['s_per_simulated_s']:.1f} | {r['contacts']:.0f} | "
                      f"{r['ns_per_ball_step']:.0f} | {r['ns_per_contact_step']:.0f} | "
                      f"{r['rebuilds_per_1000_steps']:.1f} | {r['compile_s']:.1f} |")
