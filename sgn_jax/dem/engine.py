@@ -795,11 +795,17 @@ def energies(spec: DEMSpec, wall_fn: WallFn, params: DEMParams, state: DEMState
     vel = state.vel.astype(f64)
     omega = state.omega.astype(f64)
     pos = state.pos.astype(f64)
-    mass = _column(jnp.asarray(params.mass, f64))
-    inertia = _column(jnp.asarray(params.inertia, f64))
-    ke_trans = 0.5 * jnp.sum(mass * vel * vel)
-    ke_rot = 0.5 * jnp.sum(inertia * omega * omega)
-    pe = -jnp.sum(jnp.asarray(params.mass, f64) * (pos @ jnp.asarray(params.gravity, f64)))
+    height = pos @ jnp.asarray(params.gravity, f64)
+    if params.polydisperse:
+        mass = jnp.asarray(params.mass, f64)
+        inertia = jnp.asarray(params.inertia, f64)
+        ke_trans = 0.5 * jnp.sum(mass[:, None] * vel * vel)
+        ke_rot = 0.5 * jnp.sum(inertia[:, None] * omega * omega)
+        pe = -jnp.sum(mass * height)
+    else:
+        ke_trans = 0.5 * params.mass * jnp.sum(vel * vel)
+        ke_rot = 0.5 * params.inertia * jnp.sum(omega * omega)
+        pe = -params.mass * jnp.sum(height)
     ov = contact_overlaps(spec, wall_fn, params, state)
     law = spec.contact_law
     law_pp, law_pw = contact_law_per_slot(params, state.pairs)
