@@ -207,3 +207,19 @@ def test_sdf_is_negative_inside_for_the_fixture(setup3):
     setup, sdf = setup3
     phi = np.asarray(sdf(jnp.asarray(_samples()["pos"])))
     assert np.all(phi < -0.005)
+
+
+def test_a_charge_the_model_was_not_trained_on_is_named(std):
+    env = model_envelope(std, {"envelope": {"circle_rpm": [150, 500],
+                                            "circle_amplitude": [0.01, 0.02]}})
+    assert envelope_notes(std, env) == []
+    small = replace_section(std, "balls", count=60, radius=0.003)
+    notes = envelope_notes(small, env)
+    assert any("[balls] radius (m) = 0.003" in n for n in notes), notes
+    assert any("[balls] count = 60" in n for n in notes), notes
+    light = replace_section(std, "material", restitution=0.7)
+    assert any("[material] restitution = 0.7" in n for n in envelope_notes(light, env))
+    anything = model_envelope(std, {"envelope": {"circle_rpm": [150, 500],
+                                                 "circle_amplitude": [0.01, 0.02],
+                                                 "any_charge": True}})
+    assert envelope_notes(small, anything) == []

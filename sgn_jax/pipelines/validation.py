@@ -317,6 +317,9 @@ class ModelEnvelope:
     post_radius) of the trained jar, or None for any jar. ``motion``: the full
     :class:`sgn_jax.records.envelope.MotionEnvelope` when the model states one (then its motion
     checks are :func:`sgn_jax.records.envelope.envelope_notes`, per-harmonic limits included).
+    ``charge``: the one charge the model was trained on, ``{"[balls] count": 24, ...}`` (the
+    ball count, radius and density, the material's restitution, friction and rolling
+    friction), or None for any charge.
     """
 
     circle_rpm: tuple[float, float] | None = None
@@ -326,6 +329,18 @@ class ModelEnvelope:
     jar: tuple[float, float, float, float] | None = None
     source: str = ""
     motion: MotionEnvelope | None = None
+    charge: dict[str, float] | None = None
+
+
+def charge_key(cfg: Config) -> dict[str, float]:
+    """The charge of a one-class config as the values a model trained on it knows: ball count,
+    radius and density, and its material's restitution, friction and rolling friction."""
+    material = cfg.material_named(cfg.balls.material)
+    return {"[balls] count": float(cfg.balls.count), "[balls] radius (m)": cfg.balls.radius,
+            "[balls] density (kg/m^3)": cfg.balls.density,
+            "[material] restitution": material.restitution,
+            "[material] friction": material.friction,
+            "[material] rolling_friction": material.rolling_friction}
 
 
 def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> ModelEnvelope:
@@ -344,13 +359,17 @@ def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> 
                              harmonic_max_axis_amplitude=stated.get("harmonic_max_axis_amplitude"),
                              jar=None if stated.get("any_jar") else jar_key,
                              source="the model's stated envelope",
-                             motion=MotionEnvelope.from_meta(stated))
+                             motion=MotionEnvelope.from_meta(stated),
+                             charge=None if stated.get("any_charge") else charge_key(
+                                 model_config))
     m = model_config.motion
     if m.kind == "circle":
         return ModelEnvelope(circle_rpm=(m.rpm * 0.99, m.rpm * 1.01),
                              circle_amplitude=(m.amplitude * 0.99, m.amplitude * 1.01),
-                             jar=jar_key, source="the single motion the model was trained on")
-    return ModelEnvelope(jar=jar_key, source="the single motion the model was trained on")
+                             jar=jar_key, source="the single motion the model was trained on",
+                             charge=charge_key(model_config))
+    return ModelEnvelope(jar=jar_key, source="the single motion the model was trained on",
+                         charge=charge_key(model_config))
 
 
 def _axis_amplitudes(m: Any) -> list[float]:
@@ -392,6 +411,12 @@ def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
         if cfg.jar.kind != "emax" or not np.allclose(key, envelope.jar, rtol=1e-6, atol=1e-9):
             notes.append(f"[jar] {key} (radius, straight_length, height, post_radius, m) differs "
                          f"from the trained jar {envelope.jar}")
+    if envelope.charge is not None and cfg.balls.single_class:
+        for what, value in charge_key(cfg).items():
+            trained = envelope.charge[what]
+            if not math.isclose(value, trained, rel_tol=1e-6):
+                notes.append(f"{what} = {value:g} differs from the model's charge ({trained:g}): "
+                             "it was trained on one charge (docs/charge.md)")
     if notes:
         notes.append(f"the model's envelope is {envelope.source}; outside it its powers and "
                      "gradients are extrapolations (docs/validation.md)")
