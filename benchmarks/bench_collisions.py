@@ -109,15 +109,9 @@ def main() -> None:
     print(json.dumps(rows))
     print(table)
     if args.markdown:
-        from pathlib import Path
-        path = Path(args.markdown)
-        text = path.read_text()
-        begin, end = f"<!-- {MARKER}:begin -->", f"<!-- {MARKER}:end -->"
-        if begin not in text or end not in text:
-            raise SystemExit(f"{path} has no {begin} ... {end} markers")
-        head, rest = text.split(begin, 1)
-        _, tail = rest.split(end, 1)
-        path.write_text(f"{head}{begin}\n{table}\n{end}{tail}")
+        from markdown_section import replace_section  # this folder is on sys.path
+
+        replace_section(args.markdown, MARKER, table)
 
 
 if __name__ == "__main__":

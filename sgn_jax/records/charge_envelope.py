@@ -31,6 +31,7 @@ from sgn_jax.config import (
     MaterialConfig,
     replace_section,
 )
+from sgn_jax.records.envelope import bounds_pair
 
 CHARGE_ENVELOPE_PATH = Path(__file__).resolve().parents[1] / "data" / "charge_envelope.toml"
 CHARGE_MATERIAL = "charge"
@@ -119,14 +120,6 @@ class ChargeDesign:
         return dataclasses.asdict(self)
 
 
-def _pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
-    value = table.get(key)
-    if (not isinstance(value, list) or len(value) != 2
-            or not all(isinstance(v, (int, float)) for v in value) or not value[0] <= value[1]):
-        raise ConfigError(f"{where}: {key} must be [min, max] with min <= max, got {value!r}")
-    return float(value[0]), float(value[1])
-
-
 def _number(table: dict[str, Any], key: str, where: str) -> float:
     value = table.get(key)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -144,16 +137,16 @@ def load_charge_envelope(path: str | Path = CHARGE_ENVELOPE_PATH) -> ChargeEnvel
     b, m, mo = data.get("balls", {}), data.get("material", {}), data.get("motion", {})
     w = str(path)
     return ChargeEnvelope(
-        diameter=_pair(b, "diameter", w + " [balls]"), fill=_pair(b, "fill", w + " [balls]"),
+        diameter=bounds_pair(b, "diameter", w + " [balls]"), fill=bounds_pair(b, "fill", w + " [balls]"),
         mixture_share=_number(b, "mixture_share", w + " [balls]"),
-        small_volume_share=_pair(b, "small_volume_share", w + " [balls]"),
-        density=_pair(m, "density", w + " [material]"),
-        restitution=_pair(m, "restitution", w + " [material]"),
-        friction=_pair(m, "friction", w + " [material]"),
+        small_volume_share=bounds_pair(b, "small_volume_share", w + " [balls]"),
+        density=bounds_pair(m, "density", w + " [material]"),
+        restitution=bounds_pair(m, "restitution", w + " [material]"),
+        friction=bounds_pair(m, "friction", w + " [material]"),
         rolling_friction=_number(m, "rolling_friction", w + " [material]"),
         young=_number(m, "young", w + " [material]"),
         poisson=_number(m, "poisson", w + " [material]"),
-        rpm=_pair(mo, "rpm", w + " [motion]"), amplitude=_number(mo, "amplitude", w + " [motion]"))
+        rpm=bounds_pair(mo, "rpm", w + " [motion]"), amplitude=_number(mo, "amplitude", w + " [motion]"))
 
 
 # The design's unit-cube dimensions, in this order.

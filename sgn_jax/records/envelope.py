@@ -69,7 +69,7 @@ class MotionEnvelope:
                    harmonic_max_axis_sum=float(meta["harmonic_max_axis_amplitude"]))
 
 
-def _pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
+def bounds_pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
     value = table.get(key)
     if (not isinstance(value, list) or len(value) != 2
             or not all(isinstance(v, (int, float)) for v in value) or not value[0] <= value[1]):
@@ -90,11 +90,11 @@ def load_envelope(path: str | Path = ENVELOPE_PATH) -> MotionEnvelope:
     if not isinstance(max_sum, (int, float)) or max_sum <= 0:
         raise ConfigError(f"{where}: [harmonic] max_axis_sum must be a length > 0 (m), got "
                           f"{max_sum!r}")
-    return MotionEnvelope(circle_rpm=_pair(c, "rpm", where + " [circle]"),
-                          circle_amplitude=_pair(c, "amplitude", where + " [circle]"),
-                          harmonic_base_hz=_pair(h, "base_frequency_hz", where + " [harmonic]"),
-                          harmonic_first_amplitude=_pair(h, "first_amplitude", where + " [harmonic]"),
-                          harmonic_second_amplitude=_pair(h, "second_amplitude",
+    return MotionEnvelope(circle_rpm=bounds_pair(c, "rpm", where + " [circle]"),
+                          circle_amplitude=bounds_pair(c, "amplitude", where + " [circle]"),
+                          harmonic_base_hz=bounds_pair(h, "base_frequency_hz", where + " [harmonic]"),
+                          harmonic_first_amplitude=bounds_pair(h, "first_amplitude", where + " [harmonic]"),
+                          harmonic_second_amplitude=bounds_pair(h, "second_amplitude",
                                                           where + " [harmonic]"),
                           harmonic_max_axis_sum=float(max_sum))
 
@@ -211,5 +211,5 @@ def motion_label(m: MotionConfig) -> str:
     return m.kind
 
 
-__all__ = ["ENVELOPE_PATH", "MotionEnvelope", "envelope_notes", "harmonic_axis_amplitudes",
+__all__ = ["ENVELOPE_PATH", "MotionEnvelope", "bounds_pair", "envelope_notes", "harmonic_axis_amplitudes",
            "latin_hypercube_motions", "load_envelope", "motion_label"]
