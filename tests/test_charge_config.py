@@ -111,11 +111,11 @@ def test_the_step_resolves_the_shortest_contact_of_the_charge():
 
 def test_a_short_dem_run_of_a_mixture(tmp_path):
     data = _mixed()
-    data["dem"].update(settle_time=0.05, chunk_samples=50)
+    data["dem"].update(settle_time=0.03, chunk_samples=50)
     cfg = config_from_dict(data)
-    run = driver.run_dem(cfg, duration=0.05, out_path=tmp_path / "mix.npz", progress=False)
+    run = driver.run_dem(cfg, duration=0.03, out_path=tmp_path / "mix.npz", progress=False)
     pos = run.arrays["pos"]
-    assert pos.shape == (501, 20, 3) and np.all(np.isfinite(pos))
+    assert pos.shape == (301, 20, 3) and np.all(np.isfinite(pos))
     assert run.meta["n_balls"] == 20
     np.testing.assert_allclose(run.meta["ball_radii"], [0.005] * 8 + [0.003] * 12)
     assert run.meta["ball_mass"] * 20 == pytest.approx(float(np.sum(run.meta["ball_masses"])))
@@ -159,8 +159,8 @@ def test_charge_points_hold_the_filling_or_the_count():
 
 def test_a_tiny_charge_sweep_against_its_own_dem_runs(tmp_path):
     cfg = replace_section(load_config(builtin("emax_300rpm")), "dem", settle_time=0.02)
-    result = charge_sweep(cfg, "fill", [0.02, 0.04], packings=2, duration=0.02, burn_in=0.01)
-    assert [p["n_balls"] for p in result["points"]] == [5, 10]
+    result = charge_sweep(cfg, "fill", [0.02], packings=2, duration=0.02, burn_in=0.01)
+    assert [p["n_balls"] for p in result["points"]] == [5]
     for point in result["points"]:
         assert len(point["powers_W"]) == 2
         assert point["power_total_W"] >= point["power_W"] > 0
