@@ -155,9 +155,10 @@ def wall_velocity(terms, t: np.ndarray) -> np.ndarray:
 # LIGGGHTS input
 
 
-def write_data(path: Path, pos, vel, omega, radius: float, density: float, box) -> None:
+def write_data(path: Path, pos, vel, omega, radius: float, density: float, box,
+               n_types: int = 1) -> None:
     lines = ["LIGGGHTS data file: settled packing of our DEM (sample 0)", "",
-             f"{len(pos)} atoms", "1 atom types", "",
+             f"{len(pos)} atoms", f"{n_types} atom types", "",
              f"{box[0][0]!r} {box[0][1]!r} xlo xhi", f"{box[1][0]!r} {box[1][1]!r} ylo yhi",
              f"{box[2][0]!r} {box[2][1]!r} zlo zhi", "", "Atoms", ""]
     pos, vel, omega = (np.asarray(a, dtype=float).tolist() for a in (pos, vel, omega))
@@ -169,9 +170,31 @@ def write_data(path: Path, pos, vel, omega, radius: float, density: float, box) 
     path.write_text("\n".join(lines) + "\n")
 
 
+def material_lines(mat, pp_rolling_scale: float = 1.0) -> str:
+    """``fix property/global`` lines of the one material. With ``pp_rolling_scale`` != 1 the
+    jar is atom type 2 (same material) and the ball-ball (1-1) rolling coefficient is
+    multiplied by it (a diagnostic: 2 makes LIGGGHTS' ball-ball rolling torque mu_r F R/2 the
+    size of ours, mu_r F R_c)."""
+    if pp_rolling_scale == 1.0:
+        return f"""# Balls and jar are atom type 1: one material.
+fix m1 all property/global youngsModulus peratomtype {mat.young!r}
+fix m2 all property/global poissonsRatio peratomtype {mat.poisson!r}
+fix m3 all property/global coefficientRestitution peratomtypepair 1 {mat.restitution!r}
+fix m4 all property/global coefficientFriction peratomtypepair 1 {mat.friction!r}
+fix m5 all property/global coefficientRollingFriction peratomtypepair 1 {mat.rolling_friction!r}"""
+    e, mu, mur = mat.restitution, mat.friction, mat.rolling_friction
+    return f"""# Balls are atom type 1, the jar type 2, one material; ball-ball rolling x {pp_rolling_scale!r}.
+fix m1 all property/global youngsModulus peratomtype {mat.young!r} {mat.young!r}
+fix m2 all property/global poissonsRatio peratomtype {mat.poisson!r} {mat.poisson!r}
+fix m3 all property/global coefficientRestitution peratomtypepair 2 {e!r} {e!r} {e!r} {e!r}
+fix m4 all property/global coefficientFriction peratomtypepair 2 {mu!r} {mu!r} {mu!r} {mu!r}
+fix m5 all property/global coefficientRollingFriction peratomtypepair 2 {mur * pp_rolling_scale!r} {mur!r} {mur!r} {mur!r}"""
+
+
 def write_input(path: Path, *, cfg, dt_dem: float, n_steps: int, block: int, dump_every: int,
-                offset0, terms) -> None:
+                offset0, terms, pp_rolling_scale: float = 1.0) -> None:
     mat, dem = cfg.material, cfg.dem
+    jar_type = 1 if pp_rolling_scale == 1.0 else 2
     g = np.asarray(dem.gravity, dtype=float)
     gmag = float(np.linalg.norm(g))
     gdir = [float(c) for c in (g / gmag if gmag > 0 else (0.0, -1.0, 0.0))]
@@ -201,19 +224,15 @@ neighbor {dem.neighbour_skin!r} bin
 neigh_modify delay 0
 
 # Hertz-Mindlin, damping from the restitution, tangential history, EDEM type A rolling
-# (constant directional torque); balls and jar are atom type 1, one material.
+# (constant directional torque).
 pair_style gran model hertz tangential history rolling_friction cdt
 pair_coeff * *
 timestep {dt_dem!r}
-fix m1 all property/global youngsModulus peratomtype {mat.young!r}
-fix m2 all property/global poissonsRatio peratomtype {mat.poisson!r}
-fix m3 all property/global coefficientRestitution peratomtypepair 1 {mat.restitution!r}
-fix m4 all property/global coefficientFriction peratomtypepair 1 {mat.friction!r}
-fix m5 all property/global coefficientRollingFriction peratomtypepair 1 {mat.rolling_friction!r}
+{material_lines(mat, pp_rolling_scale)}
 fix grav all gravity {gmag!r} vector {gdir[0]!r} {gdir[1]!r} {gdir[2]!r}
 
 # The jar at offset(0), moved by viblin terms (offset(t) - offset(0)); mesh velocity = offset'(t).
-fix jar all mesh/surface/stress file jar.stl type 1 move {offset0[0]!r} {offset0[1]!r} {offset0[2]!r} curvature {CURVATURE_DEG!r} curvature_tolerant yes
+fix jar all mesh/surface/stress file jar.stl type {jar_type} move {offset0[0]!r} {offset0[1]!r} {offset0[2]!r} curvature {CURVATURE_DEG!r} curvature_tolerant yes
 fix walls all wall/gran model hertz tangential history rolling_friction cdt mesh n_meshes 1 meshes jar
 {chr(10).join(moves)}
 fix integr all nve/sphere
@@ -289,7 +308,7 @@ def mechanical_energy(pos, vel, omega, mass: float, radius: float, gravity) -> n
 
 
 def measure_ours(path: Path, warmup: float, duration: float, mass: float, radius: float,
-                 gravity) -> dict:
+                 gravity, bin_s: float) -> dict:
     with np.load(path) as data:
         a = {name: data[name] for name in data.files if name != "meta"}
     t = np.asarray(a["t"])
@@ -305,17 +324,25 @@ def measure_ours(path: Path, warmup: float, duration: float, mass: float, radius
     e = mechanical_energy(pos[[i0, i1]], vel[[i0, i1]], omega[[i0, i1]], mass, radius, gravity)
     idx = np.arange(i0, i1 + 1, DUMP_EVERY)
     rel = vel[idx] - np.asarray(a["offset_vel"])[idx][:, None, :]
+    edges = np.arange(0, i1 + 1, int(round(bin_s / dt)))
+    e_edges = mechanical_energy(pos[edges], vel[edges], omega[edges], mass, radius, gravity)
+    w_edges = np.asarray(a["work_wall"])[edges]
+    contacts = np.asarray(a["n_pp_contacts"])
     return {
         "wall_power_W": work,
         "dissipation_W": work - float(e[1] - e[0]) / span,
         "ledger_W": ledger,
         "speed_m_s": float(np.mean(np.linalg.norm(rel, axis=-1))),
-        "pp_contacts": float(np.mean(np.asarray(a["n_pp_contacts"])[idx])),
+        "pp_contacts": float(np.mean(contacts[idx])),
+        "profile_dissipation_W": list((np.diff(w_edges) - np.diff(e_edges)) / bin_s),
+        "profile_pp_contacts": [float(np.mean(contacts[e0:e1:DUMP_EVERY]))
+                                for e0, e1 in zip(edges[:-1], edges[1:], strict=True)],
     }
 
 
 def measure_liggghts(workdir: Path, *, warmup: float, dt: float, block: int, dt_dem: float,
-                     n_balls: int, mass: float, radius: float, gravity, terms) -> dict:
+                     n_balls: int, mass: float, radius: float, gravity, terms,
+                     bin_s: float) -> dict:
     power = np.loadtxt(workdir / "power.txt", comments="#")
     block_end = power[:, 0].astype(np.int64)  # the block of steps (end - block, end]
     t_end = block_end * dt_dem
@@ -331,12 +358,25 @@ def measure_liggghts(workdir: Path, *, warmup: float, dt: float, block: int, dt_
     e = mechanical_energy(pos[[s0, -1]], vel[[s0, -1]], omega[[s0, -1]], mass, radius, gravity)
     t_states = steps[s0:] * dt_dem
     rel = vel[s0:] - wall_velocity(terms, t_states)[:, None, :]
+    # Per bin: the work from the per-block powers (block k ends at sample k + 1), the energies
+    # from the dumped states at the bin edges.
+    cum_work = np.concatenate([[0.0], np.cumsum(power[:, 1]) * block * dt_dem])
+    nb = int(round(bin_s / dt))
+    edges = np.arange(0, len(cum_work), nb)
+    at = np.searchsorted(steps, edges * block)
+    if np.any(steps[at] != edges * block):
+        raise SystemExit(f"liggghts_compare: {workdir}: no dump at a bin edge")
+    e_edges = mechanical_energy(pos[at], vel[at], omega[at], mass, radius, gravity)
+    pp = np.sum(cc, axis=1) / 2.0
     return {
         "wall_power_W": work,
         "dissipation_W": work - float(e[1] - e[0]) / span,
         "speed_m_s": float(np.mean(np.linalg.norm(rel, axis=-1))),
-        "pp_contacts": float(np.mean(np.sum(cc[s0:], axis=1) / 2.0)),
+        "pp_contacts": float(np.mean(pp[s0:])),
         "t_end_s": float(t_end[-1]),
+        "profile_dissipation_W": list((np.diff(cum_work[edges]) - np.diff(e_edges)) / bin_s),
+        "profile_pp_contacts": [float(np.mean(pp[a0:a1])) for a0, a1 in zip(at[:-1], at[1:],
+                                                                            strict=True)],
     }
 
 
@@ -363,6 +403,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--liggghts", default="liggghts", help="LIGGGHTS binary")
     ap.add_argument("--only", choices=("ours", "liggghts"), default=None,
                     help="run only one code (the other's finished results are still read)")
+    ap.add_argument("--bin", type=float, default=0.25,
+                    help="s per bin of the time profile of the dissipated power (whole run)")
+    ap.add_argument("--pp-rolling-scale", type=float, default=1.0,
+                    help="diagnostic: multiply LIGGGHTS' ball-ball rolling coefficient (2: its "
+                    "torque mu_r F R/2 becomes the size of ours); runs go to OUT/lig_pprX_seedS")
     args = ap.parse_args(argv)
 
     from sgn_jax.pipelines.dem_run import run_dem, setup_from_config
@@ -376,8 +421,10 @@ def main(argv: list[str] | None = None) -> None:
     motion = motion_from_config(cfg.motion)
     terms = viblin_terms(motion)
     n_motion = int(round(args.duration / dt))
-    if int(round(args.warmup / dt)) % DUMP_EVERY or n_motion % DUMP_EVERY:
-        raise SystemExit(f"--warmup and --duration must be multiples of {DUMP_EVERY * dt:g} s")
+    n_bin = int(round(args.bin / dt))
+    if int(round(args.warmup / dt)) % DUMP_EVERY or n_motion % DUMP_EVERY or n_bin % DUMP_EVERY:
+        raise SystemExit(f"--warmup, --duration and --bin must be multiples of "
+                         f"{DUMP_EVERY * dt:g} s")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     binary = liggghts_binary(args.liggghts) if args.only != "ours" else None
@@ -408,11 +455,13 @@ def main(argv: list[str] | None = None) -> None:
                 (out / f"ours_seed{seed}.timing.json").write_text(json.dumps(timing))
                 print(f"seed {seed}: our DEM {timing['wall_s']:.0f} s", flush=True)
         if rec.is_file():
-            row["ours"] = measure_ours(rec, args.warmup, args.duration, mass, radius, gravity)
+            row["ours"] = measure_ours(rec, args.warmup, args.duration, mass, radius, gravity,
+                                       args.bin)
             tfile = out / f"ours_seed{seed}.timing.json"
             row["ours"]["timing"] = json.loads(tfile.read_text()) if tfile.is_file() else None
 
-        work = out / f"lig_seed{seed}"
+        work = out / (f"lig_seed{seed}" if args.pp_rolling_scale == 1.0
+                      else f"lig_ppr{args.pp_rolling_scale:g}_seed{seed}")
         done = work / "done.json"
         if args.only != "ours" and not done.is_file() and rec.is_file():
             work.mkdir(exist_ok=True)
@@ -422,9 +471,11 @@ def main(argv: list[str] | None = None) -> None:
             if not np.allclose(off0, offset0, atol=1e-12):
                 raise SystemExit(f"internal: record offset(0) {off0} != motion's {offset0}")
             stl.export(work / "jar.stl", file_type="stl_ascii")
-            write_data(work / "data.lig", pos0, vel0, om0, radius, density, box)
+            write_data(work / "data.lig", pos0, vel0, om0, radius, density, box,
+                       n_types=1 if args.pp_rolling_scale == 1.0 else 2)
             write_input(work / "in.lig", cfg=cfg, dt_dem=dt_dem, n_steps=n_motion * block,
-                        block=block, dump_every=DUMP_EVERY * block, offset0=offset0, terms=terms)
+                        block=block, dump_every=DUMP_EVERY * block, offset0=offset0, terms=terms,
+                        pp_rolling_scale=args.pp_rolling_scale)
             w0 = time.perf_counter()
             cpu = run_liggghts(binary, work)
             done.write_text(json.dumps({"cpu_s": cpu, "wall_s": time.perf_counter() - w0}))
@@ -433,7 +484,7 @@ def main(argv: list[str] | None = None) -> None:
             row["liggghts"] = measure_liggghts(work, warmup=args.warmup, dt=dt, block=block,
                                                dt_dem=dt_dem, n_balls=cfg.balls.count,
                                                mass=mass, radius=radius, gravity=gravity,
-                                               terms=terms)
+                                               terms=terms, bin_s=args.bin)
             row["liggghts"]["timing"] = json.loads(done.read_text())
 
     report = summarize(cfg, args, results, dt_dem)
@@ -466,6 +517,15 @@ def summarize(cfg, args, results: dict, dt_dem: float) -> dict:
                       "diff": ml - mo, "diff_se_units": (ml - mo) / se if se > 0 else math.nan,
                       "diff_pct": 100 * (ml - mo) / mo if mo else math.nan}
 
+    profile = {}
+    for code in ("ours", "liggghts"):
+        rows = [results[s][code]["profile_dissipation_W"] for s in seeds if code in results[s]]
+        cont = [results[s][code]["profile_pp_contacts"] for s in seeds if code in results[s]]
+        if rows:
+            n = min(len(r) for r in rows)
+            profile[code] = {"dissipation_W": [mean_se([r[k] for r in rows]) for k in range(n)],
+                             "pp_contacts": [mean_se([r[k] for r in cont]) for k in range(n)]}
+
     def total(code: str, field: str) -> float:
         return float(sum((results[s].get(code, {}).get("timing") or {}).get(field, 0.0)
                          for s in seeds))
@@ -473,8 +533,9 @@ def summarize(cfg, args, results: dict, dt_dem: float) -> dict:
     return {
         "config": str(args.config), "case": cfg.case.name, "balls": cfg.balls.count,
         "radius_m": cfg.balls.radius, "seeds": seeds, "duration_s": args.duration,
-        "warmup_s": args.warmup, "dt_dem_s": dt_dem, "per_seed": {str(s): results[s] for s in seeds},
-        "table": table,
+        "warmup_s": args.warmup, "dt_dem_s": dt_dem,
+        "liggghts_pp_rolling_scale": args.pp_rolling_scale, "per_seed": {str(s): results[s] for s in seeds},
+        "table": table, "bin_s": args.bin, "profile": profile,
         "cpu_s": {"ours": total("ours", "cpu_s"), "liggghts": total("liggghts", "cpu_s")},
     }
 
@@ -502,6 +563,18 @@ def markdown(report: dict) -> str:
                      f"{o.get('ledger_W', math.nan):.4f} | {o.get('pp_contacts', math.nan):.1f} | "
                      f"{li.get('dissipation_W', math.nan):.4f} | "
                      f"{li.get('pp_contacts', math.nan):.1f} |")
+    prof = report.get("profile", {})
+    if "ours" in prof and "liggghts" in prof:
+        b = report["bin_s"]
+        lines += ["", f"Time profile (ensemble mean +- SE per {b:g} s bin, from t = 0):", "",
+                  "| t (s) | ours: dissipated (W) | LIGGGHTS: dissipated (W) | ours: pp contacts "
+                  "| LIGGGHTS: pp contacts |", "|---|---|---|---|---|"]
+        po, pl = prof["ours"], prof["liggghts"]
+        for k in range(min(len(po["dissipation_W"]), len(pl["dissipation_W"]))):
+            (do, so), (dl, sl) = po["dissipation_W"][k], pl["dissipation_W"][k]
+            (co, sco), (cl, scl) = po["pp_contacts"][k], pl["pp_contacts"][k]
+            lines.append(f"| {k * b:g}-{(k + 1) * b:g} | {do:.3f} +- {so:.3f} | {dl:.3f} +- "
+                         f"{sl:.3f} | {co:.1f} +- {sco:.1f} | {cl:.1f} +- {scl:.1f} |")
     cpu = report["cpu_s"]
     lines += ["", f"CPU time (user + sys, all seeds): ours {cpu['ours']:.0f} s, "
               f"LIGGGHTS {cpu['liggghts']:.0f} s."]
