@@ -20,7 +20,7 @@ For a config (a TOML path; jar kind "emax" without a post, motion kind "circle" 
      ``fix ave/time`` and then over the window;
    - ``dissipation_W``: ``(wall work - change of KE_trans + KE_rot + PE_grav) / window``, the
      same formula for both codes from the ball states at the window's ends (the elastic energy
-     in the contacts, ~1e-6 J, is left out of both); in steady state it is the dissipated
+     in the contacts, at most ~4e-4 J, is left out of both); in steady state it is the dissipated
      power. Ours also has the ledger's exact dissipation, ``ledger_W`` (the sum of all kinds
      over the window);
    - ``speed_m_s``: mean ball speed in the jar frame, |v - v_jar|, over balls and the states
