@@ -45,6 +45,9 @@ from sgn_jax.config import (
 from sgn_jax.dem.contact import head_on_normal_force
 from sgn_jax.design import anchored_window, apply_parameters
 from sgn_jax.geometry import jar_volume
+from sgn_jax.geometry.jar import jar_mesh
+from sgn_jax.motion import CircleMotion, HarmonicMotion
+from sgn_jax.motion import offset as motion_offset
 from sgn_jax.pairs import pairs_within
 from sgn_jax.pipelines.configure import params_from_config as dem_params_from_config
 from sgn_jax.pipelines.configure import surrogate_walls_from_config
@@ -55,6 +58,7 @@ from sgn_jax.pipelines.contact_replay import (
 )
 from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.pipelines.dem_run import partial_dir
+from sgn_jax.pipelines.dem_run import setup_from_config as dem_setup_from_config
 from sgn_jax.pipelines.experiments import (
     ExperimentError,
     case_config,
@@ -145,6 +149,12 @@ __all__ = [
     "latin_hypercube_charges",
     "check_dem_config",
     "jar_volume",
+    # a run of the DEM in another code (experiments/tools/liggghts_compare.py)
+    "dem_setup_from_config",
+    "jar_mesh",
+    "CircleMotion",
+    "HarmonicMotion",
+    "motion_offset",
     "load_trained_model",
     "resolve_checkpoint",
     "best_checkpoint_step",

@@ -54,9 +54,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sgn_jax.config import load_config
-from sgn_jax.motion import CircleMotion, HarmonicMotion
-from sgn_jax.pipelines.configure import jar_params_from_config, motion_from_config
+import sgn_jax.api as sj
+from sgn_jax.experiment_tools import (
+    CircleMotion,
+    HarmonicMotion,
+    dem_setup_from_config,
+    jar_mesh,
+    motion_offset,
+)
 
 # Degrees: faces meeting at less than this count as one surface for LIGGGHTS (contacts with
 # two such neighbours are not double-counted, histories move across them). The side facets
@@ -81,9 +86,7 @@ def jar_stl_mesh(jar_cfg, segments: int = 256, cap_margin: float = 0.005):
     """
     import trimesh
 
-    from sgn_jax.geometry.jar import jar_mesh
-
-    params = jar_params_from_config(jar_cfg)
+    params = sj.jar_params_from_config(jar_cfg)
     if params.has_post:
         raise SystemExit("liggghts_compare: a jar with a post is not supported")
     ref = jar_mesh(params, segments=segments)
@@ -410,15 +413,13 @@ def main(argv: list[str] | None = None) -> None:
                     "torque mu_r F R/2 becomes the size of ours); runs go to OUT/lig_pprX_seedS")
     args = ap.parse_args(argv)
 
-    from sgn_jax.pipelines.dem_run import run_dem, setup_from_config
-
-    cfg = load_config(args.config)
-    setup = setup_from_config(cfg)
+    cfg = sj.load_config(args.config)
+    setup = dem_setup_from_config(cfg)
     dt, dt_dem, block = setup.dt, setup.dt_dem, setup.substeps
     radius, density = float(cfg.balls.radius), float(cfg.balls.density)
     mass = 4.0 / 3.0 * math.pi * radius**3 * density
     gravity = np.asarray(cfg.dem.gravity, dtype=float)
-    motion = motion_from_config(cfg.motion)
+    motion = sj.motion_from_config(cfg.motion)
     terms = viblin_terms(motion)
     n_motion = int(round(args.duration / dt))
     n_bin = int(round(args.bin / dt))
@@ -445,7 +446,7 @@ def main(argv: list[str] | None = None) -> None:
             if not rec.is_file():
                 r0 = resource.getrusage(resource.RUSAGE_SELF)
                 w0 = time.perf_counter()
-                run = run_dem(cfg, duration=args.duration, out_path=rec, seed=seed, progress=False)
+                run = sj.run_dem(cfg, duration=args.duration, out_path=rec, seed=seed, progress=False)
                 r1 = resource.getrusage(resource.RUSAGE_SELF)
                 timing = {"cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
                           "wall_s": time.perf_counter() - w0,
@@ -494,9 +495,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def motion_offset0(motion) -> np.ndarray:
-    from sgn_jax.motion import offset
-
-    return np.asarray(offset(motion, 0.0), dtype=float)
+    return np.asarray(motion_offset(motion, 0.0), dtype=float)
 
 
 METRICS = (("dissipation_W", "dissipated power (W)"), ("wall_power_W", "wall power (W)"),
