@@ -20,10 +20,12 @@ import pytest
 import sgn_jax  # noqa: F401  (enables x64)
 from sgn_jax.dem import (
     DEMSpec,
+    contact_forces,
     hertz_contact_time,
     init_state,
     ledger_balance,
     make_advance,
+    make_contact_law,
     make_dem_step,
     make_params,
     plane_wall_fn,
@@ -251,3 +253,25 @@ def test_cell_list_rebuilds_give_the_same_run_as_all_pairs():
     assert int(a.pairs.rebuilds) > 10 and not bool(b.pairs.overflow)
     np.testing.assert_array_equal(np.asarray(a.pos), np.asarray(b.pos))
     np.testing.assert_array_equal(np.asarray(a.pairs.i), np.asarray(b.pairs.i))
+
+
+def test_cdt_rolling_law_uses_the_elastic_force_r_star_and_no_twist():
+    law = make_contact_law(2.05e9, 0.235, 0.3, 0.3, 0.045, radius_1=0.005, mass_1=4e-3,
+                           radius_2=0.005, mass_2=4e-3)
+    overlap = jnp.array([1e-5, 1e-5])
+    normal = jnp.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    arm = 0.005 - 0.5 * overlap
+    v_rel = jnp.array([[0.1, 0.0, 0.0], [0.1, 0.0, 0.0]])        # approaching: damping > 0
+    omega = jnp.array([[0.0, 0.0, 3.0], [5.0, 0.0, 0.0]])        # rolling; pure twist about n
+    history = jnp.zeros((2, 3))
+    edem = contact_forces(law, overlap, normal, arm, v_rel, omega, history, DT_DEM)
+    cdt = contact_forces(law, overlap, normal, arm, v_rel, omega, history, DT_DEM,
+                         rolling="cdt")
+    np.testing.assert_allclose(np.linalg.norm(edem.torque_rolling[0]),
+                               0.045 * abs(float(edem.normal_total[0])) * float(arm[0]))
+    np.testing.assert_allclose(np.linalg.norm(cdt.torque_rolling[0]),
+                               0.045 * float(cdt.normal_spring[0]) * law.radius_eff)
+    assert float(np.linalg.norm(edem.torque_rolling[1])) > 0   # EDEM type A resists twist
+    assert float(np.linalg.norm(cdt.torque_rolling[1])) == 0.0
+    with pytest.raises(ValueError, match="rolling"):
+        contact_forces(law, overlap, normal, arm, v_rel, omega, history, DT_DEM, rolling="x")

@@ -202,6 +202,7 @@ def contact_forces(
     history: jnp.ndarray,
     dt: float,
     clip_attractive: bool = False,
+    rolling: str = "edem_a",
 ) -> ContactForces:
     """Hertz-Mindlin forces on body i for K contacts (docs/conventions.md section 3).
 
@@ -216,6 +217,10 @@ def contact_forces(
         dt: the DEM step (s), used to integrate the tangential displacement.
         clip_attractive: clip the normal force at zero (off by default; docs/conventions.md,
             section 3).
+        rolling: the rolling-friction law: "edem_a" (the default, the paper's: mu_r times the
+            whole |F_n| times the arm R_c, against the whole relative spin) or "cdt"
+            (LIGGGHTS' ``rolling_friction cdt``: mu_r times the elastic Hertz force times R*,
+            against the relative spin without its twist about n).
 
     Steps, per contact:
 
@@ -242,9 +247,19 @@ def contact_forces(
     stiff_t = 8.0 * law.shear_eff * sqrt_rd
     gamma_n = law.damping_factor * jnp.sqrt(stiff_n * law.mass_eff)
     gamma_t = law.damping_factor * jnp.sqrt(stiff_t * law.mass_eff)
+    if rolling not in ROLLING_LAWS:
+        raise ValueError(f"rolling={rolling!r}: use one of {ROLLING_LAWS}")
+    cdt = rolling == "cdt"
     return assemble_contact_forces(
         normal_spring, stiff_t, gamma_n, gamma_t, law.friction, law.rolling_friction, in_contact,
-        normal, arm, v_rel, omega_rel, history, dt, clip_attractive)
+        normal, arm, v_rel, omega_rel, history, dt, clip_attractive,
+        rolling_load=normal_spring if cdt else None,
+        rolling_arm=jnp.broadcast_to(law.radius_eff, jnp.shape(overlap)) if cdt else None,
+        rolling_twist=not cdt)
+
+
+ROLLING_LAWS = ("edem_a", "cdt")
+"""The rolling-friction laws of :func:`contact_forces`."""
 
 
 def assemble_contact_forces(
@@ -262,6 +277,9 @@ def assemble_contact_forces(
     history: jnp.ndarray,
     dt: float,
     clip_attractive: bool = False,
+    rolling_load: jnp.ndarray | None = None,
+    rolling_arm: jnp.ndarray | None = None,
+    rolling_twist: bool = True,
 ) -> ContactForces:
     """Steps 1-5 of :func:`contact_forces` from a law's normal spring force and coefficients.
 
@@ -273,7 +291,10 @@ def assemble_contact_forces(
     normal damping, the rotated tangential history, the Coulomb limit on spring + damping and
     rolling friction as documented in :func:`contact_forces`, masks open contacts, and fills
     every field of :class:`ContactForces` that :func:`contact_dissipation` and the engine
-    read. ``friction`` and ``rolling_friction`` are mu and mu_r.
+    read. ``friction`` and ``rolling_friction`` are mu and mu_r. The rolling torque is
+    mu_r * load * arm against the relative spin: by default the load |F_n| (spring and damping),
+    the arm ``arm`` and the whole spin; ``rolling_load`` (K,) N, ``rolling_arm`` (K,) m and
+    ``rolling_twist=False`` (the spin without its component along n) replace them.
     """
     v_n = _dot(v_rel, normal)
     normal_total = normal_spring + gamma_n * v_n
@@ -304,9 +325,12 @@ def assemble_contact_forces(
     spring_energy = 0.5 * stiff_t * _dot(history_new, history_new)
     spring_energy_old_now = jnp.where(in_contact, 0.5 * stiff_t * old_sq, 0.0)
 
+    if not rolling_twist:  # the spin about the normal is twisting, not rolling
+        omega_rel = omega_rel - _dot(omega_rel, normal)[..., None] * normal
     omega_sq = _dot(omega_rel, omega_rel)
     omega_norm = jnp.sqrt(jnp.where(omega_sq > 0, omega_sq, 1.0))
-    roll_mag = rolling_friction * jnp.abs(normal_total) * arm
+    load = jnp.abs(normal_total) if rolling_load is None else rolling_load
+    roll_mag = rolling_friction * load * (arm if rolling_arm is None else rolling_arm)
     torque_rolling = jnp.where(
         (omega_sq > 0)[..., None], -(roll_mag / omega_norm)[..., None] * omega_rel, 0.0
     )

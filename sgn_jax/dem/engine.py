@@ -638,12 +638,11 @@ def make_dem_step(
         v_rel, omega_rel = relative_kinematics(vel, omega, pp, pairs, poly)
         f_pp = law.forces(law_pp, pp.overlap, pp.normal, pp.arm, v_rel, omega_rel,
                           state.pp_history, dt, spec.clip_attractive)
-        arm_ratio = None
-        if poly:
+        arm_ratio = None if not poly else pp.arm_j / pp.arm
+        if poly and getattr(law, "rolling_uses_arm", True):
             # Unequal balls: the law's rolling torque used i's arm; the pair's rolling radius
             # is the harmonic mean of both arms (the arm itself for equal balls), so that the
             # torque is the same seen from either ball.
-            arm_ratio = pp.arm_j / pp.arm
             f_pp = f_pp._replace(torque_rolling=f_pp.torque_rolling
                                  * (2.0 * arm_ratio / (1.0 + arm_ratio))[..., None])
 

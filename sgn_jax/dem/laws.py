@@ -112,6 +112,13 @@ class HertzMindlin:
 
     name: str = "hertz_mindlin"
     title: str = "Hertz"
+    rolling: str = "edem_a"
+
+    @property
+    def rolling_uses_arm(self) -> bool:
+        """The rolling torque's arm is the contact arm R_c (the engine then gives two unequal
+        balls the harmonic mean of their arms, docs/charge.md); False for "cdt" (R*)."""
+        return self.rolling == "edem_a"
 
     def make_params(self, *, young: float, poisson: float, restitution: float,
                     friction: float, rolling_friction: float, radius_1: float, mass_1: float,
@@ -125,7 +132,7 @@ class HertzMindlin:
                v_rel: jnp.ndarray, omega_rel: jnp.ndarray, history: jnp.ndarray, dt: float,
                clip_attractive: bool = False) -> ContactForces:
         return contact_forces(params, overlap, normal, arm, v_rel, omega_rel, history, dt,
-                              clip_attractive)
+                              clip_attractive, rolling=self.rolling)
 
     def dissipation(self, forces: ContactForces, normal: jnp.ndarray, v_rel_mid: jnp.ndarray,
                     omega_rel_mid: jnp.ndarray, dt: float) -> ContactDissipation:
@@ -149,6 +156,12 @@ class HertzMindlin:
 
 HERTZ_MINDLIN = HertzMindlin()
 """The default contact law (the one every DEM number in docs/dem.md was measured with)."""
+
+HERTZ_MINDLIN_CDT = HertzMindlin(name="hertz_mindlin_cdt", title="Hertz (cdt rolling)",
+                                 rolling="cdt")
+"""Hertz-Mindlin with LIGGGHTS' ``rolling_friction cdt`` (the elastic force, the arm R*, no
+twist; :func:`sgn_jax.dem.contact.contact_forces`), for comparisons with LIGGGHTS
+(experiments/reproduce/liggghts/)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -209,3 +222,4 @@ def resolve_contact_law(law: Any) -> Any:
 
 
 register_contact_law(HERTZ_MINDLIN.name, HERTZ_MINDLIN)
+register_contact_law(HERTZ_MINDLIN_CDT.name, HERTZ_MINDLIN_CDT)
