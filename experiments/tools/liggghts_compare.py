@@ -406,6 +406,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--liggghts", default="liggghts", help="LIGGGHTS binary")
     ap.add_argument("--only", choices=("ours", "liggghts"), default=None,
                     help="run only one code (the other's finished results are still read)")
+    ap.add_argument("--dt-dem", type=float, default=None,
+                    help="the DEM step of both codes (default: the charge's, sgn-jax dem's)")
     ap.add_argument("--bin", type=float, default=0.25,
                     help="s per bin of the time profile of the dissipated power (whole run)")
     ap.add_argument("--pp-rolling-scale", type=float, default=1.0,
@@ -414,7 +416,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
 
     cfg = sj.load_config(args.config)
-    setup = dem_setup_from_config(cfg)
+    setup = dem_setup_from_config(cfg, dt_dem=args.dt_dem)
     dt, dt_dem, block = setup.dt, setup.dt_dem, setup.substeps
     radius, density = float(cfg.balls.radius), float(cfg.balls.density)
     mass = 4.0 / 3.0 * math.pi * radius**3 * density
@@ -446,7 +448,8 @@ def main(argv: list[str] | None = None) -> None:
             if not rec.is_file():
                 r0 = resource.getrusage(resource.RUSAGE_SELF)
                 w0 = time.perf_counter()
-                run = sj.run_dem(cfg, duration=args.duration, out_path=rec, seed=seed, progress=False)
+                run = sj.run_dem(cfg, duration=args.duration, out_path=rec, seed=seed,
+                                 dt_dem=args.dt_dem, progress=False)
                 r1 = resource.getrusage(resource.RUSAGE_SELF)
                 timing = {"cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
                           "wall_s": time.perf_counter() - w0,
