@@ -180,6 +180,75 @@ def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
     return features[:, SLOT_DIM * k + cols.start: SLOT_DIM * k + cols.stop]
 
 
+def edge_kinematics(graph: jraph.GraphsTuple, window: int, dt: float, pp_reach: Any,
+                    pw_reach: Any, primary_only: bool = False) -> dict[str, jax.Array]:
+    """The kinematics of every edge that do not depend on the model's physics: frames, gaps,
+    gap rates and slip (what :func:`edge_geometry` and the charge-conditioned model,
+    :mod:`sgn_jax.surrogate.contact_charge`, both build on).
+
+    Args:
+        window: W, the graph's slots. dt: s, the step.
+        pp_reach: m, the contact distance of a ball-ball edge, 2 R (a float) or r_r + r_s per
+            row (E,). pw_reach: m, the receiver ball's radius R (a float) or per row (E,).
+        primary_only: see :func:`edge_geometry`.
+
+    Returns a dict: ``senders``, ``receivers`` (E,); ``is_pp``, ``is_pw`` (E,) edge kinds
+    (only edges whose receiver is a ball; ball-wall the wall -> ball direction); ``vel``,
+    ``jar_vel`` (W, n_node, 3) m/s, every node's velocity columns and the wall node's jar
+    velocity per slot; ``v_rel`` (W, E, 3) m/s, the partner's velocity relative to the
+    receiver; ``normal`` (E, 3); ``u`` (W, E) m/s, the gap rate; ``gap`` (W, E) m, the surface
+    gap per slot (negative: overlap); ``v_t`` (E, 3) m/s, the tangential relative velocity of
+    the centres at the newest slot, ``speed_t`` (E,) its size.
+    """
+    feats = jnp.asarray(graph.nodes["features"], DTYPE)
+    w = window
+    rows = slice(0, None, 2) if primary_only else slice(None)
+    senders, receivers = graph.senders[rows], graph.receivers[rows]
+    is_particle = graph.nodes["particle"]
+    recv_ball = is_particle[receivers]
+    is_pp = graph.edges["pp"][rows] & recv_ball
+    is_pw = graph.edges["pw"][rows] & recv_ball  # wall -> ball direction only
+
+    vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
+    # The wall node's rows hold [offset, offset velocity, frequency] per slot: its "velocity"
+    # columns 0..2 are the offset, 3..5 the jar velocity.
+    jar_vel = jnp.stack([_slot(feats, k, slice(3, 6)) for k in range(w)])  # (W, n_node, 3)
+
+    v_r = vel[:, receivers]                                                # (W, E, 3)
+    # Partner velocity: the sender ball, or the jar (wall edges; the sender is the wall node).
+    v_partner = jnp.where(is_pw[None, :, None], jar_vel[:, senders], vel[:, senders])
+    v_rel = v_partner - v_r                                                # (W, E, 3)
+
+    # Ball-ball frame: r = x_s - x_r at the newest slot (edge feature); older slots by
+    # subtracting the relative displacements (x_j = x_{j-1} + v_j dt exactly).
+    r_new = jnp.asarray(graph.edges["features"][rows, :3], DTYPE)
+    disp_after = jnp.cumsum((v_rel * dt)[::-1], axis=0)[::-1]  # sum_{j >= k} v_rel_j dt
+    # r at slot k = r_new - sum_{j > k} v_rel_j dt
+    r_slots = r_new[None] - jnp.concatenate([disp_after[1:], jnp.zeros_like(disp_after[:1])])
+    dist_slots = jnp.sqrt(jnp.sum(r_slots * r_slots, axis=-1) + 1e-20)    # (W, E)
+    n_pp = r_new / dist_slots[-1][:, None]
+    gap_pp = dist_slots - pp_reach                                         # (W, E)
+
+    # Ball-wall frame: the edge's wall (the nearest wall, or its patch with
+    # GraphSpec.wall_patches) from its feature phi n at the newest slot (phi < 0 inside the
+    # cavity); older gaps by subtracting the approach along n, as for a pair.
+    f_pw = r_new
+    phi_pw = -jnp.sqrt(jnp.sum(f_pw * f_pw, axis=-1) + 1e-30)
+    n_pw = f_pw / phi_pw[:, None]
+
+    normal = jnp.where(is_pw[:, None], n_pw, n_pp)
+    u = jnp.einsum("wec,ec->we", v_rel, normal)                            # (W, E) gap rate
+    approach_after = jnp.concatenate([jnp.cumsum((u * dt)[::-1], axis=0)[::-1][1:],
+                                      jnp.zeros_like(u[:1])])             # sum_{j > k} u_j dt
+    gap_pw = (-phi_pw - pw_reach)[None] - approach_after                   # (W, E)
+    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
+    v_t = v_rel[-1] - u[-1][:, None] * normal
+    speed_t = _safe_norm(v_t)
+    return {"senders": senders, "receivers": receivers, "is_pp": is_pp, "is_pw": is_pw,
+            "vel": vel, "jar_vel": jar_vel, "v_rel": v_rel, "normal": normal, "u": u,
+            "gap": gap, "v_t": v_t, "speed_t": speed_t}
+
+
 def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: bool = False,
                   spin: bool = False):
     """Per directed edge (E rows; E / 2 with ``primary_only``): frame, inputs, which edges act.
@@ -218,51 +287,13 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     ``arm`` (E,) m, the contact arm R - overlap / 2, ``slip`` (E,) m/s, |v_t,c|, and
     ``contacts_max`` (E,), the larger number of acting contacts of the edge's two balls (>= 1).
     """
-    feats = jnp.asarray(graph.nodes["features"], DTYPE)
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
-    rows = slice(0, None, 2) if primary_only else slice(None)
-    senders, receivers = graph.senders[rows], graph.receivers[rows]
-    is_particle = graph.nodes["particle"]
-    recv_ball = is_particle[receivers]
-    is_pp = graph.edges["pp"][rows] & recv_ball
-    is_pw = graph.edges["pw"][rows] & recv_ball  # wall -> ball direction only
+    kin = edge_kinematics(graph, w, dt, 2.0 * radius, radius, primary_only)
+    senders, receivers, is_pp, is_pw = (kin[k] for k in ("senders", "receivers", "is_pp",
+                                                         "is_pw"))
+    vel, jar_vel, normal, u, gap = (kin[k] for k in ("vel", "jar_vel", "normal", "u", "gap"))
+    v_t, speed_t = kin["v_t"], kin["speed_t"]
     slots = range(w - h, w)  # the newest h slots, oldest first
-
-    vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
-    # The wall node's rows hold [offset, offset velocity, frequency] per slot: its "velocity"
-    # columns 0..2 are the offset, 3..5 the jar velocity.
-    jar_vel = jnp.stack([_slot(feats, k, slice(3, 6)) for k in range(w)])  # (W, n_node, 3)
-
-    v_r = vel[:, receivers]                                                # (W, E, 3)
-    # Partner velocity: the sender ball, or the jar (wall edges; the sender is the wall node).
-    v_partner = jnp.where(is_pw[None, :, None], jar_vel[:, senders], vel[:, senders])
-    v_rel = v_partner - v_r                                                # (W, E, 3)
-
-    # Ball-ball frame: r = x_s - x_r at the newest slot (edge feature); older slots by
-    # subtracting the relative displacements (x_j = x_{j-1} + v_j dt exactly).
-    r_new = jnp.asarray(graph.edges["features"][rows, :3], DTYPE)
-    disp_after = jnp.cumsum((v_rel * dt)[::-1], axis=0)[::-1]  # sum_{j >= k} v_rel_j dt
-    # r at slot k = r_new - sum_{j > k} v_rel_j dt
-    r_slots = r_new[None] - jnp.concatenate([disp_after[1:], jnp.zeros_like(disp_after[:1])])
-    dist_slots = jnp.sqrt(jnp.sum(r_slots * r_slots, axis=-1) + 1e-20)    # (W, E)
-    n_pp = r_new / dist_slots[-1][:, None]
-    gap_pp = dist_slots - 2.0 * radius                                     # (W, E)
-
-    # Ball-wall frame: the edge's wall (the nearest wall, or its patch with
-    # GraphSpec.wall_patches) from its feature phi n at the newest slot (phi < 0 inside the
-    # cavity); older gaps by subtracting the approach along n, as for a pair.
-    f_pw = r_new
-    phi_pw = -jnp.sqrt(jnp.sum(f_pw * f_pw, axis=-1) + 1e-30)
-    n_pw = f_pw / phi_pw[:, None]
-
-    normal = jnp.where(is_pw[:, None], n_pw, n_pp)
-    u = jnp.einsum("wec,ec->we", v_rel, normal)                            # (W, E) gap rate
-    approach_after = jnp.concatenate([jnp.cumsum((u * dt)[::-1], axis=0)[::-1][1:],
-                                      jnp.zeros_like(u[:1])])             # sum_{j > k} u_j dt
-    gap_pw = (-phi_pw - radius)[None] - approach_after                     # (W, E)
-    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
-    v_t = v_rel[-1] - u[-1][:, None] * normal
-    speed_t = _safe_norm(v_t)
     extra = {}
     if spin:
         if "spin" not in graph.nodes:
