@@ -517,6 +517,27 @@ class ContactNet(nn.Module):
             pw_net(jax.lax.dynamic_slice_in_dim(x, kept, wall_rows)), kept, axis=0)
         return jnp.where(is_pw, pw_out, pp_out)
 
+    def _edge_geometry(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
+        """:func:`edge_geometry` of the primary rows (a kind conditioned on more, such as
+        :mod:`sgn_jax.surrogate.contact_charge`, builds its own)."""
+        return edge_geometry(graph, self.physics, primary_only=True, spin=self.spin)
+
+    def _learned_normal(self, geo: dict[str, jax.Array], logits: jax.Array) -> jax.Array:
+        """(E,) m/s, the learned normal impulse over m* before the floor and the gate."""
+        del geo
+        return IMPULSE_SCALE * nn.softplus(logits[:, 0])
+
+    def _dissipation_target(self, parts: dict[str, jax.Array],
+                            seg: Any) -> jax.Array:
+        """(n_graph,) J, the paper's target from the step's dissipation: ``share_pp D_pp +
+        share_pw D_pw``. ``parts``: ``d_pp``, ``d_pw`` (n_graph,) and per contact row the
+        terms :meth:`_terms_and_contacts` has (``geo``, ``impulse``, ``angular``,
+        ``wbar_node``, ``edge_pp``, ``edge_pw``, ``edge_normal``); ``seg`` sums rows per
+        graph."""
+        del seg
+        share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
+        return share[0] * parts["d_pp"] + share[1] * parts["d_pw"]
+
     def _reduced_mass(self, geo: dict[str, jax.Array]) -> jax.Array:
         """(E,) kg: m* of each contact, m / 2 for a pair of equal balls, m against a wall."""
         mass = self.physics.ball_mass
@@ -540,7 +561,7 @@ class ContactNet(nn.Module):
         With ``physics.overlap_limit`` the normal impulse is at least ``geo["floor"]`` (the
         rigid limit; see :class:`ContactPhysics`)."""
         phys = self.physics
-        du_n = jnp.maximum(IMPULSE_SCALE * nn.softplus(logits[:, 0]), geo["floor"]) * geo["gate"]
+        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"]) * geo["gate"]
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia
@@ -697,7 +718,7 @@ class ContactNet(nn.Module):
         of ``diss_pp + diss_pw``) and that dissipation's normal-impulse part ``diss_normal``."""
         # One row per contact (the primary direction of each edge, half the slots): the MLPs run
         # once per contact and the partner gets exactly the opposite impulse.
-        geo = edge_geometry(graph, self.physics, primary_only=True, spin=self.spin)
+        geo = self._edge_geometry(graph)
         n_node = graph.nodes["features"].shape[0]
         is_particle = graph.nodes["particle"]
 
@@ -723,6 +744,7 @@ class ContactNet(nn.Module):
         # a pair: J on the receiver, -J on the sender
         per_edge_pp = -jnp.sum(impulse * (vbar - vbar_node[senders]), axis=-1) * geo["is_pp"]
         per_edge_pw = jnp.sum(impulse * (geo["u_wall"] - vbar), axis=-1) * geo["is_pw"]
+        wbar_node = None
         if self.spin:
             # the work of the angular impulses on the midpoint spins (I dw . wbar = d KE_rot)
             wbar_node = geo["w_node"] + 0.5 * dw
@@ -741,14 +763,16 @@ class ContactNet(nn.Module):
         n_graph = graph.n_node.shape[0]
         edge_graph = _edge_graph_index(graph)[0::2]
         seg = lambda x: jax.ops.segment_sum(x, edge_graph, num_segments=n_graph)  # noqa: E731
-        share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
         d_pp, d_pw = seg(per_edge_pp), seg(per_edge_pw)
+        target = self._dissipation_target(
+            {"d_pp": d_pp, "d_pw": d_pw, "geo": geo, "impulse": impulse, "angular": angular,
+             "wbar_node": wbar_node, "edge_pp": per_edge_pp, "edge_pw": per_edge_pw,
+             "edge_normal": per_edge_normal}, seg)
         terms = {"dv": dv, "diss_pp": d_pp, "diss_pw": d_pw, "work_wall": seg(work_wall_e),
-                 "dE_target": share[0] * d_pp + share[1] * d_pw, "du_n": du_n, "du_t": du_t,
+                 "dE_target": target, "du_n": du_n, "du_t": du_t,
                  "gate": geo["gate"],
                  # where the rigid limit set the normal impulse (the learned one was below it)
-                 "at_floor": (geo["floor"] > IMPULSE_SCALE * nn.softplus(logits[:, 0]))
-                 * geo["gate"]}
+                 "at_floor": (geo["floor"] > self._learned_normal(geo, logits)) * geo["gate"]}
         if self.spin:
             terms["dw"] = dw
         contacts = {"geo": geo, "diss": per_edge_pp + per_edge_pw, "diss_normal": per_edge_normal}
