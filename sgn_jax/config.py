@@ -543,6 +543,8 @@ class ModelConfig:
     _KEYS_BY_KIND = {
         "contact": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
                     "overlap_law_factor", "overlap_sweeps", "friction_sweeps"},
+        "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
+                           "overlap_law_factor", "overlap_sweeps", "friction_sweeps"},
     }
 
     def __post_init__(self) -> None:

@@ -6,7 +6,9 @@
   honours, the layers the kinds share and ``make_predict``;
 - the model kinds, one file each, side by side: :mod:`sgn_jax.surrogate.sgn` (the paper's SDF
   graph network, kind "sgn") and :mod:`sgn_jax.surrogate.contact` (the contact-impulse model,
-  kind "contact", with its unrolled-loss training in :mod:`sgn_jax.surrogate.contact_train`);
+  kind "contact", with its unrolled-loss training in :mod:`sgn_jax.surrogate.contact_train`)
+  and :mod:`sgn_jax.surrogate.contact_charge` (the same model conditioned on each contact's
+  radii, masses and material, kind "contact_charge");
 - :mod:`sgn_jax.surrogate.train` - loss, packed batches, the training and evaluation steps;
 - :mod:`sgn_jax.surrogate.rollout` - the surrogate as an init/step pair and a scan;
 - :mod:`sgn_jax.surrogate.collisions` - the contact model's collision ledger, recorded in the
@@ -18,4 +20,4 @@ imports a surrogate module finds them in the registry. A new kind is one file be
 here (docs/sgn.md, "Adding a surrogate model").
 """
 
-from sgn_jax.surrogate import contact, sgn  # noqa: F401  (register the kinds "contact", "sgn")
+from sgn_jax.surrogate import contact, contact_charge, sgn  # noqa: F401  (register the kinds)

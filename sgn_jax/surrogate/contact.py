@@ -180,6 +180,75 @@ def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
     return features[:, SLOT_DIM * k + cols.start: SLOT_DIM * k + cols.stop]
 
 
+def edge_kinematics(graph: jraph.GraphsTuple, window: int, dt: float, pp_reach: Any,
+                    pw_reach: Any, primary_only: bool = False) -> dict[str, jax.Array]:
+    """The kinematics of every edge that do not depend on the model's physics: frames, gaps,
+    gap rates and slip (what :func:`edge_geometry` and the charge-conditioned model,
+    :mod:`sgn_jax.surrogate.contact_charge`, both build on).
+
+    Args:
+        window: W, the graph's slots. dt: s, the step.
+        pp_reach: m, the contact distance of a ball-ball edge, 2 R (a float) or r_r + r_s per
+            row (E,). pw_reach: m, the receiver ball's radius R (a float) or per row (E,).
+        primary_only: see :func:`edge_geometry`.
+
+    Returns a dict: ``senders``, ``receivers`` (E,); ``is_pp``, ``is_pw`` (E,) edge kinds
+    (only edges whose receiver is a ball; ball-wall the wall -> ball direction); ``vel``,
+    ``jar_vel`` (W, n_node, 3) m/s, every node's velocity columns and the wall node's jar
+    velocity per slot; ``v_rel`` (W, E, 3) m/s, the partner's velocity relative to the
+    receiver; ``normal`` (E, 3); ``u`` (W, E) m/s, the gap rate; ``gap`` (W, E) m, the surface
+    gap per slot (negative: overlap); ``v_t`` (E, 3) m/s, the tangential relative velocity of
+    the centres at the newest slot, ``speed_t`` (E,) its size.
+    """
+    feats = jnp.asarray(graph.nodes["features"], DTYPE)
+    w = window
+    rows = slice(0, None, 2) if primary_only else slice(None)
+    senders, receivers = graph.senders[rows], graph.receivers[rows]
+    is_particle = graph.nodes["particle"]
+    recv_ball = is_particle[receivers]
+    is_pp = graph.edges["pp"][rows] & recv_ball
+    is_pw = graph.edges["pw"][rows] & recv_ball  # wall -> ball direction only
+
+    vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
+    # The wall node's rows hold [offset, offset velocity, frequency] per slot: its "velocity"
+    # columns 0..2 are the offset, 3..5 the jar velocity.
+    jar_vel = jnp.stack([_slot(feats, k, slice(3, 6)) for k in range(w)])  # (W, n_node, 3)
+
+    v_r = vel[:, receivers]                                                # (W, E, 3)
+    # Partner velocity: the sender ball, or the jar (wall edges; the sender is the wall node).
+    v_partner = jnp.where(is_pw[None, :, None], jar_vel[:, senders], vel[:, senders])
+    v_rel = v_partner - v_r                                                # (W, E, 3)
+
+    # Ball-ball frame: r = x_s - x_r at the newest slot (edge feature); older slots by
+    # subtracting the relative displacements (x_j = x_{j-1} + v_j dt exactly).
+    r_new = jnp.asarray(graph.edges["features"][rows, :3], DTYPE)
+    disp_after = jnp.cumsum((v_rel * dt)[::-1], axis=0)[::-1]  # sum_{j >= k} v_rel_j dt
+    # r at slot k = r_new - sum_{j > k} v_rel_j dt
+    r_slots = r_new[None] - jnp.concatenate([disp_after[1:], jnp.zeros_like(disp_after[:1])])
+    dist_slots = jnp.sqrt(jnp.sum(r_slots * r_slots, axis=-1) + 1e-20)    # (W, E)
+    n_pp = r_new / dist_slots[-1][:, None]
+    gap_pp = dist_slots - pp_reach                                         # (W, E)
+
+    # Ball-wall frame: the edge's wall (the nearest wall, or its patch with
+    # GraphSpec.wall_patches) from its feature phi n at the newest slot (phi < 0 inside the
+    # cavity); older gaps by subtracting the approach along n, as for a pair.
+    f_pw = r_new
+    phi_pw = -jnp.sqrt(jnp.sum(f_pw * f_pw, axis=-1) + 1e-30)
+    n_pw = f_pw / phi_pw[:, None]
+
+    normal = jnp.where(is_pw[:, None], n_pw, n_pp)
+    u = jnp.einsum("wec,ec->we", v_rel, normal)                            # (W, E) gap rate
+    approach_after = jnp.concatenate([jnp.cumsum((u * dt)[::-1], axis=0)[::-1][1:],
+                                      jnp.zeros_like(u[:1])])             # sum_{j > k} u_j dt
+    gap_pw = (-phi_pw - pw_reach)[None] - approach_after                   # (W, E)
+    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
+    v_t = v_rel[-1] - u[-1][:, None] * normal
+    speed_t = _safe_norm(v_t)
+    return {"senders": senders, "receivers": receivers, "is_pp": is_pp, "is_pw": is_pw,
+            "vel": vel, "jar_vel": jar_vel, "v_rel": v_rel, "normal": normal, "u": u,
+            "gap": gap, "v_t": v_t, "speed_t": speed_t}
+
+
 def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: bool = False,
                   spin: bool = False):
     """Per directed edge (E rows; E / 2 with ``primary_only``): frame, inputs, which edges act.
@@ -218,51 +287,13 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     ``arm`` (E,) m, the contact arm R - overlap / 2, ``slip`` (E,) m/s, |v_t,c|, and
     ``contacts_max`` (E,), the larger number of acting contacts of the edge's two balls (>= 1).
     """
-    feats = jnp.asarray(graph.nodes["features"], DTYPE)
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
-    rows = slice(0, None, 2) if primary_only else slice(None)
-    senders, receivers = graph.senders[rows], graph.receivers[rows]
-    is_particle = graph.nodes["particle"]
-    recv_ball = is_particle[receivers]
-    is_pp = graph.edges["pp"][rows] & recv_ball
-    is_pw = graph.edges["pw"][rows] & recv_ball  # wall -> ball direction only
+    kin = edge_kinematics(graph, w, dt, 2.0 * radius, radius, primary_only)
+    senders, receivers, is_pp, is_pw = (kin[k] for k in ("senders", "receivers", "is_pp",
+                                                         "is_pw"))
+    vel, jar_vel, normal, u, gap = (kin[k] for k in ("vel", "jar_vel", "normal", "u", "gap"))
+    v_t, speed_t = kin["v_t"], kin["speed_t"]
     slots = range(w - h, w)  # the newest h slots, oldest first
-
-    vel = jnp.stack([_slot(feats, k, slice(0, 3)) for k in range(w)])      # (W, n_node, 3)
-    # The wall node's rows hold [offset, offset velocity, frequency] per slot: its "velocity"
-    # columns 0..2 are the offset, 3..5 the jar velocity.
-    jar_vel = jnp.stack([_slot(feats, k, slice(3, 6)) for k in range(w)])  # (W, n_node, 3)
-
-    v_r = vel[:, receivers]                                                # (W, E, 3)
-    # Partner velocity: the sender ball, or the jar (wall edges; the sender is the wall node).
-    v_partner = jnp.where(is_pw[None, :, None], jar_vel[:, senders], vel[:, senders])
-    v_rel = v_partner - v_r                                                # (W, E, 3)
-
-    # Ball-ball frame: r = x_s - x_r at the newest slot (edge feature); older slots by
-    # subtracting the relative displacements (x_j = x_{j-1} + v_j dt exactly).
-    r_new = jnp.asarray(graph.edges["features"][rows, :3], DTYPE)
-    disp_after = jnp.cumsum((v_rel * dt)[::-1], axis=0)[::-1]  # sum_{j >= k} v_rel_j dt
-    # r at slot k = r_new - sum_{j > k} v_rel_j dt
-    r_slots = r_new[None] - jnp.concatenate([disp_after[1:], jnp.zeros_like(disp_after[:1])])
-    dist_slots = jnp.sqrt(jnp.sum(r_slots * r_slots, axis=-1) + 1e-20)    # (W, E)
-    n_pp = r_new / dist_slots[-1][:, None]
-    gap_pp = dist_slots - 2.0 * radius                                     # (W, E)
-
-    # Ball-wall frame: the edge's wall (the nearest wall, or its patch with
-    # GraphSpec.wall_patches) from its feature phi n at the newest slot (phi < 0 inside the
-    # cavity); older gaps by subtracting the approach along n, as for a pair.
-    f_pw = r_new
-    phi_pw = -jnp.sqrt(jnp.sum(f_pw * f_pw, axis=-1) + 1e-30)
-    n_pw = f_pw / phi_pw[:, None]
-
-    normal = jnp.where(is_pw[:, None], n_pw, n_pp)
-    u = jnp.einsum("wec,ec->we", v_rel, normal)                            # (W, E) gap rate
-    approach_after = jnp.concatenate([jnp.cumsum((u * dt)[::-1], axis=0)[::-1][1:],
-                                      jnp.zeros_like(u[:1])])             # sum_{j > k} u_j dt
-    gap_pw = (-phi_pw - radius)[None] - approach_after                     # (W, E)
-    gap = jnp.where(is_pw[None], gap_pw, gap_pp)
-    v_t = v_rel[-1] - u[-1][:, None] * normal
-    speed_t = _safe_norm(v_t)
     extra = {}
     if spin:
         if "spin" not in graph.nodes:
@@ -486,6 +517,27 @@ class ContactNet(nn.Module):
             pw_net(jax.lax.dynamic_slice_in_dim(x, kept, wall_rows)), kept, axis=0)
         return jnp.where(is_pw, pw_out, pp_out)
 
+    def _edge_geometry(self, graph: jraph.GraphsTuple) -> dict[str, jax.Array]:
+        """:func:`edge_geometry` of the primary rows (a kind conditioned on more, such as
+        :mod:`sgn_jax.surrogate.contact_charge`, builds its own)."""
+        return edge_geometry(graph, self.physics, primary_only=True, spin=self.spin)
+
+    def _learned_normal(self, geo: dict[str, jax.Array], logits: jax.Array) -> jax.Array:
+        """(E,) m/s, the learned normal impulse over m* before the floor and the gate."""
+        del geo
+        return IMPULSE_SCALE * nn.softplus(logits[:, 0])
+
+    def _dissipation_target(self, parts: dict[str, jax.Array],
+                            seg: Any) -> jax.Array:
+        """(n_graph,) J, the paper's target from the step's dissipation: ``share_pp D_pp +
+        share_pw D_pw``. ``parts``: ``d_pp``, ``d_pw`` (n_graph,) and per contact row the
+        terms :meth:`_terms_and_contacts` has (``geo``, ``impulse``, ``angular``,
+        ``wbar_node``, ``edge_pp``, ``edge_pw``, ``edge_normal``); ``seg`` sums rows per
+        graph."""
+        del seg
+        share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
+        return share[0] * parts["d_pp"] + share[1] * parts["d_pw"]
+
     def _reduced_mass(self, geo: dict[str, jax.Array]) -> jax.Array:
         """(E,) kg: m* of each contact, m / 2 for a pair of equal balls, m against a wall."""
         mass = self.physics.ball_mass
@@ -509,7 +561,7 @@ class ContactNet(nn.Module):
         With ``physics.overlap_limit`` the normal impulse is at least ``geo["floor"]`` (the
         rigid limit; see :class:`ContactPhysics`)."""
         phys = self.physics
-        du_n = jnp.maximum(IMPULSE_SCALE * nn.softplus(logits[:, 0]), geo["floor"]) * geo["gate"]
+        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"]) * geo["gate"]
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia
@@ -666,7 +718,7 @@ class ContactNet(nn.Module):
         of ``diss_pp + diss_pw``) and that dissipation's normal-impulse part ``diss_normal``."""
         # One row per contact (the primary direction of each edge, half the slots): the MLPs run
         # once per contact and the partner gets exactly the opposite impulse.
-        geo = edge_geometry(graph, self.physics, primary_only=True, spin=self.spin)
+        geo = self._edge_geometry(graph)
         n_node = graph.nodes["features"].shape[0]
         is_particle = graph.nodes["particle"]
 
@@ -692,6 +744,7 @@ class ContactNet(nn.Module):
         # a pair: J on the receiver, -J on the sender
         per_edge_pp = -jnp.sum(impulse * (vbar - vbar_node[senders]), axis=-1) * geo["is_pp"]
         per_edge_pw = jnp.sum(impulse * (geo["u_wall"] - vbar), axis=-1) * geo["is_pw"]
+        wbar_node = None
         if self.spin:
             # the work of the angular impulses on the midpoint spins (I dw . wbar = d KE_rot)
             wbar_node = geo["w_node"] + 0.5 * dw
@@ -710,14 +763,16 @@ class ContactNet(nn.Module):
         n_graph = graph.n_node.shape[0]
         edge_graph = _edge_graph_index(graph)[0::2]
         seg = lambda x: jax.ops.segment_sum(x, edge_graph, num_segments=n_graph)  # noqa: E731
-        share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
         d_pp, d_pw = seg(per_edge_pp), seg(per_edge_pw)
+        target = self._dissipation_target(
+            {"d_pp": d_pp, "d_pw": d_pw, "geo": geo, "impulse": impulse, "angular": angular,
+             "wbar_node": wbar_node, "edge_pp": per_edge_pp, "edge_pw": per_edge_pw,
+             "edge_normal": per_edge_normal}, seg)
         terms = {"dv": dv, "diss_pp": d_pp, "diss_pw": d_pw, "work_wall": seg(work_wall_e),
-                 "dE_target": share[0] * d_pp + share[1] * d_pw, "du_n": du_n, "du_t": du_t,
+                 "dE_target": target, "du_n": du_n, "du_t": du_t,
                  "gate": geo["gate"],
                  # where the rigid limit set the normal impulse (the learned one was below it)
-                 "at_floor": (geo["floor"] > IMPULSE_SCALE * nn.softplus(logits[:, 0]))
-                 * geo["gate"]}
+                 "at_floor": (geo["floor"] > self._learned_normal(geo, logits)) * geo["gate"]}
         if self.spin:
             terms["dw"] = dw
         contacts = {"geo": geo, "diss": per_edge_pp + per_edge_pw, "diss_normal": per_edge_normal}

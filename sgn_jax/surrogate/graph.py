@@ -38,6 +38,15 @@ and ``pw`` (E,) bool. An edge
 or ``phi_b n_b`` of its ball b (ball-wall, Eq. 21, same feature in both directions).
 Edges use the newest slot: ball-ball where ``|x_j - x_i| <= 2 R + pp_skin``, ball-wall where
 ``phi >= phi_pw``. The features are computed in float64 and cast to float32.
+
+A window with a :class:`BallCharge` (``Window.charge``: per-ball radii, masses, classes, a
+presence mask and a table of per-class-pair contact properties; the charge-conditioned contact
+model's input, :mod:`sgn_jax.surrogate.contact_charge`) gets the rules of its own balls:
+ball-ball where ``|x_j - x_i| <= r_i + r_j + pp_skin``, ball-wall where
+``phi >= -(r_b + pw_skin)`` (``GraphSpec.pw_skin``), no edge of an absent ball (a padding slot
+of a smaller charge), and the graph gains ``nodes["radius"]``, ``nodes["mass"]``,
+``nodes["present"]`` (N+2,) and ``edges["pair"]`` (E, P), the table's row of each edge's class
+pair (the wall node has the table's last class).
 """
 
 from __future__ import annotations
@@ -148,10 +157,41 @@ class GraphSpec:
         """Centre distance (m) up to which two balls are joined by an edge."""
         return 2.0 * self.ball_radius + self.pp_skin
 
+    @property
+    def pw_skin(self) -> float:
+        """m, how far beyond contact a ball gets its ball-wall edges, ``-phi_pw - R``: with a
+        :class:`BallCharge` each ball b gets them where ``phi >= -(r_b + pw_skin)``."""
+        return -self.phi_pw - self.ball_radius
+
 
 def velocity_columns(window: int) -> np.ndarray:
     """Indices of the velocity columns among the 7 W particle feature columns."""
     return np.array([SLOT_DIM * k + c for k in range(window) for c in VELOCITY_COLUMNS_IN_SLOT])
+
+
+@flax.struct.dataclass
+class BallCharge:
+    """The balls of a charge as traced arrays (one compiled program serves every charge of the
+    same N and table size; batched windows carry a leading axis on every field).
+
+    Attributes:
+        radius: (N,) m, each ball's radius (0 for an absent ball).
+        mass: (N,) kg, each ball's mass (> 0 also for an absent ball, which is never divided
+            into anything that reaches a present one).
+        ball_class: (N,) int32, each ball's row of ``pair`` (< K - 1).
+        present: (N,) bool; False: a padding slot of a charge of fewer balls than N (no edges,
+            not a particle of the graph: the models leave it where it is).
+        pair: (K, K, P) float, per pair of classes P contact properties (symmetric); class
+            K - 1 is the jar's wall. The graph does not read the columns, it hands each edge
+            its row (``edges["pair"]``); their meaning is the model's
+            (:data:`sgn_jax.surrogate.contact_charge.PAIR_COLUMNS`).
+    """
+
+    radius: jax.Array
+    mass: jax.Array
+    ball_class: jax.Array
+    present: jax.Array
+    pair: jax.Array
 
 
 @flax.struct.dataclass
@@ -169,6 +209,10 @@ class Window:
             rollout integrates them; every other kind ignores them. The rollout fills zeros
             (balls not turning) where a window has none (:func:`sgn_jax.surrogate.rollout.
             jar_state_window`).
+        charge: a :class:`BallCharge`, or None (the balls of ``GraphSpec.ball_radius``, the
+            monodisperse graph). With one, the edges follow each ball's own radius and the
+            graph carries the charge (module docstring); ``replace`` and
+            :func:`slide_window` keep it, so a rollout carries it along.
 
     Batched windows carry a leading axis on every field (``jax.vmap(build_graph, ...)``).
     """
@@ -178,6 +222,7 @@ class Window:
     offset_velocities: jax.Array
     frequency_hz: jax.Array
     spins: jax.Array | None = None
+    charge: BallCharge | None = None
 
 
 def with_spins(window: Window) -> Window:
@@ -236,8 +281,14 @@ def _check_window(window: Window, spec: GraphSpec) -> None:
                 "frequency_hz": ()}
     if window.spins is not None:
         expected["spins"] = (n, 3)
+    if window.charge is not None:
+        expected.update({"charge.radius": (n,), "charge.mass": (n,), "charge.ball_class": (n,),
+                         "charge.present": (n,)})
     for name, shape in expected.items():
-        got = tuple(jnp.shape(getattr(window, name)))
+        value = window
+        for part in name.split("."):
+            value = getattr(value, part)
+        got = tuple(jnp.shape(value))
         if got != shape:
             raise GraphError(
                 f"Window.{name} has shape {got}, expected {shape} for window={w}, "
@@ -315,6 +366,13 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     node_ids = jnp.arange(n + 2)
     is_particle = node_ids < n
     is_wall = node_ids == wall
+    charge = window.charge
+    if charge is not None:
+        # each ball's own radius; an absent ball (padding of a smaller charge) has no edges
+        # and is no particle
+        present = jnp.asarray(charge.present, bool)
+        radius = jnp.asarray(charge.radius, jnp.float64)
+        is_particle = is_particle & jnp.concatenate([present, jnp.zeros((2,), bool)])
 
     x = jnp.asarray(window.positions[-1], jnp.float64)  # newest positions (N, 3)
     phi_now, normal_now = phi[-1], normal[-1]
@@ -322,7 +380,12 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     # Ball-ball: unordered pairs i < j; both directions of a kept pair are kept together.
     pi, pj = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(n, k=1))
     rij = x[pj] - x[pi]
-    pair_ok = jnp.sum(rij * rij, axis=-1) <= spec.pp_cutoff ** 2
+    if charge is None:
+        pair_ok = jnp.sum(rij * rij, axis=-1) <= spec.pp_cutoff ** 2
+    else:
+        reach = radius[pi] + radius[pj]          # the pair's contact distance r_i + r_j
+        pair_ok = ((jnp.sum(rij * rij, axis=-1) <= (reach + spec.pp_skin) ** 2)
+                   & present[pi] & present[pj])
     n_pairs = jnp.sum(pair_ok, dtype=jnp.int32)
     pair_rank = jnp.cumsum(pair_ok, dtype=jnp.int32) - 1
     cap_pairs = spec.pp_pair_capacity
@@ -341,7 +404,7 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     if spec.contact_features:
         # sqrt of the squared distance + tiny: differentiable also at coincident centres
         dist = jnp.sqrt(jnp.sum(rij * rij, axis=-1) + 1e-30)
-        contact = _contact_columns(dist - 2.0 * spec.ball_radius)
+        contact = _contact_columns(dist - (2.0 * spec.ball_radius if charge is None else reach))
         pp_feat_j = jnp.concatenate([rij, contact], axis=-1)
         pp_feat_i = jnp.concatenate([-rij, contact], axis=-1)
     efeat = efeat.at[slot].set(pp_feat_j, mode="drop").at[slot + 1].set(pp_feat_i, mode="drop")
@@ -353,14 +416,17 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
         phi_now, normal_now = phi_patch.reshape(-1), normal_patch.reshape(-1, 3)
     else:
         balls = jnp.arange(n, dtype=jnp.int32)
-    ball_ok = phi_now >= spec.phi_pw
+    if charge is None:
+        ball_ok = phi_now >= spec.phi_pw
+    else:
+        ball_ok = (phi_now >= -(radius[balls] + spec.pw_skin)) & present[balls]
     n_walled = jnp.sum(ball_ok, dtype=jnp.int32)
     ball_rank = jnp.cumsum(ball_ok, dtype=jnp.int32) - 1
     bslot = jnp.where(ball_ok, n_pp_kept + 2 * ball_rank, e_cap)
     pw_feat = phi_now[:, None] * normal_now
     if spec.contact_features:
-        pw_feat = jnp.concatenate([pw_feat, _contact_columns(-phi_now - spec.ball_radius)],
-                                  axis=-1)
+        r_b = spec.ball_radius if charge is None else radius[balls]
+        pw_feat = jnp.concatenate([pw_feat, _contact_columns(-phi_now - r_b)], axis=-1)
     senders = senders.at[bslot].set(wall, mode="drop").at[bslot + 1].set(balls, mode="drop")
     receivers = receivers.at[bslot].set(balls, mode="drop").at[bslot + 1].set(wall, mode="drop")
     efeat = efeat.at[bslot].set(pw_feat, mode="drop").at[bslot + 1].set(pw_feat, mode="drop")
@@ -376,9 +442,22 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
         # (N + 2, 3) rad/s, float64 (a resting ball's spin is tiny); 0 for the wall and padding
         nodes["spin"] = jnp.concatenate([jnp.asarray(window.spins, jnp.float64),
                                          jnp.zeros((2, 3), jnp.float64)])
+    edges = {"features": efeat.astype(jnp.float32), "pp": is_pp, "pw": is_pw}
+    if charge is not None:
+        table = jnp.asarray(charge.pair)
+        wall_class = table.shape[0] - 1
+        # (N + 2,): the wall node and the padding node have the wall's class, radius 0 and
+        # mass 1 (never used as a ball's: they are no particles)
+        node_class = jnp.concatenate([jnp.asarray(charge.ball_class, jnp.int32),
+                                      jnp.full((2,), wall_class, jnp.int32)])
+        nodes["radius"] = jnp.concatenate([radius, jnp.zeros((2,), jnp.float64)])
+        nodes["mass"] = jnp.concatenate([jnp.asarray(charge.mass, jnp.float64),
+                                         jnp.ones((2,), jnp.float64)])
+        nodes["present"] = is_particle
+        edges["pair"] = table[node_class[receivers], node_class[senders]]
     graph = jraph.GraphsTuple(
         nodes=nodes,
-        edges={"features": efeat.astype(jnp.float32), "pp": is_pp, "pw": is_pw},
+        edges=edges,
         senders=senders,
         receivers=receivers,
         n_node=jnp.array([n + 1, 1], jnp.int32),

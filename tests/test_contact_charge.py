@@ -1,0 +1,266 @@
+"""The charge-conditioned contact model (kind "contact_charge"): the physics built into it,
+for balls of several sizes, masses and materials.
+
+On an untrained network with random output layers (every impulse nonzero and arbitrary):
+rotation and permutation equivariance with two ball sizes, momentum and angular momentum of
+ball-ball impulses between unequal balls, the inputs of the same impact of a 6 mm and a 15 mm
+ball, finite outputs for a padded mixture, and the graph's edges by each ball's own radius.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sgn_jax.dem.charge import BallClass, Charge, Material
+from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
+from sgn_jax.surrogate.contact_charge import (
+    GAP_COARSE,
+    ChargePhysics,
+    ContactChargeNet,
+    ball_charge,
+)
+from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
+from sgn_jax.surrogate.model import model_factory
+
+DT, W = 1e-4, 3
+STEEL = Material("steel", young=2.05e9, poisson=0.235, restitution=0.3, friction=0.3,
+                 rolling_friction=0.045)
+ZIRCONIA = Material("zirconia", young=1.6e9, poisson=0.3, restitution=0.5, friction=0.2,
+                    rolling_friction=0.02)
+# 3 steel balls of 10 mm and 2 zirconia balls of 6 mm (balls 3 and 4) in a steel jar
+MIX = Charge(classes=(BallClass(3, 0.005, 7700.0, STEEL), BallClass(2, 0.003, 6000.0, ZIRCONIA)),
+             wall=STEEL)
+PHYS = ChargePhysics(dt=DT, window=W, history=3, gate_margin=2e-4, overlap_limit=5e-5,
+                     overlap_law_factor=1.5, overlap_sweeps=2, friction_sweeps=3)
+
+
+def spec(n):
+    return GraphSpec(n_particles=n, window=W, ball_radius=0.005, dt=DT, pp_skin=1.5e-3,
+                     phi_pw=-0.006, pp_pair_capacity=12)
+
+
+def floor_query(up, height=0.0):
+    """A flat floor ``height`` below the jar offset with unit normal ``up`` (into the cavity)."""
+    up = jnp.asarray(up, jnp.float64)
+
+    def query(sdf, points, offset):
+        del sdf
+        h = jnp.sum((points - offset) * up, axis=-1) + height
+        return -h, jnp.broadcast_to(-up, points.shape)
+
+    return query
+
+
+# centres: two 10 mm balls on the floor overlapping, a 10 mm ball on them, a 6 mm ball against
+# ball 0 and one against ball 1 (each pair 0.1 mm into contact)
+CENTRES = np.array([[0.0, 0.0050, 0.0], [0.0099, 0.0050, 0.0], [0.00495, 0.01347, 0.0],
+                    [0.0, 0.0050, 0.0079], [0.0099, 0.0050, -0.0079]])
+
+
+def scene(rng, rotation=None, n_total=5, lift=0.0):
+    """The mixture, moving (velocities ~0.3 m/s, spins ~50 rad/s), padded to ``n_total``."""
+    n = len(CENTRES)
+    vel = rng.normal(0.0, 0.3, (1, n, 3)) + rng.normal(0.0, 0.02, (W + 1, n, 3))
+    pos = CENTRES[None] + np.array([0.0, lift, 0.0]) + np.cumsum(vel * DT, axis=0) \
+        - (vel * DT).sum(0)[None]
+    spins = rng.normal(0.0, 50.0, (n, 3))
+    if n_total > n:   # absent balls parked far from everything, at rest
+        far = np.array([0.5, 0.5, 0.5]) + 0.05 * np.arange(n_total - n)[:, None]
+        pos = np.concatenate([pos, np.broadcast_to(far, (W + 1, n_total - n, 3))], axis=1)
+        spins = np.concatenate([spins, np.zeros((n_total - n, 3))])
+    offsets = np.cumsum(rng.normal(0.0, 0.1, (W, 3)) * DT, axis=0) * np.array([1, 0, 1])
+    offset_vel = rng.normal(0.0, 0.2, (W, 3)) * np.array([1, 0, 1])
+    rot = np.eye(3) if rotation is None else np.asarray(rotation)
+    return Window(positions=jnp.asarray(pos @ rot.T), offsets=jnp.asarray(offsets @ rot.T),
+                  offset_velocities=jnp.asarray(offset_vel @ rot.T),
+                  frequency_hz=jnp.asarray(5.0), spins=jnp.asarray(spins @ rot.T),
+                  charge=ball_charge(MIX, n_balls=n_total, classes=3))
+
+
+def random_params(net, graph, seed=0):
+    params = net.init(jax.random.PRNGKey(seed), graph)["params"]
+    key = jax.random.PRNGKey(seed + 1)
+
+    def perturb(path, leaf):
+        nonlocal key
+        key, sub = jax.random.split(key)
+        if path[-1].key == "kernel" and leaf.shape[-1] == 2:
+            return 0.5 * jax.random.normal(sub, leaf.shape, leaf.dtype)
+        return leaf
+
+    return jax.tree_util.tree_map_with_path(perturb, params)
+
+
+def net_with(gravity=(0.0, -9.81, 0.0), spin=True, **physics):
+    phys = dataclasses.replace(PHYS, gravity=tuple(float(g) for g in gravity), **physics)
+    return ContactChargeNet(physics=phys, hidden=32, mlp_layers=3, spin=spin)
+
+
+def terms_of(window, up=(0.0, 1.0, 0.0), gravity=(0.0, -9.81, 0.0), params=None, spin=True,
+             floor_height=0.0, **physics):
+    n = window.positions.shape[1]
+    graph, _ = build_graph(window, None, spec(n), floor_query(up, floor_height))
+    net = net_with(gravity, spin, **physics)
+    params = random_params(net, graph) if params is None else params
+    return net.apply({"params": params}, graph, method=ContactChargeNet.step_terms), params, graph
+
+
+def test_the_kind_is_registered_and_builds_from_the_whole_config():
+    from sgn_jax.api import load_config, replace_section
+
+    cfg = replace_section(load_config("emax_300rpm"), "model", kind="contact_charge", hidden=16,
+                          mlp_layers=3)
+    model = model_factory("contact_charge").build_model(cfg)
+    assert isinstance(model, ContactChargeNet) and model.physics.dt == cfg.dem.dt
+
+
+def test_edges_follow_each_balls_own_radius():
+    """A 6 mm ball 1 mm from a 10 mm ball is joined (gap < skin 1.5 mm), at 2 mm it is not;
+    the wall edge of a 6 mm ball starts 1 mm beyond its own contact (pw_skin), not the
+    10 mm ball's; an absent ball has none."""
+    tiny = Charge(classes=(BallClass(1, 0.005, 7700.0, STEEL), BallClass(2, 0.003, 7700.0, STEEL)),
+                  wall=STEEL)
+
+    def graph_of(gap_pp, gap_wall):
+        x = np.array([[0.0, 0.02, 0.0], [0.008 + gap_pp, 0.02, 0.0], [0.03, 0.003 + gap_wall, 0.0]])
+        pos = np.broadcast_to(x, (W + 1, 3, 3))
+        charge = ball_charge(tiny)
+        window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                        offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(0.0),
+                        charge=charge)
+        return build_graph(window, None, spec(3), floor_query((0.0, 1.0, 0.0)))
+
+    _, counts = graph_of(1.0e-3, 0.9e-3)
+    assert int(counts.n_pp) == 2 and int(counts.n_pw) == 2     # ball 2 on the floor
+    _, counts = graph_of(2.0e-3, 1.1e-3)
+    assert int(counts.n_pp) == 0 and int(counts.n_pw) == 0
+    graph, counts = build_graph(scene(np.random.default_rng(0), n_total=7), None, spec(7),
+                                floor_query((0.0, 1.0, 0.0)))
+    used = np.concatenate([np.asarray(graph.senders), np.asarray(graph.receivers)])
+    assert not np.isin([5, 6], used).any()
+    assert np.asarray(graph.nodes["present"]).tolist() == [True] * 5 + [False] * 4
+
+
+def test_rotating_a_two_size_scene_rotates_the_accelerations():
+    rng = np.random.default_rng(1)
+    a = np.linalg.qr(np.random.default_rng(7).normal(size=(3, 3)))[0]
+    rot = a * np.sign(np.linalg.det(a))
+    window, _ = scene(rng), None
+    terms, params, graph = terms_of(window)
+    assert float(jnp.sum(terms["gate"])) >= 6            # pairs of both sizes and the floor act
+    rng = np.random.default_rng(1)
+    window_r = scene(rng, rotation=rot)
+    terms_r, _, _ = terms_of(window_r, up=rot @ np.array([0.0, 1.0, 0.0]),
+                             gravity=rot @ np.array([0.0, -9.81, 0.0]), params=params)
+    for key, tol in (("dv", 1e-3), ("dw", 1e-3)):
+        base = np.asarray(terms[key])[:5]
+        scale = np.max(np.abs(base))
+        assert scale > 0
+        np.testing.assert_allclose(np.asarray(terms_r[key])[:5], base @ rot.T,
+                                   atol=tol * scale)
+
+
+def test_ball_ball_impulses_of_unequal_balls_keep_momentum_and_angular_momentum():
+    """No gravity, the floor far away: the impulses are ball-ball only, between balls of 10 and
+    6 mm, steel and zirconia (masses 4.0 g and 0.68 g): sum m dv = 0 and, about the origin,
+    sum (x m dv + I dw) = 0 (each ball's own arm: the same contact point)."""
+    rng = np.random.default_rng(2)
+    window = scene(rng, lift=0.0)
+    terms, _, graph = terms_of(window, gravity=(0.0, 0.0, 0.0), floor_height=1.0)
+    acting_pw = np.asarray(terms["gate"]) * np.asarray(graph.edges["pw"])[0::2]
+    assert acting_pw.sum() == 0 and float(jnp.sum(terms["gate"])) >= 4
+    mass, radius = MIX.masses, MIX.radii
+    dv, dw = np.asarray(terms["dv"])[:5], np.asarray(terms["dw"])[:5]
+    impulse = mass[:, None] * dv
+    scale = np.max(np.abs(impulse))
+    assert scale > 1e-6
+    np.testing.assert_allclose(impulse.sum(0), 0.0, atol=1e-5 * scale)
+    x = np.asarray(window.positions[-1])
+    inertia = 0.4 * mass * radius ** 2
+    angular = np.cross(x, impulse) + inertia[:, None] * dw
+    l_scale = np.max(np.abs(np.cross(x, impulse)))
+    np.testing.assert_allclose(angular.sum(0), 0.0, atol=1e-4 * l_scale)
+
+
+def test_permuting_the_balls_of_a_mixture_permutes_the_accelerations():
+    """Without the overlap sweeps: a sweep divides each correction by the number of violated
+    contacts of its balls, and a contact that the previous sweep brought exactly to its limit
+    counts as violated or not by rounding, which the order of the balls changes (the contact
+    kind's sweeps alike: a jump of ~1 % here)."""
+    rng = np.random.default_rng(3)
+    window = scene(rng)
+    terms, params, _ = terms_of(window, overlap_sweeps=0)
+    perm = np.array([3, 0, 4, 2, 1])
+    charge = window.charge
+    permuted = window.replace(
+        positions=window.positions[:, perm], spins=window.spins[perm],
+        charge=charge.replace(radius=charge.radius[perm], mass=charge.mass[perm],
+                              ball_class=charge.ball_class[perm], present=charge.present[perm]))
+    terms_p, _, _ = terms_of(permuted, params=params, overlap_sweeps=0)
+    for key in ("dv", "dw"):
+        base = np.asarray(terms[key])[:5]
+        np.testing.assert_allclose(np.asarray(terms_p[key])[:5], base[perm],
+                                   atol=1e-4 * np.max(np.abs(base)))
+
+
+@pytest.mark.parametrize("spin", [False, True])
+def test_untrained_and_random_params_give_finite_outputs_for_a_padded_mixture(spin):
+    """A mixture padded with 2 absent balls: finite outputs with the initial and with random
+    parameters; the absent balls do not move; the present ones get what they get unpadded."""
+    rng = np.random.default_rng(4)
+    padded = scene(rng, n_total=7)
+    rng = np.random.default_rng(4)
+    plain = scene(rng, n_total=5)
+    graph, _ = build_graph(padded, None, spec(7), floor_query((0.0, 1.0, 0.0)))
+    net = net_with(spin=spin)
+    init = net.init(jax.random.PRNGKey(0), graph)["params"]
+    for params in (init, random_params(net, graph)):
+        terms = net.apply({"params": params}, graph, method=ContactChargeNet.step_terms)
+        for value in terms.values():
+            assert np.all(np.isfinite(np.asarray(value)))
+        assert np.all(np.asarray(terms["dv"])[5:] == 0.0)
+        terms_5, _, _ = terms_of(plain, params=params, spin=spin)
+        np.testing.assert_allclose(np.asarray(terms["dv"])[:5], np.asarray(terms_5["dv"])[:5],
+                                   rtol=1e-5, atol=1e-9)
+        accel, d_e = net.apply({"params": params}, graph)
+        assert np.all(np.isfinite(np.asarray(accel))) and np.isfinite(np.asarray(d_e)).all()
+
+
+def test_the_same_impact_of_a_6mm_and_a_15mm_ball_is_the_same_input():
+    """A steel ball of 6 mm and one of 15 mm, both at 1 m/s onto the floor, each at the deepest
+    overlap of that impact by the DEM's own law (27 and 68 um): the model's gap input is the
+    same for both, -peak / (2 L) = -0.5 (L from the charge in the graph, the law's peak from the
+    DEM's host integration), and every input is finite and inside its range, unclipped where it
+    is linear. The contact kind's fixed 5 um scale saturates on both."""
+    rows = {}
+    for diameter in (0.006, 0.015):
+        r = diameter / 2
+        single = Charge(classes=(BallClass(1, r, 7700.0, STEEL),), wall=STEEL)
+        law = make_contact_law(STEEL.young, STEEL.poisson, STEEL.restitution, STEEL.friction,
+                               STEEL.rolling_friction, r, single.classes[0].mass)
+        peak = head_on_peak_overlap(law)
+        y_now = r - peak
+        vel = np.zeros((W + 1, 1, 3))
+        vel[:, 0, 1] = -1.0
+        pos = np.array([0.0, y_now, 0.0]) + np.cumsum(vel * DT, axis=0) - (vel * DT).sum(0)[None]
+        window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                        offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(0.0),
+                        spins=jnp.zeros((1, 3)), charge=ball_charge(single))
+        graph, _ = build_graph(window, None, spec(1), floor_query((0.0, 1.0, 0.0)))
+        net = net_with()
+        params = net.init(jax.random.PRNGKey(0), graph)["params"]
+        geo = net.apply({"params": params}, graph, method=ContactChargeNet._edge_geometry)
+        row = int(np.flatnonzero(np.asarray(geo["is_pw"]))[0])
+        rows[diameter] = (np.asarray(geo["inputs"])[row], float(geo["scale_l"][row]), peak)
+    for inputs, scale_l, peak in rows.values():
+        assert np.all(np.isfinite(inputs)) and np.all(np.abs(inputs) <= 5.0)
+        assert scale_l == pytest.approx(peak, rel=1e-4)      # L is the law's own peak at 1 m/s
+        newest = inputs[8:12]                                # gap, fine gap, u, fine u
+        assert newest[0] == pytest.approx(-1.0 / GAP_COARSE, abs=1e-3)
+        assert -1.0 < inputs[0] < 3.0 and -5.0 < newest[2] < 0.0   # linear columns unclipped
+    (a, _, peak_a), (b, _, peak_b) = rows[0.006], rows[0.015]
+    assert peak_b / peak_a == pytest.approx(2.5, rel=0.02)   # the law's overlap scales with r
+    np.testing.assert_allclose(a[8:10], b[8:10], atol=1e-4)  # the same state, both gap inputs
