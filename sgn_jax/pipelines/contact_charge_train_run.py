@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from sgn_jax.config import config_from_dict, config_to_dict, load_config, save_config
+from sgn_jax.config import config_from_dict, config_to_dict, resolve_config, save_config
 from sgn_jax.pipelines.configure import (
     charge_from_config,
     graph_spec_from_config,
@@ -172,8 +172,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--batch-size", type=int, default=8)
     ap.add_argument("--unroll", type=int, default=6)
     args = ap.parse_args(argv)
-    from sgn_jax.api import load_config as load_named
-    cfg = load_named(args.config) if not Path(args.config).exists() else load_config(args.config)
+    cfg = resolve_config(args.config)  # a built-in name or a TOML path
     data = Path(args.data)
     names = args.charges or sorted(p.name for p in data.iterdir() if p.is_dir())
     paths = [p for name in names for p in sorted((data / name).glob("seed_*.npz"))]
