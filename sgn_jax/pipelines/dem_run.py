@@ -3,7 +3,8 @@
 
 ``run_dem(cfg, duration, out_path)``:
 
-1. place ``cfg.balls.count`` balls at rest in the jar from ``seed`` (random sequential insertion);
+1. place the charge's balls (``cfg.balls`` and its ``[[balls.mix]]``, largest first) at rest
+   in the jar from ``seed`` (random sequential insertion);
 2. settle for ``cfg.dem.settle_time`` with the jar at rest at ``offset(0)`` (DEM steps
    -settle_steps .. 0), then zero the dissipation and wall-work totals: t = 0;
 3. run ``duration`` of motion in chunks of ``cfg.dem.chunk_samples`` samples (one jitted nested
