@@ -49,8 +49,8 @@ from sgn_jax.geometry.jar import jar_mesh
 from sgn_jax.motion import CircleMotion, HarmonicMotion
 from sgn_jax.motion import offset as motion_offset
 from sgn_jax.pairs import pairs_within
+from sgn_jax.pipelines.configure import charge_from_config, surrogate_walls_from_config
 from sgn_jax.pipelines.configure import params_from_config as dem_params_from_config
-from sgn_jax.pipelines.configure import surrogate_walls_from_config
 from sgn_jax.pipelines.contact_replay import (
     derive_contact_model,
     floor_activity_run,
@@ -103,6 +103,7 @@ from sgn_jax.regime import (
     regime_windows,
 )
 from sgn_jax.scene import analytic_jar_query
+from sgn_jax.surrogate.contact_charge import ball_charge
 from sgn_jax.surrogate.contact_train import UnrollSpec
 from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 from sgn_jax.surrogate.rollout import make_rollout_advance, model_predictor
@@ -149,6 +150,8 @@ __all__ = [
     "latin_hypercube_charges",
     "check_dem_config",
     "jar_volume",
+    "charge_from_config",
+    "ball_charge",
     # a run of the DEM in another code (experiments/tools/liggghts_compare.py)
     "dem_setup_from_config",
     "jar_mesh",
