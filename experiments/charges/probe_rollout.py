@@ -32,6 +32,9 @@ from sgn_jax.experiment_tools import (
 )
 
 BURN_IN_S = 0.5
+# The wall snap-back of the rollout reads one ball radius (GraphSpec.ball_radius, the training
+# config's 5 mm), not each ball's: off here, so smaller balls are not pushed off the wall.
+SNAP_BACK = False
 
 
 def probe(model, path: str) -> dict:
@@ -56,7 +59,8 @@ def probe(model, path: str) -> dict:
     sdf, query = surrogate_walls_from_config(cfg)
     steps = int(round(float(t[-1]) / dt)) - w
     steps -= steps % 10
-    rollout = sj.make_rollout(spec, model_predictor(model.model), steps, 10, query=query)
+    rollout = sj.make_rollout(spec, model_predictor(model.model), steps, 10, query=query,
+                              snap_back=SNAP_BACK)
     result = rollout(model.params, model.norm_stats, window,
                      sj.motion_from_config(record_cfg.motion), sdf, float(t[w]))
     energy, t_step = np.asarray(result.steps.dE), np.asarray(result.t_step)
@@ -69,8 +73,14 @@ def probe(model, path: str) -> dict:
     in_window = (t_dem > BURN_IN_S) & (t_dem <= float(t_step[kept][-1]))
     p_model = float(energy[kept].sum()) / span
     p_dem = float(dem[in_window].sum()) / span
+    steps_out = result.steps
     return {"record": path, "n_balls": n, "model_W": p_model, "dem_W": p_dem,
             "relative": p_model / p_dem - 1,
+            "model_pp_W": float(np.asarray(steps_out.diss_pp)[kept].sum()) / span,
+            "model_pw_W": float(np.asarray(steps_out.diss_pw)[kept].sum()) / span,
+            "edge_overflow_steps": int(np.sum(np.asarray(steps_out.overflow) > 0)),
+            "max_outside": int(np.max(np.asarray(steps_out.n_outside))),
+            "snapped_ball_steps": int(np.sum(np.asarray(steps_out.n_snapped))),
             "finite": bool(np.all(np.isfinite(np.asarray(result.positions))))}
 
 
