@@ -32,8 +32,8 @@ from sgn_jax.experiment_tools import (
 )
 
 BURN_IN_S = 0.5
-# The wall snap-back of the rollout reads one ball radius (GraphSpec.ball_radius, the training
-# config's 5 mm), not each ball's: off here, so smaller balls are not pushed off the wall.
+# The wall snap-back's threshold ([graph] phi_sb = -4.9 mm) is a 5 mm ball's, not each ball's:
+# off here, so smaller balls touching the wall are not pushed off it at every step.
 SNAP_BACK = False
 
 
