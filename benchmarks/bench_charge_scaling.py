@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 
 import jax
@@ -28,7 +27,7 @@ import sgn_jax
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.dem.engine import contact_overlaps, make_advance
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
-from sgn_jax.records.io_utils import git_commit, write_json
+from sgn_jax.records.io_utils import git_commit, machine_info, write_json
 
 MARKER = "charge-scaling"
 COUNTS = (24, 50, 100, 150, 220)
@@ -90,8 +89,7 @@ def main() -> None:
             rows.append(row(count, args.radius, args.steps, args.repeats, args.settle,
                             args.warm, search))
             print(json.dumps(rows[-1]), flush=True)
-    machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-               "affinity": sorted(os.sched_getaffinity(0)), "jax": jax.__version__}
+    machine = {**machine_info(), "affinity": sorted(os.sched_getaffinity(0))}
     result = {"benchmark": "charge_scaling", "commit": git_commit(),
               "sgn_jax": sgn_jax.__version__, "machine": machine, "rows": rows}
     write_json(args.out, result)

@@ -17,7 +17,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import time
 
 import jax
@@ -26,7 +25,7 @@ import sgn_jax
 from sgn_jax.config import builtin_config_path, load_config
 from sgn_jax.dem.engine import init_state, make_advance
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
-from sgn_jax.records.io_utils import git_commit, write_json
+from sgn_jax.records.io_utils import git_commit, machine_info, write_json
 
 CAP = 8192  # events the buffer holds: more than the timed steps close
 MARKER = "collision-ledger-cost"
@@ -91,8 +90,7 @@ def main() -> None:
                  "on_steps_per_s": 1e3 / r["ms_per_step_on"], "slowdown": r["slowdown"],
                  "compile_off_s": r["compile_s_off"], "compile_on_s": r["compile_s_on"],
                  "events": r["events"]})
-    machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-               "affinity": sorted(os.sched_getaffinity(0)), "jax": jax.__version__}
+    machine = {**machine_info(), "affinity": sorted(os.sched_getaffinity(0))}
     result = {"benchmark": "collision_ledger_cost", "commit": git_commit(),
               "sgn_jax": sgn_jax.__version__, "machine": machine, "rows": rows}
     write_json(args.out, result)

@@ -254,6 +254,16 @@ class BallsConfig:
         """One ball class (one size, density and material)."""
         return not self.mix
 
+    @property
+    def solid_volume(self) -> float:
+        """m^3, the volume of all balls of all classes."""
+        return sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 for c in self.classes)
+
+    @property
+    def mass(self) -> float:
+        """kg, the mass of all balls of all classes."""
+        return sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 * c.density for c in self.classes)
+
 
 @dataclass(frozen=True)
 class MaterialConfig:

@@ -38,8 +38,7 @@ def ball_fill(cfg: Config) -> float:
     if cfg.jar.kind != "emax":
         raise ConfigError("a charge sweep needs the parametric jar ([jar] kind = 'emax'), whose "
                           f"volume is known; got kind = {cfg.jar.kind!r}")
-    volume = float(jar_volume(jar_params_from_config(cfg.jar)))
-    return sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 for c in cfg.balls.classes) / volume
+    return cfg.balls.solid_volume / float(jar_volume(jar_params_from_config(cfg.jar)))
 
 
 def charge_point(cfg: Config, parameter: str, value: float, hold: str = "fill") -> Config:
@@ -103,8 +102,7 @@ def charge_sweep(cfg: Config, parameter: str, values: Sequence[float], *, hold: 
             progress(f"{parameter} = {float(value):g}, seed {seed}")
         target = [r["power_W"] for r in runs]
         total = [r["power_total_W"] for r in runs]
-        mass = sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 * c.density
-                   for c in point.balls.classes)
+        mass = point.balls.mass
         mean, se = ensemble_mean(target)
         mean_total, se_total = ensemble_mean(total)
         points.append({"value": float(value), "diameter_m": 2 * point.balls.radius,
@@ -122,6 +120,7 @@ def charge_sweep(cfg: Config, parameter: str, values: Sequence[float], *, hold: 
 def plot_charge_sweep(result: dict[str, Any], path: Any) -> Any:
     """Mean power (normal + tangential damping, and every kind) and specific power against the
     swept parameter, with +- 1 SE bars; a PNG at ``path``."""
+    # deferred: plots imports matplotlib, which the sweep itself (and the API) does not need
     from sgn_jax.analysis.plots import new_figure, save_figure
 
     pts = result["points"]

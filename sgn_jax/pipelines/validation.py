@@ -211,8 +211,7 @@ def check_fill(cfg: Config) -> float:
     if cfg.jar.kind != "emax":
         return float("nan")  # an STL cavity's volume needs the mesh; placement will say
     volume = float(jar_volume(jar_params_from_config(cfg.jar)))
-    solid = sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 for c in cfg.balls.classes)
-    fraction = solid / volume
+    fraction = cfg.balls.solid_volume / volume
     if fraction > RSA_FILL_LIMIT:
         if cfg.balls.single_class:
             most = int(RSA_FILL_LIMIT * volume / (4.0 / 3.0 * math.pi * cfg.balls.radius**3))

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from sgn_jax.config import (
     Config,
     ConfigError,
     MaterialConfig,
+    read_toml,
     replace_section,
 )
 from sgn_jax.records.envelope import bounds_pair
@@ -130,10 +130,7 @@ def _number(table: dict[str, Any], key: str, where: str) -> float:
 def load_charge_envelope(path: str | Path = CHARGE_ENVELOPE_PATH) -> ChargeEnvelope:
     """Read a charge-envelope TOML (default: the shipped one)."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"charge envelope file {path}: {exc}") from None
+    data = read_toml(path, what="charge envelope file")
     b, m, mo = data.get("balls", {}), data.get("material", {}), data.get("motion", {})
     w = str(path)
     return ChargeEnvelope(
@@ -232,8 +229,7 @@ def charge_envelope_notes(cfg: Config, env: ChargeEnvelope, jar_volume: float) -
         mat = cfg.material_named(c.material)
         check(mat.restitution, env.restitution, f"ball class {k} restitution")
         check(mat.friction, env.friction, f"ball class {k} friction")
-    fill = sum(c.count * 4.0 / 3.0 * math.pi * c.radius**3 for c in classes) / jar_volume
-    check(fill, env.fill, "the balls' volume fraction of the jar")
+    check(cfg.balls.solid_volume / jar_volume, env.fill, "the balls' volume fraction of the jar")
     return notes
 
 

@@ -24,7 +24,7 @@ import optax
 
 from sgn_jax.scene import SDFQuery
 from sgn_jax.surrogate.contact_charge import ContactChargeNet
-from sgn_jax.surrogate.contact_train import UnrollSpec
+from sgn_jax.surrogate.contact_train import StretchSource, UnrollSpec
 from sgn_jax.surrogate.graph import BallCharge, GraphSpec, Window, build_graph
 
 F64 = jnp.float64
@@ -137,38 +137,17 @@ def make_charge_unroll_loss(net: ContactChargeNet, spec: GraphSpec, sdf: Any,
 
 
 @dataclasses.dataclass
-class ChargeStretchSource:
-    """The padded arrays of the training records and their charges (host side).
+class ChargeStretchSource(StretchSource):
+    """The padded arrays of the training records and their charges (host side): a
+    :class:`StretchSource` whose ``positions[i]`` (T_i, n_max, 3) hold the absent balls parked
+    and ``spins[i]`` (T_i, n_max, 3) or None, with ``charges[i]`` the record's
+    :class:`BallCharge` (n_max balls, one table size)."""
 
-    ``positions[i]`` (T_i, n_max, 3) with the absent balls parked; ``offsets[i]``,
-    ``offset_velocities[i]`` (T_i, 3); ``spins[i]`` (T_i, n_max, 3) or None; ``charges[i]``
-    the record's :class:`BallCharge` (n_max balls, one table size); ``scales`` (R,) m/s."""
-
-    positions: list[np.ndarray]
-    offsets: list[np.ndarray]
-    offset_velocities: list[np.ndarray]
-    charges: list[BallCharge]
-    scales: np.ndarray
-    window: int
-    unroll: int
-    spins: list[np.ndarray] | None = None
+    charges: list[BallCharge] = dataclasses.field(default_factory=list)
 
     def draw(self, rng: np.random.Generator, batch_size: int) -> ChargeUnrollBatch:
         """B stretches: records uniformly (every charge weighs alike), ends uniformly."""
-        w, k = self.window, self.unroll
-        picks = rng.integers(0, len(self.positions), batch_size)
-        pos, off, offv, spins, charges = [], [], [], [], []
-        for i in picks:
-            n = int(rng.integers(w, len(self.positions[i]) - 1 - k))
-            pos.append(self.positions[i][n - w: n + k + 1])
-            off.append(self.offsets[i][n - w + 1: n + k + 1])
-            offv.append(self.offset_velocities[i][n - w + 1: n + k + 1])
-            charges.append(self.charges[i])
-            if self.spins is not None:
-                spins.append(self.spins[i][n: n + k + 1])
-        charge = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *charges)
-        return ChargeUnrollBatch(positions=np.stack(pos), offsets=np.stack(off),
-                                 offset_velocities=np.stack(offv),
-                                 scale=np.asarray(self.scales[picks], np.float64),
-                                 charge=charge,
-                                 spins=np.stack(spins) if self.spins is not None else None)
+        picks, arrays = self._stretches(rng, batch_size)
+        charge = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves),
+                                        *[self.charges[i] for i in picks])
+        return ChargeUnrollBatch(**arrays, charge=charge)

@@ -201,6 +201,12 @@ class StretchSource:
 
     def draw(self, rng: np.random.Generator, batch_size: int) -> UnrollBatch:
         """B stretches: trajectories uniformly (every motion weighs alike), ends uniformly."""
+        return UnrollBatch(**self._stretches(rng, batch_size)[1])
+
+    def _stretches(self, rng: np.random.Generator, batch_size: int
+                   ) -> tuple[np.ndarray, dict[str, Any]]:
+        """The trajectories drawn (B,) and the stacked arrays of their stretches (the fields
+        of :class:`UnrollBatch`)."""
         w, k = self.window, self.unroll
         traj = rng.integers(0, len(self.positions), batch_size)
         pos, off, offv, spins = [], [], [], []
@@ -212,10 +218,10 @@ class StretchSource:
             offv.append(self.offset_velocities[i][n - w + 1: n + k + 1])
             if self.spins is not None:
                 spins.append(self.spins[i][n: n + k + 1])
-        return UnrollBatch(positions=np.stack(pos), offsets=np.stack(off),
-                           offset_velocities=np.stack(offv),
-                           scale=np.asarray(self.scales[traj], np.float64),
-                           spins=np.stack(spins) if self.spins is not None else None)
+        return traj, {"positions": np.stack(pos), "offsets": np.stack(off),
+                      "offset_velocities": np.stack(offv),
+                      "scale": np.asarray(self.scales[traj], np.float64),
+                      "spins": np.stack(spins) if self.spins is not None else None}
 
 
 def velocity_change_scale(positions: np.ndarray, dt: float, floor: float = 1e-3) -> float:
