@@ -264,3 +264,104 @@ def test_the_same_impact_of_a_6mm_and_a_15mm_ball_is_the_same_input():
     (a, _, peak_a), (b, _, peak_b) = rows[0.006], rows[0.015]
     assert peak_b / peak_a == pytest.approx(2.5, rel=0.02)   # the law's overlap scales with r
     np.testing.assert_allclose(a[8:10], b[8:10], atol=1e-4)  # the same state, both gap inputs
+
+
+# --------------------------------------------------------------------------------------------
+# The rollout of any charge: per-ball wall snap-back and separation, and the host driver
+
+
+def test_the_snap_back_threshold_follows_each_balls_radius():
+    from sgn_jax.surrogate.rollout import charge_snap_threshold, snap_back_shift
+
+    radius = jnp.asarray([0.005, 0.003, 0.003])
+    threshold = charge_snap_threshold(-0.0049, 0.005, radius)
+    # a 5 mm ball keeps the config's -4.9 mm; a 3 mm ball is snapped from the same 0.1 mm depth
+    np.testing.assert_allclose(threshold, [-0.0049, -0.0029, -0.0029], rtol=0, atol=1e-15)
+    # ball 1 touches the wall 0.05 mm deep (phi = -2.95 mm): not snapped; ball 2 0.15 mm deep
+    phi = jnp.asarray([-0.0049, -0.00295, -0.00285])
+    normal = jnp.tile(jnp.asarray([[0.0, -1.0, 0.0]]), (3, 1))
+    shift, snapped = snap_back_shift(phi, normal, threshold)
+    assert snapped.tolist() == [True, False, True]
+    np.testing.assert_allclose(shift[2], [0.0, 0.00005, 0.0], rtol=0, atol=1e-15)   # into the jar
+    # with one threshold (a 5 mm ball's) every small ball touching the wall would be snapped
+    assert bool(snap_back_shift(phi, normal, -0.0049)[1][1])
+
+
+def test_separation_with_two_sizes_stops_at_the_sum_of_the_radii():
+    from sgn_jax.surrogate.rollout import separate_pairs
+
+    pos = jnp.asarray([[0.0, 0.0, 0.0], [0.0079, 0.0, 0.0]])   # 5 + 3 mm balls, 0.1 mm overlap
+    shift, pairs = separate_pairs(pos, jnp.asarray([0.005, 0.003]), 0.0)
+    assert int(pairs) == 1
+    np.testing.assert_allclose(jnp.linalg.norm(pos[1] + shift[1] - pos[0] - shift[0]), 0.008,
+                               rtol=1e-12)
+    assert int(separate_pairs(pos, 0.003, 0.0)[1]) == 0   # 6 mm apart with one 3 mm radius
+
+
+def test_contact_census_counts_each_pair_by_its_own_radii():
+    from sgn_jax.analysis.metrics import contact_census
+    from sgn_jax.geometry import JarParams
+
+    jar = JarParams(radius=0.02, straight_length=0.035, height=0.047)
+    # a 5 mm ball with two 3 mm balls: one 7.9 mm away (touching), one 9 mm away (not
+    # touching: 5 + 3 = 8 mm; two 5 mm balls would, 10 mm)
+    pos = np.asarray([[[0.0, 0.0, 0.0], [0.0079, 0.0, 0.0], [0.0, 0.0, 0.009]]] * 3)
+    census = contact_census(pos, np.zeros((3, 3)), jar, np.asarray([0.005, 0.003, 0.003]))
+    assert census["pp_touching_mean"] == 1.0
+    np.testing.assert_allclose(census["deepest_pp_overlap_m"], 1e-4, rtol=1e-9)
+    np.testing.assert_allclose(census["deepest_pp_overlap_rel"], 1e-4 / 0.003, rtol=1e-9)
+    # one radius for all (the 5 mm) sees a second touching pair and a deeper overlap
+    one = contact_census(pos, np.zeros((3, 3)), jar, 0.005)
+    assert one["pp_touching_mean"] == 2.0
+
+
+@pytest.mark.slow   # ~25 s: the walls' SDF grid and a rollout compile
+def test_run_rollout_rolls_a_mixture_out_with_the_records_own_charge():
+    """``sgn_jax.api.run_rollout`` of the charge-reading kind from a record of a two-size
+    charge: the window carries the record's charge (its radii and masses in the prediction's
+    meta), the rollout is finite, and a config of another ball count is a clear error."""
+    from types import SimpleNamespace
+
+    from sgn_jax.api import load_config, replace_section, run_rollout
+    from sgn_jax.config import config_from_dict, config_to_dict
+    from sgn_jax.pipelines.configure import charge_from_config, graph_spec_from_config
+    from sgn_jax.pipelines.contact_train_run import identity_stats
+    from sgn_jax.records.checkpoint import TrainedModel
+    from sgn_jax.surrogate.rollout import RolloutError
+
+    base = replace_section(load_config("emax_300rpm"), "model", kind="contact_charge",
+                           hidden=16, mlp_layers=3)
+    model_cfg = replace_section(base, "rollout", chunk_steps=20, checkpoint_steps=20)
+    dt = float(model_cfg.dem.dt)
+    data = config_to_dict(model_cfg)
+    data["balls"] = {"count": 4, "radius": 0.005, "density": 7700.0,
+                     "mix": [{"count": 6, "radius": 0.003, "density": 6000.0}]}
+    case_cfg = config_from_dict(data)
+    charge = charge_from_config(case_cfg)
+    # the balls at rest on a lattice in the lower jar, clear of each other and of the wall
+    lattice = [(x, y, z) for y in (0.008, 0.020) for x in (-0.012, 0.0, 0.012)
+               for z in (-0.006, 0.006)][:10]
+    pos = np.broadcast_to(np.asarray(lattice), (12, 10, 3)).copy()
+    traj = SimpleNamespace(pos=pos, offset=np.zeros((12, 3)), offset_vel=np.zeros((12, 3)),
+                           t=dt * np.arange(12),
+                           meta={"dt": dt, "config": config_to_dict(case_cfg)})
+    net = model_factory("contact_charge").build_model(model_cfg)
+    w = int(model_cfg.graph.window)
+    window = Window(positions=jnp.asarray(pos[:w + 1]), offsets=jnp.zeros((w, 3)),
+                    offset_velocities=jnp.zeros((w, 3)), frequency_hz=jnp.asarray(5.0),
+                    spins=jnp.zeros((10, 3)), charge=ball_charge(charge))
+    graph, _ = build_graph(window, None, graph_spec_from_config(model_cfg, 10),
+                           floor_query((0.0, 1.0, 0.0), 0.02))
+    params = model_factory("contact_charge").init_params(net, graph, 0)
+    trained = TrainedModel(model=net, params=params,
+                           norm_stats=identity_stats(int(model_cfg.graph.window)),
+                           config=model_cfg, meta={})
+    out = run_rollout(trained, traj, None, 20 * dt, progress=False, save_every=10)
+    assert out["steps"] == 20 and np.isfinite(out["arrays"]["pos"]).all()
+    np.testing.assert_allclose(out["meta"]["ball_radii"], charge.radii, rtol=0)
+    np.testing.assert_allclose(out["meta"]["ball_masses"], charge.masses, rtol=1e-12)
+    assert out["outside_ball_steps"] == 0
+
+    other = replace_section(case_cfg, "balls", count=5)   # 11 balls against a record of 10
+    with pytest.raises(RolloutError, match="the charge has 11 balls .* the initial record has 10"):
+        run_rollout(trained, traj, None, 20 * dt, None, other, progress=False, save_every=10)

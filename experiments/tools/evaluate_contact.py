@@ -47,17 +47,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import time
 from pathlib import Path
-
-import numpy as np
 
 import sgn_jax.api as sj
 import sgn_jax.experiment_tools as tools
-
-DAMPING = ("diss_pp_normal", "diss_pp_tangential", "diss_pw_normal", "diss_pw_tangential")
-ALL_LOSSES = DAMPING + ("diss_pp_slip", "diss_pp_rolling", "diss_pw_slip", "diss_pw_rolling")
 
 
 def parse_settings(items):
@@ -68,108 +61,6 @@ def parse_settings(items):
         out[key.strip()] = (value.lower() == "true" if value.lower() in ("true", "false")
                             else float(value) if value.replace(".", "", 1).replace("e-", "").isdigit()
                             else value)
-    return out
-
-
-def one_run(model, cfg, traj, duration, window, dem_ref=None):
-    """One free rollout from sample ``window`` of ``traj`` against the DEM over the same
-    interval; with ``dem_ref`` (an earlier evaluation's row of the same case and seed) the
-    DEM's numbers are that row's and ``traj`` need only hold the first window."""
-    dt = float(cfg.dem.dt)
-    start = window
-    n_steps = int(round(duration / dt))
-    t0 = time.perf_counter()
-    res = sj.run_rollout(model, traj, start, n_steps * dt, None, cfg, save_every=1,
-                         progress=False)
-    wall = time.perf_counter() - t0
-    a = res["arrays"]
-    pos, off = np.asarray(a["pos"]), np.asarray(a["offset"])
-    t_pos = np.asarray(a["t_pos"])
-    finite = bool(np.isfinite(pos).all())
-    jar = sj.jar_params_from_config(cfg.jar)
-    radius, mass = float(cfg.balls.radius), float(cfg.balls.density) * 4 / 3 * math.pi * float(cfg.balls.radius) ** 3
-    # The DEM over the same interval (samples start .. start + n_steps).
-    sl = slice(start, start + n_steps + 1)
-    span = n_steps * dt
-    row = {"seed": int(traj.meta.get("seed", -1)), "steps": n_steps, "wall_s": wall,
-           "finite": finite,
-           "model_power_W": float(np.sum(a["dE"])) / span,
-           "outside_ball_steps": int(np.sum(a["n_outside"])),
-           "snapped_fraction": float(np.sum(a["n_snapped"])) / (n_steps * pos.shape[1]),
-           }
-    if dem_ref is None:
-        dem_pos, dem_off = np.asarray(traj.pos[sl]), np.asarray(traj.offset[sl])
-        dem_target = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in DAMPING)
-        dem_total = sum(float(np.sum(traj[k][start + 1: start + n_steps + 1])) for k in ALL_LOSSES)
-        row.update({"dem_power_W": dem_target / span, "dem_total_power_W": dem_total / span,
-                    "dem_speed_m_s": float(np.mean(tools.jar_frame_speed(
-                        np.asarray(traj.t[sl]), dem_pos, dem_off)))})
-    else:
-        row.update({k: v for k, v in dem_ref.items() if k.startswith("dem_")})
-    if "diss_pp_model" in a:
-        d_pp, d_pw, w_wall = (np.asarray(a[k]) for k in ("diss_pp_model", "diss_pw_model",
-                                                         "work_wall_model"))
-        row["model_total_power_W"] = float(np.sum(d_pp + d_pw)) / span
-        row["model_pp_share_of_total"] = float(np.sum(d_pp) / max(np.sum(d_pp + d_pw), 1e-30))
-        if finite:
-            v = np.diff(pos, axis=0) / dt                      # v_{k+1}, k = 0 .. S-1
-            ke = 0.5 * mass * np.sum(v ** 2, axis=(1, 2))
-            if "omega_model" in a:   # a model with spin state: its rotational energy too
-                spin = np.asarray(a["omega_model"])[1:]        # w_{k+1}, k = 0 .. S-1
-                ke = ke + 0.5 * 0.4 * mass * radius ** 2 * np.sum(spin ** 2, axis=(1, 2))
-            g = np.asarray(cfg.dem.gravity, np.float64)
-            pe = -mass * np.sum(pos @ g, axis=1)
-            # jar work + gravity's work (from the positions) - d(KE) over steps 2 .. S
-            lhs = float(np.sum(w_wall[1:]) - (ke[-1] - ke[0]) - (pe[-1] - pe[1]))
-            rhs = float(np.sum(d_pp[1:] + d_pw[1:]))
-            row["ledger_residual"] = (lhs - rhs) / max(abs(rhs), 1e-30)
-    if "omega_model" in a:
-        # The spin a model with spin state carries against the DEM's: mean contact-point
-        # speed of the rotation, R |w| (m/s), over the same samples (docs/contact.md).
-        row["model_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
-            np.asarray(a["omega_model"]), axis=-1)))
-        if traj.omega is not None and dem_ref is None:
-            row["dem_spin_speed_m_s"] = radius * float(np.mean(np.linalg.norm(
-                np.asarray(traj.omega[sl]), axis=-1)))
-    if finite:
-        row["model_speed_m_s"] = float(np.mean(tools.jar_frame_speed(t_pos, pos, off)))
-        census_m = tools.contact_census(pos, off, jar, radius)
-        row.update({f"model_{k}": v for k, v in census_m.items()})
-        if dem_ref is None:
-            census_d = tools.contact_census(dem_pos, dem_off, jar, radius)
-            row.update({f"dem_{k}": v for k, v in census_d.items()})
-    return row
-
-
-def mean_se(values):
-    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], np.float64)
-    if v.size == 0:
-        return float("nan"), float("nan")
-    return float(v.mean()), float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
-
-
-def summarize(name, runs):
-    out = {"case": name, "runs": len(runs)}
-    for key in ("dem_power_W", "dem_total_power_W", "model_power_W", "model_total_power_W",
-                "dem_speed_m_s", "model_speed_m_s", "dem_pp_touching_mean", "model_pp_touching_mean",
-                "dem_pw_touching_mean", "model_pw_touching_mean", "dem_pp_contact_frames_mean",
-                "model_pp_contact_frames_mean", "snapped_fraction", "ledger_residual",
-                "dem_spin_speed_m_s", "model_spin_speed_m_s"):
-        m, se = mean_se([r.get(key) for r in runs])
-        out[key], out[key + "_se"] = m, se
-    out["deepest_pp_overlap_m"] = max((r.get("model_deepest_pp_overlap_m", float("nan")) for r in runs), default=float("nan"))
-    out["dem_deepest_pp_overlap_m"] = max((r.get("dem_deepest_pp_overlap_m", float("nan")) for r in runs), default=float("nan"))
-    out["outside_ball_steps"] = sum(r["outside_ball_steps"] for r in runs)
-    out["non_finite_runs"] = sum(not r["finite"] for r in runs)
-    dem, model = out["dem_power_W"], out["model_power_W"]
-    se = math.sqrt(np.nan_to_num(out["dem_power_W_se"]) ** 2 + np.nan_to_num(out["model_power_W_se"]) ** 2)
-    out["power_error"] = (model - dem) / dem
-    out["power_bar"] = max(0.10, 2 * se / dem)
-    if not math.isnan(out.get("model_total_power_W", float("nan"))):
-        out["total_power_error"] = (out["model_total_power_W"] - out["dem_total_power_W"]) / out["dem_total_power_W"]
-    out["speed_error"] = (out["model_speed_m_s"] - out["dem_speed_m_s"]) / out["dem_speed_m_s"]
-    out["pp_touching_error"] = (out["model_pp_touching_mean"] - out["dem_pp_touching_mean"]) / out["dem_pp_touching_mean"]
-    out["pw_touching_error"] = (out["model_pw_touching_mean"] - out["dem_pw_touching_mean"]) / out["dem_pw_touching_mean"]
     return out
 
 
@@ -249,6 +140,9 @@ def main() -> None:
     ap.add_argument("--bars", nargs="+", default=None, metavar="JSON",
                     help="print the bars of these result files (nothing is run)")
     ap.add_argument("--model")
+    ap.add_argument("--which", default="best", choices=("best", "latest"),
+                    help="the training run's checkpoint (a run without validation has only "
+                    "latest)")
     ap.add_argument("--name")
     ap.add_argument("--ensembles")
     ap.add_argument("--data")
@@ -275,7 +169,7 @@ def main() -> None:
         reference = json.loads(Path(args.dem_reference).read_text())["runs"]
 
     tools.enable_compilation_cache()
-    model = tools.load_trained_model(tools.resolve_checkpoint(args.model))
+    model = tools.load_trained_model(tools.resolve_checkpoint(args.model), which=args.which)
     settings = {"pp_separation": False, **parse_settings(args.rollout)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -316,7 +210,7 @@ def main() -> None:
             else:
                 duration = args.duration or (len(traj.t) - 2 - window) * float(cfg.dem.dt)
             duration = round(duration / float(cfg.dem.dt)) * float(cfg.dem.dt)
-            row = one_run(model, cfg, traj, duration, window, dem_ref)
+            row = tools.rollout_against_dem(model, cfg, traj, duration, window, dem_ref)
             done["runs"][key] = row
             runs.append(row)
             json_path.write_text(json.dumps(done, indent=1))
@@ -324,7 +218,7 @@ def main() -> None:
                 "dem_power_W", "model_power_W", "model_total_power_W", "dem_speed_m_s",
                 "model_speed_m_s", "snapped_fraction", "outside_ball_steps", "wall_s")}}), flush=True)
         if runs:
-            summaries.append(summarize(case.name, runs))
+            summaries.append(tools.summarize_runs(case.name, runs))
     done["summaries"] = summaries
     done["model"] = str(args.model)
     done["settings"] = settings

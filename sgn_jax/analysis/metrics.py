@@ -215,36 +215,40 @@ def jar_frame_speed(t: np.ndarray, pos: np.ndarray, offset: np.ndarray) -> np.nd
     return np.linalg.norm(velocity, axis=-1).mean(axis=1)
 
 
-def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float,
+def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float | np.ndarray,
                    chunk: int = 2000) -> dict[str, float]:
     """How the balls touch, counted the same way for a DEM record and a surrogate rollout.
 
     Args:
         pos: (P, N, 3) ball centres (m, lab frame), one frame per step for contact lifetimes;
         offset: (P, 3) jar offsets (m); jar: the ``JarParams`` (exact SDF of the cavity);
-        radius: ball radius R (m).
+        radius: ball radius R (m), or (N,) each ball's radius r_i (a charge of several sizes).
     Returns:
-        ``pp_touching_mean`` (ball-ball pairs with |x_i - x_j| < 2 R per frame),
-        ``pw_touching_mean`` (balls with phi > -R, i.e. touching the nearest wall, per frame),
+        ``pp_touching_mean`` (ball-ball pairs with |x_i - x_j| < r_i + r_j per frame),
+        ``pw_touching_mean`` (balls with phi > -r_i, i.e. touching the nearest wall, per frame),
         ``deepest_pp_overlap_m`` and ``deepest_pw_overlap_m`` (max over frames, m; <= 0 when
-        nothing touches), ``pp_contact_frames_mean`` (mean run length, in frames, of a
-        touching pair: how long a ball-ball contact lasts).
+        nothing touches), ``deepest_pp_overlap_rel`` (the deepest ball-ball overlap as a
+        fraction of the smaller radius of its pair), ``pp_contact_frames_mean`` (mean run
+        length, in frames, of a touching pair: how long a ball-ball contact lasts).
     """
     pos = np.asarray(pos, np.float64)
     rel = pos - np.asarray(offset, np.float64)[:, None, :]
     n = pos.shape[1]
+    r = np.broadcast_to(np.asarray(radius, np.float64), (n,))
     i, j = np.triu_indices(n, k=1)
-    pp_count, pw_count, pp_deep, pw_deep = [], [], -np.inf, -np.inf
+    reach, smaller = r[i] + r[j], np.minimum(r[i], r[j])
+    pp_count, pw_count, pp_deep, pw_deep, pp_deep_rel = [], [], -np.inf, -np.inf, -np.inf
     touching_runs = []
     for start in range(0, len(pos), chunk):
         x = pos[start:start + chunk]
         d = np.linalg.norm(x[:, i] - x[:, j], axis=-1)
-        touch = d < 2.0 * radius
+        touch = d < reach
         pp_count.append(touch.sum(axis=1))
-        pp_deep = max(pp_deep, float((2.0 * radius - d).max()))
+        pp_deep = max(pp_deep, float((reach - d).max()))
+        pp_deep_rel = max(pp_deep_rel, float(((reach - d) / smaller).max()))
         phi = np.asarray(jar_sdf(jar, jnp.asarray(rel[start:start + chunk])))
-        pw_count.append((phi > -radius).sum(axis=1))
-        pw_deep = max(pw_deep, float((phi + radius).max()))
+        pw_count.append((phi > -r).sum(axis=1))
+        pw_deep = max(pw_deep, float((phi + r).max()))
         touching_runs.append(touch)
     touch_all = np.concatenate(touching_runs, axis=0).astype(np.int8)
     # run lengths of 1s per pair column
@@ -254,6 +258,7 @@ def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float,
     return {"pp_touching_mean": float(np.concatenate(pp_count).mean()),
             "pw_touching_mean": float(np.concatenate(pw_count).mean()),
             "deepest_pp_overlap_m": pp_deep, "deepest_pw_overlap_m": pw_deep,
+            "deepest_pp_overlap_rel": pp_deep_rel,
             "pp_contact_frames_mean": float(lengths.mean()) if lengths.size else 0.0}
 
 

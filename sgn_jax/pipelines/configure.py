@@ -85,12 +85,21 @@ def graph_spec_from_config(cfg: Any, n_particles: int | None = None) -> GraphSpe
     )
 
 
+def model_takes_charge(cfg: Any) -> bool:
+    """Whether the config's ``[model] kind`` reads each ball's radius, mass and material from
+    the window's charge (``ModelFactory.takes_charge``: the charge-conditioned contact kind);
+    False for a config without a ``[model]`` section."""
+    model_cfg = getattr(cfg, "model", None)
+    return model_cfg is not None and model_factory(model_kind(model_cfg)).takes_charge
+
+
 def check_surrogate_charge(cfg: Any) -> None:
-    """ConfigError unless the config's charge is one the surrogates take: one ball class of
-    the jar's material (``[balls]`` without ``[[balls.mix]]`` and without a ``material`` of its
+    """ConfigError unless the config's charge is one its surrogate takes: any charge for a
+    kind that reads the charge (:func:`model_takes_charge`), otherwise one ball class of the
+    jar's material (``[balls]`` without ``[[balls.mix]]`` and without a ``material`` of its
     own). The DEM runs every charge (docs/charge.md)."""
     balls = getattr(cfg, "balls", None)
-    if balls is None or not hasattr(balls, "single_class"):
+    if balls is None or not hasattr(balls, "single_class") or model_takes_charge(cfg):
         return
     if not balls.single_class:
         raise ConfigError(

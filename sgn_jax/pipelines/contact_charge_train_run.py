@@ -35,7 +35,7 @@ from sgn_jax.pipelines.configure import (
 )
 from sgn_jax.pipelines.contact_train_run import identity_stats
 from sgn_jax.pipelines.train_run import at_model_step
-from sgn_jax.records.checkpoint import save_checkpoint
+from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import write_json
 from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.surrogate.contact_charge import (
@@ -95,9 +95,17 @@ def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: 
                          steps: int = 1000, batch_size: int = 8,
                          unroll: UnrollSpec | None = None, lr_init: float = 1e-3,
                          lr_final: float = 3e-5, seed: int = 0, classes: int = 3,
-                         log_every: int = 10) -> dict[str, Any]:
-    """Train kind "contact_charge" on the records; writes ``checkpoints/latest``,
-    ``run_info.json`` and ``summary.json`` to ``out_dir``. Returns the summary."""
+                         log_every: int = 10, checkpoint_every: int = 200,
+                         resume: bool = False, init_from: str | Path | None = None
+                         ) -> dict[str, Any]:
+    """Train kind "contact_charge" on the records; writes ``checkpoints/latest`` (every
+    ``checkpoint_every`` steps and at the end, with the optimiser state), ``run_info.json`` and
+    ``summary.json`` to ``out_dir``. A killed run goes on from its latest checkpoint with
+    ``resume=True`` (the batches are drawn from ``(seed, step)``, so a resumed run draws what
+    an unbroken one would); without it a run directory that holds a checkpoint is an error.
+    ``init_from``: a checkpoint directory (e.g. an earlier stage's ``checkpoints/latest``)
+    whose parameters start the run instead of a fresh initialisation (a later stage: longer
+    unrolls, pushforward, a lower learning rate). Returns the summary."""
     if cfg.model.kind != "contact_charge":
         raise TrainingError(f"train_contact_charge trains kind 'contact_charge', got "
                             f"{cfg.model.kind!r}")
@@ -128,35 +136,67 @@ def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: 
 
     params = init_on_example(jax.random.PRNGKey(seed), window, sdf)
     params = {**params, "share_logit": share_logits(shares)}
+    if init_from is not None:   # a later stage: the earlier stage's weights, the same shapes
+        warm = restore_checkpoint(init_from).params
+        if jax.tree_util.tree_structure(warm) != jax.tree_util.tree_structure(params):
+            raise TrainingError(f"{init_from}: its parameters are not this config's model's")
+        params = {**warm, "share_logit": params["share_logit"]}
     schedule = optax.cosine_decay_schedule(lr_init, steps, alpha=lr_final / lr_init)
     tx = make_optimizer(schedule)
-    state = ContactTrainState(params, tx.init(params), jnp.asarray(0, jnp.int32))
+    opt_state = tx.init(params)
+    out_dir = Path(out_dir)
+    ckpt_latest = out_dir / "checkpoints" / "latest"
+    done = latest_step(ckpt_latest)
+    if done is not None and not resume:
+        raise TrainingError(f"{out_dir} already holds a training run (step {done}); pass "
+                            "--resume to continue it or choose another --out")
+    losses: list[float] = []
+    if done is not None:
+        full = restore_checkpoint(ckpt_latest, opt_state_like=opt_state)
+        params, opt_state = full.params, full.opt_state
+        previous = out_dir / "losses.json"
+        losses = json.loads(previous.read_text())[:done] if previous.is_file() else []
+    state = ContactTrainState(jax.tree_util.tree_map(jnp.asarray, params),
+                              jax.tree_util.tree_map(jnp.asarray, opt_state),
+                              jnp.asarray(done or 0, jnp.int32))
     train_step = make_train_step(make_charge_unroll_loss(net, spec, sdf, query, unroll), tx)
 
-    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.toml")
     info = {"model_kind": "contact_charge", "records": [str(p) for p in record_paths],
             "n_max": n_max, "classes": classes, "steps": steps, "batch_size": batch_size,
             "unroll": unroll.unroll, "pushforward": unroll.pushforward,
+            "init_from": None if init_from is None else str(init_from),
             "relative_floor": unroll.relative_floor, "lr_init": lr_init, "lr_final": lr_final,
             "tangential_damping_shares": {"pp": shares[0], "pw": shares[1]},
             "n_params": int(sum(p.size for p in jax.tree_util.tree_leaves(params)))}
     write_json(out_dir / "run_info.json", info)
     t0 = time.perf_counter()
-    losses: list[float] = []
-    for step_no in range(steps):
+    first = done or 0
+
+    def checkpoint(step: int) -> None:
+        save_checkpoint(ckpt_latest, step, params=state.params,
+                        norm_stats=identity_stats(spec.window), opt_state=state.opt_state,
+                        meta={"config": config_to_dict(cfg), "info": info,
+                              "global_step": step}, keep=1)
+        write_json(out_dir / "losses.json", losses)
+
+    for step_no in range(first, steps):
         batch = source.draw(np.random.default_rng([seed, step_no]), batch_size)
         state, value, _ = train_step(state, batch, jax.random.PRNGKey(step_no))
         losses.append(float(value))
         if not np.isfinite(losses[-1]):
             raise TrainingError(f"non-finite training loss at step {step_no}")
-        if (step_no + 1) % log_every == 0 or step_no == 0:
+        if (step_no + 1) % log_every == 0 or step_no == first:
+            elapsed = time.perf_counter() - t0
+            rate = (step_no + 1 - first) / max(elapsed, 1e-9)
             print(json.dumps({"step": step_no + 1, "loss": round(losses[-1], 5),
-                              "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
-    save_checkpoint(out_dir / "checkpoints" / "latest", steps, params=state.params,
-                    norm_stats=identity_stats(spec.window), meta={"config": config_to_dict(cfg), "info": info,
-                                           "global_step": steps}, keep=1)
+                              "seconds": round(elapsed, 1), "steps_per_s": round(rate, 3),
+                              "eta_min": round((steps - step_no - 1) / rate / 60, 1)}),
+                  flush=True)
+        if (step_no + 1) % checkpoint_every == 0 and step_no + 1 < steps:
+            checkpoint(step_no + 1)
+    checkpoint(steps)
     summary = {**info, "losses": losses, "seconds": time.perf_counter() - t0}
     write_json(out_dir / "summary.json", summary)
     return summary
@@ -168,6 +208,18 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--data", required=True, help="folder of <charge>/seed_K.npz records")
     ap.add_argument("--out", required=True)
     ap.add_argument("--charges", nargs="*", default=None, help="charge folder names (all)")
+    ap.add_argument("--records", nargs="*", default=[],
+                    help="further records (e.g. the standard charge's training motions, "
+                    "data/envelope/train_*.npz)")
+    ap.add_argument("--resume", action="store_true",
+                    help="go on from the run's latest checkpoint (a killed run)")
+    ap.add_argument("--checkpoint-every", type=int, default=200)
+    ap.add_argument("--init-from", default=None,
+                    help="start from this checkpoint's parameters (a later stage)")
+    ap.add_argument("--pushforward", action="store_true",
+                    help="cut the gradient between unrolled steps (GNS pushforward)")
+    ap.add_argument("--lr-init", type=float, default=1e-3)
+    ap.add_argument("--lr-final", type=float, default=3e-5)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--batch-size", type=int, default=8)
     ap.add_argument("--unroll", type=int, default=6)
@@ -176,9 +228,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     data = Path(args.data)
     names = args.charges or sorted(p.name for p in data.iterdir() if p.is_dir())
     paths = [p for name in names for p in sorted((data / name).glob("seed_*.npz"))]
-    unroll = UnrollSpec(unroll=args.unroll, relative_floor=3e-4)
+    paths += [Path(p) for p in args.records]
+    unroll = UnrollSpec(unroll=args.unroll, relative_floor=3e-4, pushforward=args.pushforward)
     summary = train_contact_charge(cfg, paths, args.out, steps=args.steps,
-                                   batch_size=args.batch_size, unroll=unroll)
+                                   batch_size=args.batch_size, unroll=unroll,
+                                   checkpoint_every=args.checkpoint_every, resume=args.resume,
+                                   init_from=args.init_from, lr_init=args.lr_init,
+                                   lr_final=args.lr_final)
     print(json.dumps({k: summary[k] for k in ("n_max", "steps", "seconds")}))
 
 

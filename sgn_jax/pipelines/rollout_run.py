@@ -20,9 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import sgn_jax
-from sgn_jax.config import config_to_dict, replace_section
+from sgn_jax.config import ConfigError, config_from_dict, config_to_dict, replace_section
 from sgn_jax.pipelines.configure import (
+    charge_from_config,
     graph_spec_from_config,
+    model_takes_charge,
     motion_from_config,
     surrogate_walls_from_config,
 )
@@ -38,6 +40,7 @@ from sgn_jax.surrogate.collisions import (
     concat_tables,
     pending_energy,
 )
+from sgn_jax.surrogate.contact_charge import ball_charge
 from sgn_jax.surrogate.graph import Window, windows_from_arrays
 from sgn_jax.surrogate.rollout import (
     RolloutError,
@@ -70,14 +73,22 @@ def config_at_model_step(cfg: Any, model_dt: float) -> Any:
     return cfg
 
 
+# The sections that make the charge: a kind that reads the charge (``model_takes_charge``)
+# takes them from the case, every other kind keeps the trained model's.
+CHARGE_SECTIONS = ("balls", "material", "materials", "interactions")
+
+
 def _effective_config(trained_cfg: Any, override: Any) -> Any:
-    """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``.
+    """The trained model's config with [jar], [motion], [sdf] and [rollout] of ``override``,
+    and for a kind that reads the charge also its charge (:data:`CHARGE_SECTIONS`).
     A case sampled at a finer step than the model's by an integer factor (a 1e-4 s case and the
     2e-4 s contact model) runs at the model's step, as ``sgn_jax.api.at_surrogate_step`` does
     for design studies (the initial record is coarsened to it)."""
     if override is None:
         return trained_cfg
-    for section, fields in (("balls", ("count", "radius")), ("dem", ("dt",))):
+    takes_charge = model_takes_charge(trained_cfg)
+    for section, fields in (("balls", () if takes_charge else ("count", "radius")),
+                            ("dem", ("dt",))):
         for name in fields:
             a, b = getattr(getattr(trained_cfg, section), name), getattr(getattr(override,
                                                                                  section), name)
@@ -88,8 +99,45 @@ def _effective_config(trained_cfg: Any, override: Any) -> Any:
                     f"the override config has [{section}] {name} = {b} but the model was trained "
                     f"with {a}; a config override may change only [jar], [motion], [sdf] and "
                     "[rollout]")
+    charge = {name: getattr(override, name) for name in CHARGE_SECTIONS} if takes_charge else {}
     return dataclasses.replace(trained_cfg, jar=override.jar, motion=override.motion,
-                               sdf=override.sdf, rollout=override.rollout)
+                               sdf=override.sdf, rollout=override.rollout, **charge)
+
+
+def record_charge_config(cfg: Any, traj: Any, override_given: bool) -> Any:
+    """The config whose charge a charge-reading kind rolls out: ``cfg`` (the effective one)
+    when a case config was given, otherwise the charge of the record the rollout starts from
+    (its meta ``config``: the DEM run that made it), so that a DEM record of any charge is
+    rolled out with its own balls."""
+    meta_cfg = getattr(traj, "meta", {}).get("config")
+    if override_given or meta_cfg is None:
+        return cfg
+    try:
+        record_cfg = config_from_dict(meta_cfg)
+    except ConfigError as exc:
+        raise RolloutError(f"the initial record's config cannot be read for its charge: {exc}; "
+                           "give the case config") from None
+    return dataclasses.replace(cfg, **{name: getattr(record_cfg, name)
+                                       for name in CHARGE_SECTIONS})
+
+
+def window_charge(cfg: Any, traj: Any, n_balls: int) -> Any:
+    """The :class:`sgn_jax.surrogate.graph.BallCharge` of a rollout of ``n_balls`` balls from
+    ``traj``: the charge of ``cfg`` with the record's own ball radii and masses where its meta
+    has them (a DEM record of a mixture). RolloutError when the counts or radii disagree."""
+    charge = charge_from_config(cfg)
+    if charge.n_balls != n_balls:
+        raise RolloutError(f"the charge has {charge.n_balls} balls ([balls] and [[balls.mix]]) "
+                           f"but the initial record has {n_balls}; roll out the record with "
+                           "the config of the DEM run that made it")
+    meta = getattr(traj, "meta", {})
+    radii, masses = meta.get("ball_radii"), meta.get("ball_masses")
+    if radii is not None and not np.allclose(np.asarray(radii, np.float64), charge.radii,
+                                             rtol=1e-9, atol=0.0):
+        raise RolloutError("the initial record's ball radii (meta ball_radii) are not the "
+                           "charge's, ball by ball; roll out the record with the config of the "
+                           "DEM run that made it")
+    return ball_charge(charge, n_balls=n_balls, radii=radii, masses=masses)
 
 
 def initial_window(traj: Any, start_index: int, window: int, freq: float = 0.0) -> Window:
@@ -172,6 +220,7 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
     from tqdm.auto import tqdm
 
     cfg = _effective_config(trained_model.config, cfg_override)
+    takes_charge = model_takes_charge(cfg)
     rcfg = cfg.rollout
     k = int(save_every or rcfg.save_every)
     dt = float(cfg.dem.dt)
@@ -201,12 +250,24 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
             raise RolloutError(str(exc)) from exc
         start_index = record_index // factor
         init_traj = coarse
-    radius = init_traj.meta.get("ball_radius", cfg.balls.radius)
-    if not math.isclose(float(radius), cfg.balls.radius, rel_tol=1e-9):
-        raise RolloutError(f"the initial dataset's balls have radius {radius} m, the model's "
-                           f"{cfg.balls.radius} m")
-    spec = graph_spec_from_config(cfg, n_particles=int(np.shape(init_traj.pos)[1]))
+    n_balls = int(np.shape(init_traj.pos)[1])
+    charge = None
+    if takes_charge:   # any charge: the case's or the record's own (record_charge_config)
+        cfg = record_charge_config(cfg, init_traj, cfg_override is not None)
+        charge = window_charge(cfg, init_traj, n_balls)
+    else:
+        radius = init_traj.meta.get("ball_radius", cfg.balls.radius)
+        if not math.isclose(float(radius), cfg.balls.radius, rel_tol=1e-9):
+            raise RolloutError(f"the initial dataset's balls have radius {radius} m, the "
+                               f"model's {cfg.balls.radius} m")
+    # A charge-reading kind's graph keeps the trained config's [balls] radius: its skins
+    # (pw_skin = -phi_pw - ball_radius) and the snap-back's phi_sb are set against it and
+    # applied to each ball's own radius (docs/contact_charge.md).
+    spec_cfg = dataclasses.replace(cfg, balls=trained_model.config.balls) if takes_charge else cfg
+    spec = graph_spec_from_config(spec_cfg, n_particles=n_balls)
     window0 = initial_window(init_traj, int(start_index), spec.window)
+    if charge is not None:
+        window0 = window0.replace(charge=charge)
     t0 = float(init_traj.t[start_index])
     motion = motion_from_config(cfg.motion)
     sdf, query = surrogate_walls_from_config(cfg)
@@ -309,6 +370,8 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
         "snap_back": bool(rcfg.snap_back), "snap_velocity": rcfg.snap_velocity,
         "pp_max_overlap": rcfg.pp_max_overlap if rcfg.pp_separation else None,
         "phi_sb": float(cfg.graph.phi_sb),
+        **({"ball_radii": np.asarray(charge.radius).tolist(),
+            "ball_masses": np.asarray(charge.mass).tolist()} if charge is not None else {}),
         **{key: summary[key] for key in ("wall_time_s", "compile_time_s", "ms_per_step")},
     }
     if collisions:

@@ -498,6 +498,6 @@ def make_contact_charge_net(cfg: Any) -> ContactChargeNet:
 
 
 register_model("contact_charge", make_contact_charge_net, builds_from="config",
-               node_walls=False,
+               node_walls=False, takes_charge=True,
                description="contact-impulse model conditioned on each contact's radii, masses "
                            "and material, with inputs dimensionless per contact")

@@ -161,6 +161,10 @@ class ModelFactory:
         node_walls: whether the kind reads the nearest-wall phi and normal of the node
             features (``GraphSpec.node_walls``); a kind that does not saves W SDF queries per
             graph (the contact kind: its walls are its ball-wall edges).
+        takes_charge: whether the kind reads each ball's radius, mass and material from the
+            window's charge (``Window.charge``), so that it runs any charge: sizes, counts,
+            materials and mixtures (the charge-conditioned contact kind). Every other kind
+            knows the one charge it was trained on.
     """
 
     kind: str
@@ -169,6 +173,7 @@ class ModelFactory:
     description: str = ""
     builds_from: str = "model"
     node_walls: bool = True
+    takes_charge: bool = False
 
     def build_model(self, cfg: Any) -> nn.Module:
         """The module of a whole experiment config: ``build(cfg.model)``, or ``build(cfg)``
@@ -195,15 +200,17 @@ _REGISTRY: dict[str, ModelFactory] = {}
 def register_model(kind: str, build: Callable[[Any], nn.Module], *,
                    init: Callable[[nn.Module, jraph.GraphsTuple, Any], Any] | None = None,
                    description: str = "", replace: bool = False,
-                   builds_from: str = "model", node_walls: bool = True) -> ModelFactory:
+                   builds_from: str = "model", node_walls: bool = True,
+                   takes_charge: bool = False) -> ModelFactory:
     """Register a surrogate kind: ``[model] kind = "<kind>"`` then builds it with ``build``.
 
     ``build(model_cfg)`` returns a flax module honouring the contract of :class:`ModelFactory`.
     Registering a kind that exists is an error unless ``replace=True``. Registration is per
     process: a checkpoint of a kind defined outside sgn-jax loads only after the module that
     registers it has been imported. ``node_walls=False``: the kind never reads the node
-    features' wall columns, so its graphs skip them (:class:`ModelFactory`). Returns the
-    factory.
+    features' wall columns, so its graphs skip them (:class:`ModelFactory`).
+    ``takes_charge=True``: the kind reads the window's charge and runs any charge
+    (:class:`ModelFactory`). Returns the factory.
     """
     if not isinstance(kind, str) or not kind:
         raise ModelKindError(f"a model kind must be a non-empty string, got {kind!r}")
@@ -214,7 +221,7 @@ def register_model(kind: str, build: Callable[[Any], nn.Module], *,
         raise ModelKindError(f"builds_from must be 'model' or 'config', got {builds_from!r}")
     factory = ModelFactory(kind=kind, build=build, init=init or init_params,
                            description=description, builds_from=builds_from,
-                           node_walls=bool(node_walls))
+                           node_walls=bool(node_walls), takes_charge=bool(takes_charge))
     _REGISTRY[kind] = factory
     return factory
 

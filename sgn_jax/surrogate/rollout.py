@@ -359,6 +359,7 @@ def jar_state_window(window: Window, motion: Motion, t0: jax.Array, dt: float) -
         offsets=jnp.asarray(offset(motion, times), F64),
         offset_velocities=jnp.asarray(velocity(motion, times), F64),
         frequency_hz=jnp.asarray(frequency_hz(motion), F64),
+        charge=None if window.charge is None else _as_f64(window.charge),
     )
 
 
@@ -386,27 +387,38 @@ class SnapBack:
     pp_max_overlap: float | None = None  # m; None: no ball-ball separation
 
 
-def snap_back_shift(phi: jax.Array, normal: jax.Array, phi_sb: float
+def snap_back_shift(phi: jax.Array, normal: jax.Array, phi_sb: float | jax.Array
                     ) -> tuple[jax.Array, jax.Array]:
     """The snap-back (module docstring): the shift (N, 3) m that moves every ball with
     ``phi >= phi_sb`` along ``-normal`` to ``phi_sb``, and which balls it moves (N,) bool.
-    A zero normal (vanishing gradient) gives no direction: such a ball is not moved."""
+    ``phi_sb`` is one threshold (m) or each ball's (N,) (a charge of several sizes:
+    :func:`charge_snap_threshold`). A zero normal (vanishing gradient) gives no direction:
+    such a ball is not moved."""
     snapped = (phi >= phi_sb) & (jnp.sum(normal * normal, axis=-1) > 0)
     return jnp.where(snapped[:, None], -(phi - phi_sb)[:, None] * normal, 0.0), snapped
 
 
-def separate_pairs(positions: jax.Array, radius: float, max_overlap: float
+def charge_snap_threshold(phi_sb: float, ball_radius: float, radius: jax.Array) -> jax.Array:
+    """Each ball's snap-back threshold (N,) m for a window with a charge: ``phi_sb`` is set for
+    a ball of ``ball_radius`` (the config's, e.g. -4.9 mm for 5 mm: 0.1 mm into the wall), so
+    a ball of radius r_i is snapped from the same depth into the wall,
+    ``phi_sb + ball_radius - r_i``. With one threshold for all, every ball smaller than
+    ``ball_radius`` that touches the wall would be pushed off it at every step."""
+    return phi_sb + ball_radius - jnp.asarray(radius, F64)
+
+
+def separate_pairs(positions: jax.Array, radius: float | jax.Array, max_overlap: float
                    ) -> tuple[jax.Array, jax.Array]:
     """Ball-ball analogue of the snap-back: the shift that reduces every overlap beyond
     ``max_overlap`` back to it.
 
-    For each pair with overlap o = 2R - |x_j - x_i| > ``max_overlap`` both balls move apart
+    For each pair with overlap o = r_i + r_j - |x_j - x_i| > ``max_overlap`` both balls move apart
     along the pair's normal by (o - max_overlap) / 2 (one Jacobi pass: a ball in several deep
     overlaps gets the sum of its shifts). Coincident balls (|x_j - x_i| = 0) have no normal and
     are not moved.
 
     Args:
-        positions: (N, 3) m; radius: R (m); max_overlap: m.
+        positions: (N, 3) m; radius: R (m), or each ball's (N,); max_overlap: m.
     Returns:
         ``(shift (N, 3) m, n_pairs ())``: the shift to add and the number of pairs separated.
     """
@@ -415,7 +427,8 @@ def separate_pairs(positions: jax.Array, radius: float, max_overlap: float
     n = positions.shape[0]
     valid = (dist2 > 0) & ~jnp.eye(n, dtype=bool)
     dist = jnp.sqrt(jnp.where(valid, dist2, 1.0))
-    excess = jnp.where(valid, 2.0 * radius - dist - max_overlap, 0.0)
+    r = jnp.broadcast_to(jnp.asarray(radius, positions.dtype), (n,))
+    excess = jnp.where(valid, r[:, None] + r[None, :] - dist - max_overlap, 0.0)
     deep = excess > 0
     push = jnp.where(deep, 0.5 * excess / dist, 0.0)  # per unit of (x_j - x_i)
     shift = -jnp.sum(push[:, :, None] * diff, axis=1)
@@ -463,6 +476,14 @@ def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predicto
     return jax.lax.switch(index, [branch(k) for k in range(len(specs))], None), counts
 
 
+def _present_only(window: Window, phi: jax.Array) -> jax.Array:
+    """``phi`` (N,) with the absent balls of a padded charge (parked outside the jar, not
+    particles) at -inf: never snapped, never counted outside."""
+    if window.charge is None:
+        return phi
+    return jnp.where(window.charge.present, phi, -jnp.inf)
+
+
 def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: SnapBack,
                params: Any, stats: Any, motion: Motion, sdf: Any, t0: jax.Array,
                tiers: tuple[int, ...] = (), collisions: bool = False):
@@ -502,8 +523,8 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         window = slide_window(window, x_next, jar_offset, jar_velocity).replace(spins=spins)
 
         if snap.pp_max_overlap is not None:  # before the wall snap, so that walls win
-            shift, _ = separate_pairs(window.positions[-1], spec.ball_radius,
-                                      snap.pp_max_overlap)
+            radius = spec.ball_radius if window.charge is None else window.charge.radius
+            shift, _ = separate_pairs(window.positions[-1], radius, snap.pp_max_overlap)
             if snap.keep_velocity:
                 positions = window.positions + shift[None]
             else:
@@ -513,7 +534,10 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         if snap.enabled:
             phi, normal = query(sdf, x_next, jar_offset)
             phi, normal = jnp.asarray(phi, F64), jnp.asarray(normal, F64)
-            shift, snapped = snap_back_shift(phi, normal, snap.phi_sb)
+            phi = _present_only(window, phi)
+            phi_sb = (snap.phi_sb if window.charge is None else
+                      charge_snap_threshold(snap.phi_sb, spec.ball_radius, window.charge.radius))
+            shift, snapped = snap_back_shift(phi, normal, phi_sb)
             if snap.keep_velocity:  # translate the whole history: velocities unchanged
                 positions = window.positions + shift[None]
             else:  # only the newest position: the FD velocity follows the move
@@ -523,6 +547,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
         else:
             n_snapped = jnp.zeros((), I32)
         phi_after, _ = query(sdf, window.positions[-1], jar_offset)
+        phi_after = _present_only(window, jnp.asarray(phi_after, F64))
         energy = state.energy + de
         record = StepRecord(dE=de, energy_cum=energy, n_pp_edges=counts.n_pp.astype(I32),
                             n_pw_edges=counts.n_pw.astype(I32),
@@ -564,8 +589,13 @@ def _jit_canonical(fn: Callable[..., RolloutResult], state_arg: bool) -> Callabl
     return wrapper
 
 
-def _as_f64(window: Window) -> Window:
-    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, F64), window)
+def _as_f64(window: Any) -> Any:
+    """``window`` (or any pytree) with its floating arrays as float64; integer and boolean ones (a charge's
+    ball classes and presence) keep their dtype."""
+    def cast(a: Any) -> jax.Array:
+        a = jnp.asarray(a)
+        return a.astype(F64) if jnp.issubdtype(a.dtype, jnp.floating) else a
+    return jax.tree_util.tree_map(cast, window)
 
 
 def _check_counts(n_steps: int, save_every: int, checkpoint_steps: int | None) -> int:
