@@ -365,3 +365,24 @@ def test_run_rollout_rolls_a_mixture_out_with_the_records_own_charge():
     other = replace_section(case_cfg, "balls", count=5)   # 11 balls against a record of 10
     with pytest.raises(RolloutError, match="the charge has 11 balls .* the initial record has 10"):
         run_rollout(trained, traj, None, 20 * dt, None, other, progress=False, save_every=10)
+
+
+def test_the_touch_term_counts_contacts_the_model_and_the_dem_disagree_on():
+    from sgn_jax.surrogate.contact_charge_train import touch_mismatch
+
+    radius = jnp.asarray([0.005, 0.003, 0.003])
+    present = jnp.asarray([1.0, 1.0, 0.0])
+    far = jnp.full((3,), -0.02)          # every ball far from the wall
+    # the DEM's 5 + 3 mm pair rests 1 um into contact; the third ball is absent
+    x_dem = jnp.asarray([[0.0, 0.0, 0.0], [0.008 - 1e-6, 0.0, 0.0], [0.0, 0.0, 0.0085]])
+    assert float(touch_mismatch(x_dem, x_dem, radius, present, far, far)) == 0.0
+    # the model's pair 20 um apart: one contact of two balls missed
+    x_apart = x_dem.at[1, 0].add(2.1e-5)
+    missed = float(touch_mismatch(x_apart, x_dem, radius, present, far, far))
+    assert 0.15 < missed < 0.25           # (sigmoid(0.5) - ~0)^2 / 2 balls
+    # the absent ball's overlap with ball 0 (0.5 mm) counts for nothing
+    x_absent = x_dem.at[2, 2].set(0.0075)
+    assert float(touch_mismatch(x_absent, x_dem, radius, present, far, far)) == 0.0
+    # a ball the model leaves on the wall that the DEM's left
+    wall_m = far.at[0].set(-0.005 + 1e-6)
+    assert float(touch_mismatch(x_dem, x_dem, radius, present, wall_m, far)) > 0.15

@@ -167,7 +167,8 @@ def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: 
             "n_max": n_max, "classes": classes, "steps": steps, "batch_size": batch_size,
             "unroll": unroll.unroll, "pushforward": unroll.pushforward,
             "init_from": None if init_from is None else str(init_from),
-            "relative_floor": unroll.relative_floor, "lr_init": lr_init, "lr_final": lr_final,
+            "relative_floor": unroll.relative_floor, "touch_weight": unroll.touch_weight,
+            "lr_init": lr_init, "lr_final": lr_final,
             "tangential_damping_shares": {"pp": shares[0], "pw": shares[1]},
             "n_params": int(sum(p.size for p in jax.tree_util.tree_leaves(params)))}
     write_json(out_dir / "run_info.json", info)
@@ -218,6 +219,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                     help="start from this checkpoint's parameters (a later stage)")
     ap.add_argument("--pushforward", action="store_true",
                     help="cut the gradient between unrolled steps (GNS pushforward)")
+    ap.add_argument("--touch-weight", type=float, default=0.0,
+                    help="weight of the contact-state term (docs/contact_charge.md; 0: off)")
     ap.add_argument("--lr-init", type=float, default=1e-3)
     ap.add_argument("--lr-final", type=float, default=3e-5)
     ap.add_argument("--steps", type=int, default=1000)
@@ -229,7 +232,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     names = args.charges or sorted(p.name for p in data.iterdir() if p.is_dir())
     paths = [p for name in names for p in sorted((data / name).glob("seed_*.npz"))]
     paths += [Path(p) for p in args.records]
-    unroll = UnrollSpec(unroll=args.unroll, relative_floor=3e-4, pushforward=args.pushforward)
+    unroll = UnrollSpec(unroll=args.unroll, relative_floor=3e-4, pushforward=args.pushforward,
+                        touch_weight=args.touch_weight)
     summary = train_contact_charge(cfg, paths, args.out, steps=args.steps,
                                    batch_size=args.batch_size, unroll=unroll,
                                    checkpoint_every=args.checkpoint_every, resume=args.resume,

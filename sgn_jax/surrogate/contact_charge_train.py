@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from sgn_jax.scene import SDFQuery
+from sgn_jax.scene import SDFQuery, grid_query
 from sgn_jax.surrogate.contact_charge import ContactChargeNet
 from sgn_jax.surrogate.contact_train import StretchSource, UnrollSpec
 from sgn_jax.surrogate.graph import BallCharge, GraphSpec, Window, build_graph
@@ -64,6 +64,43 @@ def parked(n_absent: int) -> np.ndarray:
     return PARKING + 0.01 * np.arange(n_absent)[:, None]
 
 
+TOUCH_SOFTNESS = 2e-6
+"""m, the width of the soft touching indicator sigmoid(-gap / TOUCH_SOFTNESS) of the
+contact-state term: a resting contact's static overlap is ~0.5-3 um for 6-15 mm balls, a
+ball in flight is tens of um or more away."""
+
+
+def touch_mismatch(x_model: jax.Array, x_dem: jax.Array, radius: jax.Array, present: jax.Array,
+                   phi_model: jax.Array, phi_dem: jax.Array) -> jax.Array:
+    """The contact-state term of one step: sum over ball pairs and ball-wall contacts of
+    (t_model - t_DEM)^2 with t = sigmoid(-gap / TOUCH_SOFTNESS) the soft "touching" of each
+    (gap = |x_j - x_i| - r_i - r_j, or -phi - r_i against the wall), per present ball.
+
+    It asks the model's balls to touch where the DEM's do at the sample times, which the
+    velocity loss leaves to chance at the um scale of a resting contact (the contact census,
+    docs/contact_charge.md).
+
+    Args:
+        x_model, x_dem: (N, 3) m; radius: (N,) m; present: (N,) float 0/1;
+        phi_model, phi_dem: (N,) m, each ball centre's wall SDF.
+    Returns:
+        () the mismatch per present ball.
+    """
+    n = x_model.shape[0]
+    iu, ju = jnp.triu_indices(n, k=1)
+    reach = radius[iu] + radius[ju]
+    pair = present[iu] * present[ju]
+
+    def touching(x: jax.Array) -> jax.Array:
+        d = jnp.sqrt(jnp.sum((x[iu] - x[ju]) ** 2, axis=-1) + 1e-30)
+        return jax.nn.sigmoid(-(d - reach) / TOUCH_SOFTNESS)
+
+    pp = jnp.sum(pair * (touching(x_model) - touching(x_dem)) ** 2)
+    wall = jnp.sum(present * (jax.nn.sigmoid((phi_model + radius) / TOUCH_SOFTNESS)
+                              - jax.nn.sigmoid((phi_dem + radius) / TOUCH_SOFTNESS)) ** 2)
+    return (pp + wall) / jnp.maximum(jnp.sum(present), 1.0)
+
+
 def make_charge_unroll_loss(net: ContactChargeNet, spec: GraphSpec, sdf: Any,
                             query: SDFQuery | None, unroll: UnrollSpec
                             ) -> Callable[[Any, ChargeUnrollBatch, jax.Array], tuple]:
@@ -73,6 +110,7 @@ def make_charge_unroll_loss(net: ContactChargeNet, spec: GraphSpec, sdf: Any,
     ball's own contact-point speed, r |w - w_DEM|."""
     w, dt, k_steps = spec.window, spec.dt, unroll.unroll
     spin = bool(net.spin)
+    wall_query = query if query is not None else grid_query
 
     def error(new, true, true_prev, scale, mask):
         if unroll.relative_floor > 0:
@@ -106,6 +144,14 @@ def make_charge_unroll_loss(net: ContactChargeNet, spec: GraphSpec, sdf: Any,
             x_true_prev = jax.lax.dynamic_index_in_dim(positions, w + k - 1, keepdims=False)
             err = error(v_next, (x_true_next - x_true_now) / dt,
                         (x_true_now - x_true_prev) / dt, scale, mask)
+            if unroll.touch_weight > 0:
+                # positions index p <-> offsets index p - 1 (the stretch's layout)
+                off_next = jax.lax.dynamic_index_in_dim(offsets, w + k, keepdims=False)
+                phi_m, _ = wall_query(sdf, x_next, off_next)
+                phi_d, _ = wall_query(sdf, x_true_next, off_next)
+                err = err + unroll.touch_weight * touch_mismatch(
+                    x_next, x_true_next, radius[:, 0], mask, jnp.asarray(phi_m, F64),
+                    jnp.asarray(phi_d, F64))
             w_next = None
             if spin:
                 w_next = w_now + terms["dw"][:n].astype(F64)

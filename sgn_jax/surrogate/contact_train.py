@@ -66,13 +66,17 @@ class UnrollSpec:
     ``huber(|v - v_DEM| / sqrt(|dv_DEM|^2 + floor^2))``, in which a resting ball weighs as
     much as a hard impact (else the squared error over the trajectory's scale).
     ``spin_weight``: for a model with spin state, the weight of the same error of the
-    contact-point speed of the spin, R |w - w_DEM| (against R |dw_DEM|), beside the velocity's."""
+    contact-point speed of the spin, R |w - w_DEM| (against R |dw_DEM|), beside the velocity's.
+    ``touch_weight`` (the charge kind's loss only,
+    :func:`sgn_jax.surrogate.contact_charge_train.make_charge_unroll_loss`): the weight of the
+    contact-state term, how far the model's balls touch where the DEM's do (0: off)."""
 
     unroll: int = 4
     pushforward: bool = False
     position_noise: float = 0.0
     relative_floor: float = 0.0
     spin_weight: float = 1.0
+    touch_weight: float = 0.0
 
 
 def make_unroll_loss(net: ContactNet, spec: GraphSpec, sdf: Any, query: SDFQuery | None,
