@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -77,10 +78,37 @@ MIXTURE = {"count": 3, "radius": 0.005, "density": 7700.0,
 FIVE = {"count": 5, "radius": 0.005, "density": 7700.0}
 
 
-def test_an_ensemble_of_a_two_size_charge_carries_the_charge(model, session_cache):
+@pytest.fixture(scope="module")
+def mixture():
+    """``(cfg, packings)``: the two-size charge and its DEM packings of seeds 0 and 1."""
     cfg = _case(MIXTURE)
-    packings = sj.make_packings(cfg, seeds=[0, 1])
-    assert packings.windows.positions.shape[-2] == 7 and packings.windows.charge is None
+    return cfg, sj.make_packings(cfg, seeds=[0, 1])
+
+
+def _packings_at_rest(cfg: sj.Config, k: int = 2) -> sj.Packings:
+    """K packings of ``cfg``'s 7 balls (three of 5 mm, four of 4 mm) at rest in the jar frame
+    in the lower jar, clear of the wall, ball 0 touching ball 1 and ball 3 (0.1 mm deep), as
+    ``make_packings`` gives them (a window ending at t0 = W dt in the lab frame of the config's
+    motion), without a DEM run."""
+    from sgn_jax.motion import offset, velocity
+
+    lattice = np.array([[-0.012, 0.008, -0.006], [-0.012, 0.008, 0.0039],
+                        [0.012, 0.020, 0.006], [-0.0031, 0.008, -0.006],
+                        [0.0, 0.020, -0.006], [0.012, 0.008, -0.006], [0.012, 0.008, 0.0029]])
+    w, dt = int(cfg.graph.window), float(cfg.dem.dt)
+    motion = sj.motion_from_config(cfg.motion)
+    times = dt * np.arange(w + 1)
+    offs = np.asarray([offset(motion, t) for t in times])
+    window = Window(positions=lattice[None] + offs[:, None], offsets=offs[1:],
+                    offset_velocities=np.asarray([velocity(motion, t) for t in times[1:]]),
+                    frequency_hz=np.asarray(cfg.motion.rpm / 60.0))
+    windows = jax.tree_util.tree_map(lambda a: np.stack([np.asarray(a)] * k), window)
+    return sj.Packings(windows=windows, t0=w * dt, seeds=tuple(range(k)), config=cfg)
+
+
+def test_an_ensemble_of_a_two_size_charge_carries_the_charge(model):
+    cfg = _case(MIXTURE)
+    packings = _packings_at_rest(cfg)
     frame = _surrogate_frame(model, cfg, packings)
     charge = charge_from_config(cfg)
     assert frame.windows.charge.radius.shape == (2, 7)
@@ -94,10 +122,10 @@ def test_an_ensemble_of_a_two_size_charge_carries_the_charge(model, session_cach
     assert result.positions.shape[:3] == (2, 5, 7)   # the initial frame and 4 saved
     assert np.isfinite(result.positions).all() and np.isfinite(result.steps.energy_cum).all()
     # The charge enters the rollout: another restitution of the balls' material (the same
-    # packings) is another pair table, and other impulses.
+    # packings) is another pair table, and other impulses at the touching pairs.
     softer = replace_section(cfg, "material", restitution=0.8)
     other = sj.rollout_ensemble(model, softer, packings, duration=DURATION, save_every=10)
-    assert np.abs(other.positions - result.positions).max() > 0
+    assert np.abs(other.positions - result.positions).max() > 1e-9
 
     sweep = sj.rollout_sweep(model, [cfg, replace_section(cfg, "motion", rpm=350.0)], packings,
                              duration=DURATION, save_every=10)
@@ -178,6 +206,36 @@ def test_a_charge_parameter_is_a_central_difference_of_ensembles_of_its_own_char
     json.dumps(result)
 
 
+@pytest.mark.slow   # ~90 s on a loaded core: DEM packings of two charges, a study's compile
+def test_a_design_study_of_a_two_size_charge_and_a_motion_beside_a_charge_parameter(
+        model, mixture, session_cache):
+    """``design_study`` of a model that reads the charge rolls the packings out with their
+    charge: its power at theta0 is ``rollout_ensemble``'s; and a sensitivity takes a motion
+    parameter (the design study's) beside a charge parameter (its own ensembles)."""
+    cfg, packings = mixture
+    assert packings.windows.positions.shape[-2] == 7 and packings.windows.charge is None
+    study = sj.design_study(model, cfg, ["motion.rpm"], packings, duration=DURATION,
+                            burn_in=BURN_IN, n_segments=1)
+    est = study.estimate()
+    assert np.isfinite(est["power_W"]) and np.isfinite(est["gradient"]["motion.rpm"])
+    np.testing.assert_allclose(est["power_per_packing_W"],
+                               ensemble_powers(model, cfg, packings, DURATION, BURN_IN),
+                               rtol=1e-6)
+
+    five = _case(FIVE)
+    result = sj.sensitivity(five, ["balls.density", "motion.rpm"], duration=DURATION,
+                            burn_in=BURN_IN, packings=2, first_seed=0, checkpoint=model,
+                            n_segments=1)
+    assert list(result["gradient"]) == ["balls.density", "motion.rpm"]
+    assert result["charge_parameters"] == ["balls.density"]
+    density = result["curves"]["balls.density"]
+    assert density["theta"] == pytest.approx([6930.0, 7700.0, 8470.0])   # h: 10 %
+    assert density["n_balls"] == [5, 5, 5]
+    assert density["power_W"][1] == result["power_W"] == result["curves"]["motion.rpm"][
+        "power_W"][1]
+    assert np.isfinite(list(result["gradient"].values())).all()
+
+
 def test_charge_parameters_are_refused_where_they_cannot_apply(model):
     cfg = _case(FIVE)
     kwargs = dict(duration=DURATION, burn_in=BURN_IN, packings=2, first_seed=0)
@@ -197,6 +255,11 @@ def test_charge_parameters_are_refused_where_they_cannot_apply(model):
     with pytest.raises(DesignError, match="steps given for"):
         sj.sensitivity(cfg, ["balls.density"], checkpoint=model,
                        steps={"balls.friction": 0.01}, **kwargs)
+    # the DEM's start in every jar places one ball size: a mixture starts from its packings
+    with pytest.raises(DesignError, match=r"one size.*start='packing'"):
+        sj.design_study(model, _case(MIXTURE), ["jar.straight_length"],
+                        sj.seed_packings(_case(MIXTURE), seeds=[0, 1]), duration=DURATION,
+                        burn_in=BURN_IN, n_segments=1)
     # a design study's rollout has fixed balls: a charge parameter is not one of its parameters
     packings = sj.seed_packings(cfg, seeds=[0, 1])
     with pytest.raises(DesignError, match=r"balls.density is a charge parameter.*sensitivity"):
@@ -228,3 +291,43 @@ def test_charge_parameters_in_a_config():
     softer = with_charge_parameter(zirconia, "balls.restitution", 0.6)
     assert softer.material_named("zirconia").restitution == 0.6
     assert softer.material == zirconia.material
+
+
+@pytest.mark.slow   # ~40 s on a loaded core: the DEM packings of one charge and its ensemble
+def test_cli_charge_sweep_with_a_surrogate_checkpoint(model, tmp_path, session_cache, capsys):
+    """``sgn-jax charge-sweep --surrogate DIR --no-dem`` loads a checkpoint of a model that
+    reads the charge, prints its table and a JSON line with the surrogate's power and SE, and
+    writes the plot; ``sgn-jax sensitivity`` refuses a charge parameter with the horizon
+    estimator before any work (exit 2, the reason on stderr)."""
+    import contextlib
+    import io
+
+    from sgn_jax.cli import main
+    from sgn_jax.config import save_config
+    from sgn_jax.records.checkpoint import save_checkpoint
+
+    checkpoint = tmp_path / "model"
+    save_checkpoint(checkpoint, 0, params=model.params, norm_stats=model.norm_stats,
+                    meta={"config": config_to_dict(model.config)})
+    config = tmp_path / "five.toml"
+    save_config(_case(FIVE), config)
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(["charge-sweep", "--config", str(config), "--parameter", "fill",
+                     "--values", "0.02", "--packings", "2", "--first-seed", "0",
+                     "--duration", str(DURATION), "--burn-in", str(BURN_IN),
+                     "--surrogate", str(checkpoint), "--no-dem", "--out", str(tmp_path / "sw"),
+                     "--no-progress"])
+    assert code == 0
+    lines = stdout.getvalue().strip().splitlines()
+    assert "surrogate W" in lines[0] and "DEM" not in lines[0]
+    line = json.loads(lines[-1])
+    assert line["simulator"] == "surrogate" and line["points"][0]["n_balls"] == 5
+    assert np.isfinite([line["points"][0]["surrogate_power_W"],
+                        line["points"][0]["surrogate_power_se_W"]]).all()
+    assert (tmp_path / "sw" / "charge_sweep.png").stat().st_size > 0
+
+    assert main(["sensitivity", "--config", str(config), "--param", "balls.radius_fill",
+                 "--estimator", "horizon", "--packings", "2", "--checkpoint", str(checkpoint),
+                 "--out", str(tmp_path / "sens"), "--no-progress"]) == 2
+    assert "balls.radius_fill is a charge parameter" in capsys.readouterr().err

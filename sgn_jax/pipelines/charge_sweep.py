@@ -155,7 +155,7 @@ def plot_charge_sweep(result: dict[str, Any], path: Any) -> Any:
     x = np.array([p["value"] for p in pts])
     scale, unit = (1e3, "ball diameter (mm)") if result["parameter"] == "diameter" else (
         100.0, "balls' volume fraction of the jar (%)")
-    fig = new_figure(9.0, 3.6)
+    fig = new_figure(9.0, 3.6, layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
     # (power key, its SE key, specific key, its SE key, label), each drawn where the sweep has it
     series = (("power_total_W", "power_total_se_W", "specific_W_per_kg",
