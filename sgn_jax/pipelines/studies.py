@@ -13,7 +13,7 @@ rolls out any charge: the windows of its rollouts carry the case config's charge
 :class:`sgn_jax.surrogate.graph.BallCharge` with the leading packing axis of the windows), its
 graph spec keeps the trained config's ``[balls]`` (the skins and ``phi_sb`` are set against that
 reference radius) with the case's ball count, as :func:`sgn_jax.api.run_rollout` does. Every
-other kind rolls out the charge it was trained on, as before.
+other kind rolls out the charge it was trained on.
 """
 
 from __future__ import annotations
