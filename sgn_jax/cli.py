@@ -34,7 +34,7 @@ from sgn_jax.pipelines.dem_run import run_dem
 from sgn_jax.pipelines.demo import format_report, run_demo
 from sgn_jax.pipelines.rollout_run import run_rollout
 from sgn_jax.pipelines.spectra import collision_spectra
-from sgn_jax.pipelines.studies import check_study_sizes, resolve_start
+from sgn_jax.pipelines.studies import check_study_sizes, sensitivity_tasks
 from sgn_jax.pipelines.train_run import train
 from sgn_jax.pipelines.validation import check_duration, warn_outside_envelope
 from sgn_jax.records.cache import enable_compilation_cache
@@ -382,10 +382,14 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
         "for DURATION s from each under the config's jar and motion, and estimate the "
         "ensemble-mean dissipation power over (BURN_IN, DURATION] and its gradient with respect "
         "to each --param (default: the ensemble central difference with common packings, "
-        "step --step or 10 %% of the value; docs/design.md). Writes "
+        "step --step or 10 %% of the value; docs/design.md). A charge parameter (balls.*: a "
+        "surrogate that reads the charge, e.g. --checkpoint runs/contact_charge/MODEL) is the "
+        "central difference of surrogate ensembles at theta -+ h, each side with DEM packings "
+        "of its own charge from the same seeds. --dem adds the DEM's ensemble central "
+        "difference of each parameter at the same two points. Writes "
         "OUT/sensitivity.json and OUT/sensitivity.png (power vs each parameter around the point "
         "with the gradient's tangent); the last line of stdout is the JSON result: power_W, "
-        "power_se_W, gradient (W per unit), gradient_se.",
+        "power_se_W, gradient (W per unit), gradient_se (and dem with --dem).",
     )
     p.add_argument("--config", required=True,
                    help="built-in config name (emax_300rpm, motion1, ...) or TOML path")
@@ -393,7 +397,11 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
                    help="design parameter, repeatable: motion.rpm, motion.amplitude, "
                    "motion.phase, motion.base_frequency_hz, motion.scale, motion.x_sin[0] (any "
                    "harmonic coefficient), jar.straight_length, jar.radius, jar.height, "
-                   "jar.post_radius")
+                   "jar.post_radius; charge parameters (difference estimator, a model that "
+                   "reads the charge, one ball class): balls.radius_fill (ball radius at the "
+                   "config's filling, the count follows), balls.radius_count (at its ball "
+                   "count), balls.density, balls.restitution, balls.friction (of the balls' "
+                   "material)")
     p.add_argument("--duration", type=float, default=1.5,
                    help="seconds of surrogate rollout per packing (default 1.5)")
     p.add_argument("--burn-in", type=float, default=0.5,
@@ -423,6 +431,10 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
                    "per packing and jar), settle (the same placement settled by the "
                    "surrogate); default auto: dem when a jar.* parameter is studied, else "
                    "packing (docs/design.md)")
+    p.add_argument("--dem", action="store_true",
+                   help="also the DEM's ensemble central difference of each parameter at the "
+                   "same two points, seeds, duration and burn-in (2 x PACKINGS DEM runs per "
+                   "parameter)")
     p.add_argument("--out", default="runs/sensitivity", help="output directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_sensitivity)
@@ -443,10 +455,8 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
         except ValueError:
             raise UserError(f"--step {item!r}: use NAME=H, e.g. motion.rpm=30") from None
     cfg = api.load_config(args.config)
-    extra_curves = args.estimator == "horizon" and not args.no_curve
-    start = resolve_start(args.start, args.param)
-    total = ((args.packings if start == "packing" else 0) + 1
-             + (2 * len(args.param) if extra_curves else 0))
+    total = sensitivity_tasks(args.param, args.packings, args.start, args.estimator,
+                              not args.no_curve, args.dem)
     separation = {"config": None, "on": True, "off": False}[args.separation]
     with tqdm(total=total, desc="sensitivity", unit="task", disable=args.no_progress,
               dynamic_ncols=True, file=sys.stderr) as bar:
@@ -459,13 +469,17 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
             packings=args.packings, first_seed=args.first_seed, checkpoint=args.checkpoint,
             horizon=args.horizon, n_segments=args.segments, curve=not args.no_curve,
             estimator=args.estimator, steps=steps or None,
-            separation=separation, start=start, progress=progress)
+            separation=separation, start=args.start, dem=args.dem, progress=progress)
     out = Path(args.out)
     result["plot"] = str(plot_sensitivity(result, out / "sensitivity.png"))
     result["config"] = str(args.config)
     write_json(out / "sensitivity.json", result)
     line = {k: result[k] for k in ("power_W", "power_se_W", "gradient", "gradient_se",
                                    "units", "timing_s", "plot")}
+    if "dem" in result:   # the DEM's difference beside the surrogate's, per parameter
+        line["dem"] = {name: {k: d[k] for k in ("h", "central_difference",
+                                                 "central_difference_se")}
+                       for name, d in result["dem"].items()}
     line["json"] = str(out / "sensitivity.json")
     print(json.dumps(line))
     return 0
@@ -478,15 +492,18 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
 def _add_charge_sweep(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "charge-sweep",
-        help="power against ball diameter or filling, from DEM ensembles (docs/charge.md)",
+        help="power against ball diameter or filling, from DEM ensembles and a surrogate "
+        "that reads the charge (docs/charge.md)",
         description="For each --values entry, run PACKINGS DEM packings (seeds FIRST_SEED..) "
         "of the config's jar and motion with one ball size: --parameter diameter (m) at the "
         "config's filling (--hold fill, the count follows) or ball count (--hold count), or "
         "--parameter fill (the balls' volume fraction of the jar) at the config's diameter. "
         "Averages the power over (BURN_IN, DURATION]: the normal + tangential damping (the "
         "surrogates' target) and every dissipation kind, and the specific power per kg of "
-        "balls, with standard errors over the packings. Prints a table and, last, one JSON "
-        "line; writes OUT/charge_sweep.json and OUT/charge_sweep.png.",
+        "balls, with standard errors over the packings. --surrogate DIR (a model that reads the "
+        "charge) rolls the same DEM packings out with the surrogate for the same duration and "
+        "burn-in, its power beside the DEM's (--no-dem: the surrogate only). Prints a table "
+        "and, last, one JSON line; writes OUT/charge_sweep.json and OUT/charge_sweep.png.",
     )
     p.add_argument("--config", required=True,
                    help="built-in config name (emax_300rpm, ...) or TOML path, one ball class")
@@ -502,6 +519,12 @@ def _add_charge_sweep(sub: argparse._SubParsersAction) -> None:
                    help="seconds of motion per packing (default 1.5)")
     p.add_argument("--burn-in", type=float, default=0.5,
                    help="seconds before the power is averaged (default 0.5)")
+    p.add_argument("--surrogate", default=None, metavar="DIR",
+                   help="training run or checkpoint directory of a model that reads the charge "
+                   "(model kind contact_charge): its power at every point beside the DEM's")
+    p.add_argument("--no-dem", action="store_true",
+                   help="with --surrogate: the surrogate's ensembles only (the DEM settles the "
+                   "packings, nothing more)")
     p.add_argument("--out", default="runs/charge_sweep", help="output directory")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_charge_sweep)
@@ -511,8 +534,12 @@ def _cmd_charge_sweep(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     check_study_sizes(args.duration, args.burn_in, args.packings)
+    if args.no_dem and args.surrogate is None:
+        raise UserError("--no-dem needs --surrogate DIR (a model that reads the charge)")
     cfg = api.load_config(args.config)
-    with tqdm(total=len(args.values) * args.packings, desc="charge sweep", unit="run",
+    dem = not args.no_dem
+    runs = len(args.values) * args.packings * (int(dem) + int(args.surrogate is not None))
+    with tqdm(total=runs, desc="charge sweep", unit="run",
               disable=args.no_progress, dynamic_ncols=True, file=sys.stderr) as bar:
         def progress(stage: str) -> None:  # after each packing: rate and ETA from tqdm
             bar.set_postfix_str(stage)
@@ -521,23 +548,29 @@ def _cmd_charge_sweep(args: argparse.Namespace) -> int:
         result = api.charge_sweep(cfg, args.parameter, args.values, hold=args.hold,
                                   packings=args.packings, first_seed=args.first_seed,
                                   duration=args.duration, burn_in=args.burn_in,
-                                  progress=progress)
+                                  surrogate=args.surrogate, dem=dem, progress=progress)
     out = Path(args.out)
     result["plot"] = str(api.plot_charge_sweep(result, out / "charge_sweep.png"))
     result["config"] = str(args.config)
     write_json(out / "charge_sweep.json", result)
-    print(f"{'value':>10} {'balls':>6} {'fill %':>7} {'power W':>18} {'all kinds W':>18} "
-          f"{'W/kg':>16}")
+    # (key, SE key, column title, format) of the columns this sweep has
+    columns = [c for c in (("power_W", "power_se_W", "DEM power W", ".4f"),
+                           ("power_total_W", "power_total_se_W", "DEM all kinds W", ".4f"),
+                           ("specific_W_per_kg", "specific_se_W_per_kg", "DEM W/kg", ".3f"),
+                           ("surrogate_power_W", "surrogate_power_se_W", "surrogate W", ".4f"),
+                           ("surrogate_specific_W_per_kg", "surrogate_specific_se_W_per_kg",
+                            "surrogate W/kg", ".3f"))
+               if c[0] in result["points"][0]]
+    print(f"{'value':>10} {'balls':>6} {'fill %':>7} "
+          + " ".join(f"{title:>20}" for _, _, title, _ in columns))
     for p in result["points"]:
-        print(f"{p['value']:>10.4g} {p['n_balls']:>6d} {100 * p['fill']:>7.1f} "
-              f"{p['power_W']:>9.4f} +- {p['power_se_W']:<6.4f} "
-              f"{p['power_total_W']:>9.4f} +- {p['power_total_se_W']:<6.4f} "
-              f"{p['specific_W_per_kg']:>7.3f} +- {p['specific_se_W_per_kg']:<6.3f}")
+        cells = " ".join(f"{format(p[key], fmt):>10} +- {format(p[se], fmt):<6}"
+                         for key, se, _, fmt in columns)
+        print(f"{p['value']:>10.4g} {p['n_balls']:>6d} {100 * p['fill']:>7.1f} {cells}")
+    keys = ("value", "n_balls", "fill") + tuple(k for c in columns for k in c[:2])
     line = {"parameter": result["parameter"], "hold": result["hold"],
-            "points": [{k: p[k] for k in ("value", "n_balls", "fill", "power_W", "power_se_W",
-                                          "power_total_W", "power_total_se_W",
-                                          "specific_W_per_kg", "specific_se_W_per_kg")}
-                       for p in result["points"]],
+            "simulator": result["simulator"],
+            "points": [{k: p[k] for k in keys} for p in result["points"]],
             "plot": result["plot"], "json": str(out / "charge_sweep.json")}
     print(json.dumps(line))
     return 0

@@ -12,6 +12,9 @@ Pure JAX core: no config, no files (the host side is :mod:`sgn_jax.api`). Three 
    (:func:`sgn_jax.surrogate.rollout.analytic_jar_query`), so jar-shape derivatives are exact
    derivatives of the wall distances the network sees (the SDF grid the model was trained with
    agrees with it to 3.8 um, docs/geometry.md), with no grid to resample per evaluation.
+   The charge parameters (:data:`CHARGE_PARAMETER_UNITS`: ball radius, density, material)
+   change the balls themselves and are refused here; ``sgn_jax.api.sensitivity`` estimates
+   them by central differences of ensembles with packings of their own charge.
 
 2. **The anchored ensemble state.** A packing is a window of ball positions at time ``t``. When
    ``theta`` changes the motion, the balls keep their positions *in the jar frame* and the jar's
@@ -62,7 +65,7 @@ from sgn_jax.motion import (
     offset,
     velocity,
 )
-from sgn_jax.surrogate.graph import GraphSpec, Window, with_spins
+from sgn_jax.surrogate.graph import BallCharge, GraphSpec, Window, with_spins
 from sgn_jax.surrogate.rollout import (
     Predictor,
     RolloutState,
@@ -113,16 +116,39 @@ PARAMETER_UNITS = parameter_units()
 registered later add theirs to :func:`parameter_units`); harmonic coefficients
 ``motion.{x,y,z}_{sin,cos}[k]`` (k = 0 is the first harmonic, as in the config lists) are in m."""
 
+CHARGE_PARAMETER_UNITS = {
+    "balls.radius_fill": "m",
+    "balls.radius_count": "m",
+    "balls.density": "kg/m^3",
+    "balls.restitution": "1",
+    "balls.friction": "1",
+}
+"""Unit of each charge parameter (a charge of one ball class; docs/design.md): the ball radius
+at the charge's filling (the count follows the radius), the ball radius at its ball count, the
+balls' density, and the restitution and sliding friction of the balls' material. A charge
+parameter changes the balls themselves, and two of them their count, so it is not a parameter
+of a rollout of fixed balls (:func:`check_parameters` refuses it): ``sgn_jax.api.sensitivity``
+estimates it by central differences of ensembles, each side with DEM packings of its own
+charge."""
+
+
+def is_charge_parameter(name: str) -> bool:
+    """Whether ``name`` is one of :data:`CHARGE_PARAMETER_UNITS`."""
+    return name in CHARGE_PARAMETER_UNITS
+
 
 def parameter_unit(name: str) -> str:
-    """The unit of a design parameter (``DesignError`` for an unknown name)."""
+    """The unit of a design or charge parameter (``DesignError`` for an unknown name)."""
     units = parameter_units()
     if name in units:
         return units[name]
+    if name in CHARGE_PARAMETER_UNITS:
+        return CHARGE_PARAMETER_UNITS[name]
     if _COEFF.match(name) and any(k.coefficient_fields for k in motion_kinds()):
         return "m"
-    raise DesignError(f"unknown design parameter {name!r}; known: {sorted(units)} and "
-                      "harmonic coefficients like 'motion.x_sin[0]'")
+    raise DesignError(f"unknown design parameter {name!r}; known: {sorted(units)}, harmonic "
+                      f"coefficients like 'motion.x_sin[0]' and the charge parameters "
+                      f"{sorted(CHARGE_PARAMETER_UNITS)}")
 
 
 def _or_list(items: Sequence[str]) -> str:
@@ -170,6 +196,13 @@ def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tu
         raise DesignError(f"design parameters repeat: {list(names)}")
     for name in names:
         parameter_unit(name)
+        if is_charge_parameter(name):
+            raise DesignError(
+                f"{name} is a charge parameter: it changes the balls (and with "
+                "balls.radius_fill their count), so it is not a parameter of a rollout of "
+                "fixed balls; sgn_jax.api.sensitivity (`sgn-jax sensitivity --param "
+                f"{name}`) estimates it by central differences of ensembles, each side with "
+                "DEM packings of its own charge (docs/design.md)")
         if name.startswith("motion."):
             problem = _motion_parameter_problem(name, motion)
             if problem is not None:
@@ -254,12 +287,13 @@ in the standard case, so a packing in its own jar is left exactly as it is)."""
 PACKING_FIT_ITERATIONS = 64
 
 
-def fit_packing_to_jar(window: Window, jar: JarParams, radius: float,
+def fit_packing_to_jar(window: Window, jar: JarParams, radius: float | jax.Array,
                        tolerance: float = PACKING_FIT_TOLERANCE,
                        iterations: int = PACKING_FIT_ITERATIONS) -> Window:
     """``window`` with its balls moved out of ``jar``'s walls and out of each other, beyond
     ``tolerance`` (m), every slot by the same shift (velocities unchanged; stop-gradient: the
-    packing does not follow the design, as in :func:`anchored_window`).
+    packing does not follow the design, as in :func:`anchored_window`). ``radius``: the balls'
+    radius (m), or each ball's (N,) (a window with a charge).
 
     Why: a packing is settled in the base jar; under a jar-shape parameter it lies in another
     one. 5 mm off the standard jar's ``straight_length``, the standard packings put balls
@@ -319,8 +353,18 @@ def _placed(candidates: jax.Array, jar: JarParams, n_balls: int, radius: float) 
     return placed
 
 
-def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **options: Any
-                       ) -> PackingStart:
+def _one_size(charge: BallCharge, who: str) -> float:
+    """The one ball radius (m) of ``charge`` (host side); DesignError for several sizes."""
+    radii = np.unique(np.asarray(charge.radius, np.float64)[np.asarray(charge.present, bool)])
+    if radii.size != 1:
+        raise DesignError(f"{who} places balls of one size, and this charge has "
+                          f"{radii.size} ({sorted(radii.tolist())} m); a study of a mixture "
+                          "starts from its packings (start='packing')")
+    return float(radii[0])
+
+
+def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, *,
+                       charge: BallCharge | None = None, **options: Any) -> PackingStart:
     """The DEM's procedure for a packing with the surrogate in the DEM's place (``"settle"``).
 
     ``make(params, stats, candidates, motion, jar)``: the balls placed from ``candidates``
@@ -332,14 +376,18 @@ def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **o
     settings (:func:`sgn_jax.surrogate.rollout.make_rollout_advance`). Cheap (a surrogate
     rollout), but the jar-length gradients from it were 1.2-1.5 SE below the DEM's at all three
     points checked (docs/design.md); the DEM's own settle (:func:`make_dem_start`) is the
-    default for a jar-shape parameter.
+    default for a jar-shape parameter. ``charge``: the :class:`BallCharge` of a model that
+    reads the charge (one ball size; the window carries it through the settle and after).
     """
     settle = (make_rollout_advance(spec, predictor, n_settle, n_settle, **options)
               if n_settle else None)
+    radius = spec.ball_radius if charge is None else _one_size(charge, "the surrogate's settle")
 
     def settled(params, stats, candidates, motion, jar):
-        window = rest_window(_placed(candidates, jar, spec.n_particles, spec.ball_radius),
+        window = rest_window(_placed(candidates, jar, spec.n_particles, radius),
                              spec.window, frequency_hz(motion))
+        if charge is not None:
+            window = window.replace(charge=charge)
         zero = jnp.zeros((), F64)
         if settle is not None:
             at_rest = CircleMotion(rpm=zero, amplitude=zero, phase=zero)
@@ -355,8 +403,8 @@ def make_settled_start(spec: GraphSpec, predictor: Predictor, n_settle: int, **o
 
 
 def make_dem_start(dem_spec: DEMSpec, wall_fn: Callable, dem_params: DEMParams, dt: float,
-                   substeps: int, settle_samples: int, pp_capacity: int, window: int
-                   ) -> PackingStart:
+                   substeps: int, settle_samples: int, pp_capacity: int, window: int,
+                   charge: BallCharge | None = None) -> PackingStart:
     """A packing made by the DEM in any jar, as :func:`sgn_jax.api.make_packings` makes one
     (``"dem"``; traceable in the jar and the motion, so that a design study makes one in every
     jar it evaluates).
@@ -370,8 +418,11 @@ def make_dem_start(dem_spec: DEMSpec, wall_fn: Callable, dem_params: DEMParams, 
     ``dem_params`` gives the balls and the material (its geometry and motion are replaced).
     ``params`` and ``stats`` (the surrogate's) are not used. It costs a DEM settle per packing
     and jar (docs/design.md gives the cost): the price of the start the DEM's own runs in that
-    jar have.
+    jar have. ``charge``: the :class:`BallCharge` the windows carry, for a model that reads the
+    charge (the DEM's balls are ``dem_params``'; one ball size).
     """
+    if charge is not None:
+        _one_size(charge, "the DEM's start in every jar")
     run = make_sampler(dem_spec, wall_fn, substeps, pp_capacity)
     n_balls, radius = dem_spec.n_balls, float(dem_params.radius)
 
@@ -386,7 +437,7 @@ def make_dem_start(dem_spec: DEMSpec, wall_fn: Callable, dem_params: DEMParams, 
         _, samples = run(p, state, window)
         return Window(positions=jnp.concatenate([first["pos"][None], samples["pos"]]),
                       offsets=samples["offset"], offset_velocities=samples["offset_vel"],
-                      frequency_hz=jnp.asarray(frequency_hz(motion), F64))
+                      frequency_hz=jnp.asarray(frequency_hz(motion), F64), charge=charge)
 
     return PackingStart(name="dem", make=dem_packing, t_start=window * float(dt))
 
@@ -577,7 +628,8 @@ def make_ensemble_power(spec: GraphSpec, predictor: Predictor, names: Sequence[s
         """Power (W) of one packing and the states at the segment starts."""
         motion, jar = design(theta)
         window, t_eff = anchored_window(window0, jnp.asarray(t0, F64), made_under, motion, dt)
-        window = fit_packing_to_jar(window, jar, spec.ball_radius)
+        window = fit_packing_to_jar(window, jar, spec.ball_radius if window.charge is None
+                                    else window.charge.radius)
         state = RolloutState(window=window, step=jnp.zeros((), jnp.int32),
                              energy=jnp.zeros((), F64))
         if burn is not None:
@@ -740,12 +792,14 @@ def summarize_estimate(est: PowerEstimate, names: Sequence[str]) -> dict[str, An
 
 
 __all__ = [
+    "CHARGE_PARAMETER_UNITS",
     "DesignError",
     "EnsemblePower",
     "PARAMETER_UNITS",
     "PowerEstimate",
     "anchored_window",
     "fit_packing_to_jar",
+    "is_charge_parameter",
     "BATCHING",
     "check_batching",
     "apply_parameters",

@@ -336,7 +336,8 @@ def plot_sensitivity(result: Mapping[str, Any], path: str | Path) -> Path:
 
     One panel per parameter: the surrogate's ensemble-mean power at theta - h, theta, theta + h
     (error bars: standard error over the packings), and the tangent of the estimated gradient
-    through the design point (shaded: +- its standard error).
+    through the design point (shaded: +- its standard error); with the DEM's difference
+    (``sensitivity(..., dem=True)``) also the DEM's ensemble-mean power at theta -+ h.
     """
     names = list(result["names"])
     fig = new_figure(4.2 * len(names), 3.6, layout="constrained")
@@ -353,6 +354,12 @@ def plot_sensitivity(result: Mapping[str, Any], path: str | Path) -> Path:
         else:
             ax.errorbar([x0], [p0], yerr=[result["power_se_W"]], fmt="o", color=_PRED_COLOR,
                         capsize=3, label="surrogate ensemble mean (+-SE)")
+        dem = result.get("dem", {}).get(name)
+        if dem:
+            ax.errorbar(dem["theta"], dem["power_W"], yerr=dem["power_se_W"], fmt="s",
+                        color=_REF_COLOR, capsize=3, label=f"DEM ensemble mean (+-SE): "
+                        f"{dem['central_difference']:.3g} +- {dem['central_difference_se']:.2g} "
+                        f"W/{unit}")
         g, se = float(result["gradient"][name]), float(result["gradient_se"][name])
         xs = np.array([x0 - h, x0 + h])
         ax.plot(xs, p0 + g * (xs - x0), "-", color="tab:red",

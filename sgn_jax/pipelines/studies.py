@@ -7,6 +7,13 @@ The public names are re-exported by :mod:`sgn_jax.api` (docs/api.md): :func:`mak
 :func:`rollout_ensemble`, :func:`rollout_sweep`, :func:`shard_packings`, :func:`sensitivity`,
 :class:`DEMEnsemble`, :func:`design_config`, :func:`parameter_values_of`, :func:`ensemble_mean`
 and :func:`at_surrogate_step`.
+
+A surrogate whose kind reads the charge (``ModelFactory.takes_charge``: ``contact_charge``)
+rolls out any charge: the windows of its rollouts carry the case config's charge (a
+:class:`sgn_jax.surrogate.graph.BallCharge` with the leading packing axis of the windows), its
+graph spec keeps the trained config's ``[balls]`` (the skins and ``phi_sb`` are set against that
+reference radius) with the case's ball count, as :func:`sgn_jax.api.run_rollout` does. Every
+other kind rolls out the charge it was trained on.
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ from sgn_jax.design import (
     check_batching,
     check_parameters,
     default_step,
+    is_charge_parameter,
     make_dem_start,
     make_ensemble_power,
     make_settled_start,
@@ -53,9 +61,11 @@ from sgn_jax.design import (
 )
 from sgn_jax.geometry import JarParams
 from sgn_jax.motion import Motion, frequency_hz, motion_kind, offset
+from sgn_jax.pipelines.charge_points import charge_parameter_value, with_charge_parameter
 from sgn_jax.pipelines.configure import (
     graph_spec_from_config,
     jar_params_from_config,
+    model_takes_charge,
     motion_from_config,
 )
 from sgn_jax.pipelines.dem_run import (
@@ -66,13 +76,18 @@ from sgn_jax.pipelines.dem_run import (
     settle_sample_count,
     setup_from_config,
 )
-from sgn_jax.pipelines.rollout_run import config_at_model_step, initial_window
+from sgn_jax.pipelines.rollout_run import (
+    _effective_config,
+    config_at_model_step,
+    initial_window,
+    window_charge,
+)
 from sgn_jax.pipelines.validation import check_dem_config, check_duration, warn_outside_envelope
 from sgn_jax.records.checkpoint import TrainedModel
 from sgn_jax.records.shipped_models import load_surrogate
 from sgn_jax.scene import analytic_jar_query
 from sgn_jax.surrogate.collisions import DEFAULT_CAPACITY, check_capacity
-from sgn_jax.surrogate.graph import GraphSpec, Window
+from sgn_jax.surrogate.graph import BallCharge, GraphSpec, Window
 from sgn_jax.surrogate.rollout import (
     RolloutResult,
     make_rollout,
@@ -90,6 +105,43 @@ def at_surrogate_step(cfg: Config, surrogate: TrainedModel) -> Config:
     return config_at_model_step(cfg, float(surrogate.config.dem.dt))
 
 
+def reads_charge(surrogate: TrainedModel) -> bool:
+    """Whether ``surrogate``'s kind reads each ball's radius, mass and material from its
+    windows' charge (``ModelFactory.takes_charge``), and so rolls out any charge."""
+    return model_takes_charge(surrogate.config)
+
+
+def surrogate_graph_spec(surrogate: TrainedModel, cfg: Config) -> GraphSpec:
+    """The graph spec of ``surrogate``'s rollouts of ``cfg``'s balls: the trained config's graph
+    rules at ``cfg``'s ``[dem] dt`` for ``cfg``'s ball count. A kind that reads the charge keeps
+    the trained config's ``[balls]``, whose radius its skins and ``phi_sb`` are set against (each
+    ball's own radius is applied to them: docs/contact_charge.md); every other kind takes
+    ``cfg``'s (its trained balls, checked by the callers)."""
+    model_cfg = surrogate.config
+    balls = model_cfg.balls if reads_charge(surrogate) else cfg.balls
+    return graph_spec_from_config(dataclasses.replace(model_cfg, balls=balls, dem=cfg.dem),
+                                  n_particles=cfg.balls.n_balls)
+
+
+def case_charge(surrogate: TrainedModel, cfg: Config) -> BallCharge | None:
+    """The :class:`BallCharge` of ``cfg``'s charge (``[balls]``, its mixture and materials) that
+    the windows of ``surrogate``'s rollouts carry, or None for a kind that does not read the
+    charge. The charge sections are taken from ``cfg`` as :func:`sgn_jax.api.run_rollout` takes
+    a case config's (``_effective_config``, ``window_charge``)."""
+    if not reads_charge(surrogate):
+        return None
+    effective = _effective_config(surrogate.config, cfg)
+    return window_charge(effective, SimpleNamespace(meta={}), int(cfg.balls.n_balls))
+
+
+def _batched(charge: BallCharge | None, k: int) -> BallCharge | None:
+    """``charge`` with a leading axis of ``k`` packings (the same charge for each)."""
+    if charge is None:
+        return None
+    return jax.tree_util.tree_map(
+        lambda a: np.broadcast_to(np.asarray(a), (k, *np.shape(a))).copy(), charge)
+
+
 @dataclasses.dataclass(frozen=True)
 class Packings:
     """K initial states of the surrogate, one per DEM packing.
@@ -97,7 +149,9 @@ class Packings:
     Attributes:
         windows: :class:`sgn_jax.surrogate.graph.Window` with a leading axis K (positions
             (K, W+1, N, 3)); None for :func:`seed_packings` (seeds only: a study with
-            ``start="dem"`` or ``"settle"`` makes them itself).
+            ``start="dem"`` or ``"settle"`` makes them itself). The DEM's states only: the
+            rollouts of a surrogate that reads the charge give them the charge of their config
+            (:func:`case_charge`).
         t0: time (s since the start of motion) of the windows' newest sample.
         seeds: the K DEM placement seeds.
         config: the config they were made with (jar, balls, motion at which they were sampled).
@@ -119,7 +173,8 @@ def make_packings(cfg: Config, seeds: Iterable[int], *, window: int | None = Non
 
     Each packing: the DEM places the balls from the seed, settles them with the jar at rest
     (``[dem] settle_time``), then runs ``W`` samples of the config's motion; the window ends at
-    ``t0 = W dt``. ``log`` is called after each packing.
+    ``t0 = W dt``. ``log`` is called after each packing. Any charge the DEM runs
+    (``[balls]``, ``[[balls.mix]]``, materials: docs/charge.md); N is its ball count.
     """
     seeds = _placement_seeds(seeds, "make_packings")
     w = int(cfg.graph.window if window is None else window)
@@ -184,23 +239,29 @@ def check_study_sizes(duration: float, burn_in: float, packings: int | None = No
 @dataclasses.dataclass(frozen=True)
 class _SurrogateFrame:
     """What a surrogate needs to roll ``packings`` out under ``cfg``: its graph spec, the motion
-    and jar pytrees, the windows anchored to that motion (K leading), and the motion the
-    packings' windows are anchored from (``made_under``: theirs, or ``motion`` for another
-    motion kind)."""
+    and jar pytrees, the windows anchored to that motion (K leading; with the case's charge,
+    K leading, for a kind that reads it), the motion the packings' windows are anchored from
+    (``made_under``: theirs, or ``motion`` for another motion kind), and the case's charge
+    (:func:`case_charge`, one packing's; None for a kind that does not read it)."""
 
     spec: GraphSpec
     motion: Motion
     jar: JarParams
     windows: Window | None
     made_under: Motion
+    charge: BallCharge | None = None
 
 
 def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
                      ) -> _SurrogateFrame:
-    """Check that ``surrogate`` can roll ``packings`` out under ``cfg`` (balls and dt as
-    trained; an envelope warning otherwise) and build the pieces of that rollout."""
+    """Check that ``surrogate`` can roll ``packings`` out under ``cfg`` (dt as trained, and the
+    balls as trained for a kind that does not read the charge; an envelope warning otherwise)
+    and build the pieces of that rollout."""
     model_cfg = surrogate.config
-    for section, field in (("balls", "count"), ("balls", "radius"), ("dem", "dt")):
+    charged = reads_charge(surrogate)
+    trained = (("dem", "dt"),) if charged else (("balls", "count"), ("balls", "radius"),
+                                                 ("dem", "dt"))
+    for section, field in trained:
         a = getattr(getattr(model_cfg, section), field)
         b = getattr(getattr(cfg, section), field)
         if not math.isclose(float(a), float(b), rel_tol=1e-12):
@@ -210,21 +271,25 @@ def _surrogate_frame(surrogate: TrainedModel, cfg: Config, packings: Packings
                     else "")
             raise DesignError(f"the surrogate was trained with [{section}] {field} = {a}, the "
                               f"design config has {b}{hint}")
+    if charged and packings.config.balls != cfg.balls:
+        raise DesignError("the packings were made with another charge ([balls]) than the design "
+                          "config's; make them with this config (sj.make_packings(cfg, seeds))")
     warn_outside_envelope(cfg, model_cfg, surrogate.meta)
-    if packings.windows is not None and packings.windows.positions.shape[-2] != cfg.balls.count:
+    if (packings.windows is not None
+            and packings.windows.positions.shape[-2] != cfg.balls.n_balls):
         raise DesignError("the packings have a different number of balls from the config")
     # Window-level features come from the model's graph rules; the jar and motion from cfg.
-    spec = graph_spec_from_config(dataclasses.replace(model_cfg, balls=cfg.balls, dem=cfg.dem),
-                                  n_particles=cfg.balls.count)
+    spec = surrogate_graph_spec(surrogate, cfg)
+    charge = case_charge(surrogate, cfg)
     motion = motion_from_config(cfg.motion)
     base_motion = motion_from_config(packings.config.motion)
     if type(base_motion) is not type(motion):
         # Packings made under another motion kind are re-anchored to this motion at t0.
         base_motion = motion
     windows = (None if packings.windows is None
-               else _reanchor(packings, base_motion, motion, float(cfg.dem.dt)))
+               else _reanchor(packings, base_motion, motion, float(cfg.dem.dt), charge))
     return _SurrogateFrame(spec=spec, motion=motion, jar=jar_params_from_config(cfg.jar),
-                           windows=windows, made_under=base_motion)
+                           windows=windows, made_under=base_motion, charge=charge)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -280,19 +345,21 @@ class DesignStudy:
                               f"{list(self.names)} need {np.shape(self.theta0)}")
         capacity = check_capacity(collision_capacity)
         motion, jar = apply_parameters(self.names, jnp.asarray(theta), frame.motion, frame.jar)
-        windows = _reanchor(packings, frame.made_under, motion, float(cfg.dem.dt))
+        windows = _reanchor(packings, frame.made_under, motion, float(cfg.dem.dt), frame.charge)
         run = _ensemble_runner(surrogate, cfg, self.duration, None, "map", False, capacity)
         result = jax.device_get(run(windows, (surrogate.params, surrogate.norm_stats, motion,
                                               jar, jnp.asarray(packings.t0))))
         t0 = float(packings.t0)
         mass = float(cfg.balls.density) * 4.0 / 3.0 * math.pi * float(cfg.balls.radius) ** 3
+        total_mass = (mass * int(cfg.balls.count) if cfg.balls.single_class
+                      else float(cfg.balls.mass))
         tables = []
         for k in range(len(packings)):
             arrays = result.collision_arrays(packing=k)
             table = EventTable(**{name: arrays[PREFIX + name] for name in EVENT_FIELDS},
                                record_duration_s=self.duration, record_start_s=t0,
-                               n_balls=int(cfg.balls.count),
-                               total_mass_kg=mass * int(cfg.balls.count), source="surrogate")
+                               n_balls=int(cfg.balls.n_balls),
+                               total_mass_kg=total_mass, source="surrogate")
             tables.append(table.window(t0 + self.burn_in, t0 + self.duration))
         return tables
 
@@ -441,7 +508,7 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
         snap_back=rollout.snap_back, phi_sb=surrogate.config.graph.phi_sb,
         snap_velocity=rollout.snap_velocity,
         pp_max_overlap=rollout.pp_max_overlap if use_sep else None,
-        start=_packing_start(start, surrogate, cfg, frame.spec, module, use_sep))
+        start=_packing_start(start, surrogate, cfg, frame.spec, module, use_sep, frame.charge))
     starts = (frame.windows if start == "packing" else
               np.stack([placement_candidates(seed) for seed in packings.seeds]))
     args = (jax.device_put(surrogate.params), jax.device_put(surrogate.norm_stats),
@@ -458,8 +525,10 @@ def design_study(surrogate: TrainedModel, cfg: Config, names: Sequence[str], pac
 
 
 def _packing_start(start: str, surrogate: TrainedModel, cfg: Config, spec: GraphSpec,
-                   module: Any, separation: bool) -> PackingStart | None:
-    """The :class:`sgn_jax.design.PackingStart` of a study's ``start`` (None: the packings)."""
+                   module: Any, separation: bool, charge: BallCharge | None = None
+                   ) -> PackingStart | None:
+    """The :class:`sgn_jax.design.PackingStart` of a study's ``start`` (None: the packings);
+    ``charge``: the case's, which the started windows carry (a kind that reads the charge)."""
     if start == "packing":
         return None
     if start == "settle":
@@ -469,11 +538,16 @@ def _packing_start(start: str, surrogate: TrainedModel, cfg: Config, spec: Graph
             _steps(float(cfg.dem.settle_time), float(cfg.dem.dt), "[dem] settle_time"),
             snap_back=r.snap_back, phi_sb=surrogate.config.graph.phi_sb,
             snap_velocity=r.snap_velocity, query=analytic_jar_query,
-            pp_max_overlap=r.pp_max_overlap if separation else None, jit=False)
+            pp_max_overlap=r.pp_max_overlap if separation else None, jit=False,
+            charge=charge)
+    if not cfg.balls.single_class:   # before the DEM's setup, which a mixture makes per ball
+        raise DesignError("the DEM's start in every jar (start='dem') places balls of one size, "
+                          "and this charge has several ([[balls.mix]]); a study of a mixture "
+                          "starts from its packings (start='packing')")
     setup = setup_from_config(cfg)
     return make_dem_start(setup.spec, setup.jar.wall_fn, setup.params, float(cfg.dem.dt),
                           setup.substeps, settle_sample_count(setup), setup.pp_capacity,
-                          spec.window)
+                          spec.window, charge=charge)
 
 
 def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
@@ -490,8 +564,7 @@ def _ensemble_rollout(surrogate: TrainedModel, cfg: Config, duration: float,
     if every < 1 or n_steps % every:
         raise DesignError(f"duration ({n_steps} steps) must be a multiple of save_every = "
                           f"{every} steps")
-    spec = graph_spec_from_config(dataclasses.replace(surrogate.config, balls=cfg.balls,
-                                                      dem=cfg.dem), n_particles=cfg.balls.count)
+    spec = surrogate_graph_spec(surrogate, cfg)
     r = cfg.rollout
     module = single_rollout_model(surrogate.model)[0] if single else surrogate.model
     collisions = collision_capacity > 0
@@ -650,6 +723,37 @@ def rollout_sweep(surrogate: TrainedModel, cfgs: Sequence[Config], packings: Pac
             cfgs) * k else a, flat)
 
 
+def check_ensemble_steps(cfg: Config, duration: float, burn_in: float) -> tuple[int, int]:
+    """``(steps, burn-in steps)`` of an ensemble of ``duration`` s whose power is averaged after
+    ``burn_in`` s, at ``cfg``'s ``[dem] dt``; DesignError unless both are whole numbers of
+    steps and duration > burn_in >= 0."""
+    check_study_sizes(duration, burn_in)
+    dt = float(cfg.dem.dt)
+    return _steps(duration, dt, "duration"), _steps(burn_in, dt, "burn_in")
+
+
+def ensemble_powers(surrogate: TrainedModel, cfg: Config, packings: Packings, duration: float,
+                    burn_in: float, *, shard: bool = False) -> np.ndarray:
+    """(K,) W: each packing's mean dissipation power (the surrogate's: normal + tangential
+    damping, ball-ball + ball-wall) over ``(burn_in, duration]`` s of its rollout under
+    ``cfg`` (:func:`rollout_ensemble`, any charge for a kind that reads it). A model with a
+    single-rollout form runs the packings one after another in it (``batching="map"``), as a
+    design study does, unless ``shard``. DesignError for a rollout that diverged."""
+    n_total, n_burn = check_ensemble_steps(cfg, duration, burn_in)
+    single = not shard and getattr(surrogate.model, "for_single_rollout", None) is not None
+    result = rollout_ensemble(surrogate, cfg, packings, duration, save_every=n_total,
+                              shard=shard, batching="map" if single else "vmap")
+    energy = np.asarray(result.steps.energy_cum, np.float64)           # (K, S) J
+    start = energy[:, n_burn - 1] if n_burn else 0.0
+    powers = (energy[:, -1] - start) / ((n_total - n_burn) * float(cfg.dem.dt))
+    if not np.all(np.isfinite(powers)):
+        bad = int(np.flatnonzero(~np.isfinite(powers))[0])
+        raise DesignError(f"the rollout of packing {bad} (seed {packings.seeds[bad]}) gave a "
+                          "non-finite power (the surrogate diverged); check the model's envelope "
+                          "and the outside/overflow counts with `sgn-jax rollout`")
+    return powers
+
+
 def shard_packings(tree: Any, devices: Sequence[Any] | None = None) -> Any:
     """Place a pytree batched over packings (leading axis K) across ``devices`` (default: all),
     one slice of packings per device, with a 1-D ``jax.sharding.Mesh`` over the batch axis.
@@ -671,11 +775,16 @@ def shard_packings(tree: Any, devices: Sequence[Any] | None = None) -> Any:
     return jax.device_put(tree, sharding)
 
 
-def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float) -> Window:
-    """The packings' windows moved to ``motion`` (jar-frame positions kept; host side)."""
-    return jax.device_get(_anchored_windows(packings.windows,
-                                            jnp.asarray(packings.t0, jnp.float64),
-                                            made_under, motion, float(dt)))
+def _reanchor(packings: Packings, made_under: Motion, motion: Motion, dt: float,
+              charge: BallCharge | None = None) -> Window:
+    """The packings' windows moved to ``motion`` (jar-frame positions kept; host side), with
+    ``charge`` (one packing's) given to each of them when it is not None."""
+    windows = jax.device_get(_anchored_windows(packings.windows,
+                                               jnp.asarray(packings.t0, jnp.float64),
+                                               made_under, motion, float(dt)))
+    if charge is not None:
+        windows = windows.replace(charge=_batched(charge, len(packings)))
+    return windows
 
 
 @functools.partial(jax.jit, static_argnums=4)
@@ -685,23 +794,58 @@ def _anchored_windows(windows: Window, t0: jax.Array, made_under: Motion, motion
     return jax.vmap(lambda w: anchored_window(w, t0, made_under, motion, dt)[0])(windows)
 
 
+def split_parameters(names: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``names`` split into the design parameters of a rollout (motion, jar) and the charge
+    parameters (:data:`sgn_jax.design.CHARGE_PARAMETER_UNITS`), each in the given order;
+    DesignError for none, a repeat or an unknown name."""
+    names = tuple(names)
+    if not names:
+        raise DesignError("give at least one design parameter, e.g. 'motion.rpm'")
+    if len(set(names)) != len(names):
+        raise DesignError(f"design parameters repeat: {list(names)}")
+    for name in names:
+        parameter_unit(name)
+    return (tuple(n for n in names if not is_charge_parameter(n)),
+            tuple(n for n in names if is_charge_parameter(n)))
+
+
 def parameter_values_of(cfg: Config, names: Sequence[str]) -> np.ndarray:
-    """The values (D,) of design parameters ``names`` in ``cfg`` (``motion.scale`` is 1)."""
-    motion = motion_from_config(cfg.motion)
-    jar = jar_params_from_config(cfg.jar)
-    return parameter_values(check_parameters(names, motion, jar), motion, jar)
+    """The values (D,) of design parameters ``names`` in ``cfg`` (``motion.scale`` is 1),
+    charge parameters included (:func:`sgn_jax.pipelines.charge_points.charge_parameter_value`:
+    a charge of one ball class)."""
+    design, charge = split_parameters(names)
+    values = {name: charge_parameter_value(cfg, name) for name in charge}
+    if design:
+        motion = motion_from_config(cfg.motion)
+        jar = jar_params_from_config(cfg.jar)
+        values.update(zip(design, parameter_values(check_parameters(design, motion, jar),
+                                                   motion, jar), strict=True))
+    return np.asarray([values[name] for name in names], dtype=np.float64)
 
 
 def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     """``cfg`` with the design parameters set to ``theta`` (for DEM runs at a design point).
 
     ``motion.scale`` multiplies the amplitude / every harmonic coefficient. The changed motion
-    is written back by its kind's ``to_config`` (:class:`sgn_jax.motion.MotionKind`).
+    is written back by its kind's ``to_config`` (:class:`sgn_jax.motion.MotionKind`). Charge
+    parameters are set first, in the config's own jar (``balls.radius_fill`` keeps the
+    filling of that jar; :func:`sgn_jax.pipelines.charge_points.with_charge_parameter`).
     """
+    design, charge = split_parameters(names)
+    theta = np.asarray(theta, np.float64).reshape(-1)
+    if theta.shape != (len(tuple(names)),):
+        raise DesignError(f"theta has {theta.size} values for the {len(tuple(names))} "
+                          f"parameters {list(names)}")
+    value = dict(zip(tuple(names), theta.tolist(), strict=True))
+    for name in charge:
+        cfg = with_charge_parameter(cfg, name, value[name])
+    if not design:
+        return cfg
     motion = motion_from_config(cfg.motion)
     jar = jar_params_from_config(cfg.jar)
-    names = check_parameters(names, motion, jar)
-    motion, jar = apply_parameters(names, jnp.asarray(theta, jnp.float64), motion, jar)
+    names = check_parameters(design, motion, jar)
+    motion, jar = apply_parameters(names, jnp.asarray([value[n] for n in names], jnp.float64),
+                                   motion, jar)
     kind = motion_kind(motion)
     if any(n.startswith("motion.") for n in names) and kind.to_config is not None:
         old = {key: getattr(cfg.motion, key) for key in kind.config_keys}
@@ -713,12 +857,61 @@ def design_config(cfg: Config, names: Sequence[str], theta: Any) -> Config:
     return cfg
 
 
+def _parameter_step(name: str, value: float, steps: dict[str, float] | None) -> float:
+    """The difference / curve step of ``name`` at ``value``: ``steps[name]`` or
+    :func:`default_step`; DesignError unless finite and > 0."""
+    h = float((steps or {}).get(name, default_step(name, value)))
+    if not (math.isfinite(h) and h > 0):
+        raise DesignError(f"the step of {name} must be finite and > 0, got {h!r}")
+    return h
+
+
+def _charge_sides(cfg: Config, name: str, value: float, h: float) -> dict[int, Config]:
+    """The configs at ``value -+ h`` of charge parameter ``name`` (keys -1, +1), each checked as
+    a DEM run before any work."""
+    sides = {}
+    for side in (-1, 1):
+        point = with_charge_parameter(cfg, name, value + side * h)
+        check_dem_config(point, warn=False)
+        sides[side] = point
+    return sides
+
+
+def check_charge_study(surrogate: TrainedModel, names: Sequence[str], estimator: str,
+                       start: str) -> None:
+    """Refuse a study of charge parameters (``names`` holds one) that cannot be made, before any
+    work: the horizon estimator (it differentiates a rollout of fixed balls), the surrogate's
+    settle (a charge parameter's sides start from the DEM's packings of their own charge), and a
+    surrogate that does not read the charge (it rolls out its training charge only)."""
+    charge = [n for n in names if is_charge_parameter(n)]
+    if not charge:
+        return
+    if estimator != "difference":
+        raise DesignError(
+            f"{charge[0]} is a charge parameter: the balls change (with balls.radius_fill "
+            f"their count too), and estimator={estimator!r} differentiates a rollout of fixed "
+            "balls; use estimator='difference' (central differences of ensembles, each side "
+            "with DEM packings of its own charge), or study the charge parameters apart from "
+            "the horizon estimator's")
+    if start == "settle":
+        raise DesignError(
+            f"{charge[0]} is a charge parameter, whose sides start from the DEM's packings of "
+            "their own charge; start='settle' (the surrogate's settle) applies to motion and "
+            "jar parameters: use start='auto' or study the charge parameters apart")
+    if not reads_charge(surrogate):
+        kind = getattr(surrogate.config.model, "kind", "?")
+        raise DesignError(
+            f"{charge[0]} changes the charge, and this surrogate (model kind {kind!r}) rolls "
+            "out the one charge it was trained on; use a model whose kind reads the charge "
+            "(model kind 'contact_charge', docs/contact_charge.md)")
+
+
 def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
                 burn_in: float = 0.5, packings: int = 8, first_seed: int = 100,
-                checkpoint: str | Path | None = None, estimator: str = "difference",
-                horizon: int = 10, n_segments: int = 8, curve: bool = True,
-                steps: dict[str, float] | None = None, separation: bool | None = None,
-                start: str = "auto",
+                checkpoint: str | Path | TrainedModel | None = None,
+                estimator: str = "difference", horizon: int = 10, n_segments: int = 8,
+                curve: bool = True, steps: dict[str, float] | None = None,
+                separation: bool | None = None, start: str = "auto", dem: bool = False,
                 progress: Callable[[str], None] = lambda stage: None) -> dict[str, Any]:
     """The design sensitivity of ``cfg``: ensemble-mean power, its gradient, standard errors.
 
@@ -730,65 +923,152 @@ def sensitivity(cfg: Config, names: Sequence[str], *, duration: float = 1.5,
     The gradient is :func:`design_study`'s ``estimator``. ``curve`` adds the
     surrogate's ensemble power at ``theta +- h`` per parameter (``steps`` or
     :func:`default_step`): free with the difference estimator (its own evaluations), extra
-    rollouts with the horizon estimator. ``progress(stage)`` is called after every packing and
-    every evaluation. Returns a JSON-ready dict (SI units; the gradient in W per unit of each
-    parameter).
+    rollouts with the horizon estimator.
+
+    Charge parameters (:data:`sgn_jax.design.CHARGE_PARAMETER_UNITS`: ``balls.radius_fill``,
+    ``balls.radius_count``, ``balls.density``, ``balls.restitution``, ``balls.friction``; a
+    surrogate that reads the charge, a charge of one ball class) change the balls, and two of
+    them their count, so their derivative is the central difference of surrogate ensembles at
+    ``theta -+ h``, each side with DEM packings of its own charge from the same placement
+    seeds: ``mean_k (P_k(theta + h) - P_k(theta - h)) / 2h`` with the standard error of the
+    per-seed differences (docs/design.md). They take the difference estimator only
+    (:func:`check_charge_study`); motion and jar parameters beside them are
+    :func:`design_study`'s at the config's charge.
+
+    ``dem``: also the DEM's ensemble central difference of every parameter at the same two
+    points, seeds, duration and burn-in (:meth:`DEMEnsemble.central_difference`), under
+    ``"dem"``, for a comparison of the surrogate's differences with the DEM's. ``progress(stage)``
+    is called after every packing, DEM run and evaluation. ``checkpoint``: what
+    :func:`load_surrogate` loads, or a :class:`TrainedModel`. Returns a JSON-ready dict (SI
+    units; the gradient in W per unit of each parameter).
     """
     check_study_sizes(duration, burn_in, packings)
     if first_seed < 0:
         raise DesignError(f"first_seed must be >= 0, got {first_seed}")
+    names = tuple(names)
+    design_names, charge_names = split_parameters(names)
+    unknown = sorted(set(steps or {}) - set(names))
+    if unknown:
+        raise DesignError(f"steps given for {unknown}, which are not design parameters here "
+                          f"({list(names)})")
     t_start = time.perf_counter()
-    model = load_surrogate(checkpoint)
+    model = checkpoint if isinstance(checkpoint, TrainedModel) else load_surrogate(checkpoint)
+    check_charge_study(model, names, estimator, start)
     cfg = at_surrogate_step(cfg, model)
     seeds = range(first_seed, first_seed + packings)
-    start = resolve_start(start, names)
+    theta0 = parameter_values_of(cfg, names)
+    step_of = {name: _parameter_step(name, float(v), steps) for name, v in zip(names, theta0,
+                                                                                strict=True)}
+    # every charge side is a valid DEM run, and the durations whole steps, before any work
+    charge_sides = {name: _charge_sides(cfg, name, float(theta0[names.index(name)]),
+                                        step_of[name]) for name in charge_names}
+    if charge_names:
+        check_ensemble_steps(cfg, duration, burn_in)
+    start = resolve_start(start, design_names)
+    if not design_names:   # the design point's packings are the DEM's in the config's jar
+        start = "packing"
     pk = (make_packings(cfg, seeds, log=progress) if start == "packing"
           else seed_packings(cfg, seeds))
     t_packings = time.perf_counter() - t_start
-    study = design_study(model, cfg, names, pk, duration=duration, burn_in=burn_in,
-                         horizon=horizon, n_segments=n_segments, separation=separation,
-                         estimator=estimator, steps=steps, start=start)
     t0 = time.perf_counter()
-    result = study.estimate()
-    progress("estimate")
-    t_estimate = time.perf_counter() - t0
-    result.update(names=list(study.names), theta0=study.theta0.tolist(),
-                  units={n: parameter_unit(n) for n in study.names}, seeds=list(seeds),
+    curves = {}
+    if design_names:
+        study = design_study(model, cfg, design_names, pk, duration=duration, burn_in=burn_in,
+                             horizon=horizon, n_segments=n_segments, separation=separation,
+                             estimator=estimator,
+                             steps={n: step_of[n] for n in design_names}, start=start)
+        result = study.estimate()
+        progress("estimate")
+        t_estimate = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        d = len(design_names)
+        sides = np.asarray(result.pop("side_powers_W", []), np.float64)
+        for i, name in enumerate(design_names if curve else ()):
+            h = step_of[name]
+            if estimator == "difference":
+                points = {1: sides[i], -1: sides[d + i]}
+            else:
+                points = {}
+                for side in (-1, 1):
+                    theta = study.theta0.copy()
+                    theta[i] += side * h
+                    points[side] = study.powers(theta)
+                    progress(f"curve {name} {side:+d}h")
+            curves[name] = _curve(name, float(study.theta0[i]), h, points,
+                                  (result["power_W"], result["power_se_W"]))
+    else:   # charge parameters only: the design point's ensemble, the curves' middle
+        powers = ensemble_powers(model, cfg, pk, duration, burn_in)
+        progress("ensemble")
+        t_estimate = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mean, se = ensemble_mean(powers)
+        result = {"power_W": mean, "power_se_W": se, "power_per_packing_W": powers.tolist(),
+                  "gradient": {}, "gradient_se": {}, "gradient_per_packing": {}}
+    for name in charge_names:
+        points = {}
+        for side, point in charge_sides[name].items():
+            side_packings = make_packings(point, seeds, log=progress)
+            points[side] = ensemble_powers(model, point, side_packings, duration, burn_in)
+            progress(f"{name} {side:+d}h")
+        i = names.index(name)
+        curves[name] = _curve(name, float(theta0[i]), step_of[name], points,
+                              (result["power_W"], result["power_se_W"]))
+        curves[name]["n_balls"] = [charge_sides[name][-1].balls.n_balls, cfg.balls.n_balls,
+                                   charge_sides[name][1].balls.n_balls]
+        diff = (points[1] - points[-1]) / (2 * step_of[name])
+        result["gradient"][name] = curves[name]["central_difference"]
+        result["gradient_se"][name] = curves[name]["central_difference_se"]
+        result["gradient_per_packing"][name] = diff.tolist()
+    for key in ("gradient", "gradient_se", "gradient_per_packing"):
+        result[key] = {name: result[key][name] for name in names}
+    result.update(names=list(names), theta0=theta0.tolist(),
+                  units={n: parameter_unit(n) for n in names}, seeds=list(seeds),
+                  charge_parameters=list(charge_names),
+                  steps={n: step_of[n] for n in names},
                   duration_s=duration, burn_in_s=burn_in, estimator=estimator, start=start,
                   horizon_steps=horizon, n_segments=n_segments,
                   separation=bool(cfg.rollout.pp_separation if separation is None
                                   else separation))
-    curves = {}
-    t0 = time.perf_counter()
-    d = len(study.names)
-    sides = np.asarray(result.pop("side_powers_W", []), np.float64)
-    for i, name in enumerate(study.names if curve else ()):
-        if estimator == "difference":
-            h = study.ensemble.steps[i]
-            points = {1: sides[i], -1: sides[d + i]}
-        else:
-            h = float((steps or {}).get(name, default_step(name, study.theta0[i])))
-            points = {}
-            for side in (-1, 1):
-                theta = study.theta0.copy()
-                theta[i] += side * h
-                points[side] = study.powers(theta)
-                progress(f"curve {name} {side:+d}h")
-        diff = (points[1] - points[-1]) / (2 * h)
-        curves[name] = {
-            "h": h, "theta": [float(study.theta0[i] - h), float(study.theta0[i]),
-                              float(study.theta0[i] + h)],
-            "power_W": [float(points[-1].mean()), result["power_W"], float(points[1].mean())],
-            "power_se_W": [ensemble_mean(points[-1])[1], result["power_se_W"],
-                           ensemble_mean(points[1])[1]],
-            "central_difference": ensemble_mean(diff)[0],
-            "central_difference_se": ensemble_mean(diff)[1],
-        }
-    result["curves"] = curves
-    result["timing_s"] = {"packings": t_packings, "estimate": t_estimate,
-                          "curves": time.perf_counter() - t0,
-                          "total": time.perf_counter() - t_start}
+    result["curves"] = {name: curves[name] for name in names if name in curves}
+    t_curves = time.perf_counter() - t0
+    timing = {"packings": t_packings, "estimate": t_estimate, "curves": t_curves}
+    if dem:
+        t0 = time.perf_counter()
+        ensemble = DEMEnsemble()
+        result["dem"] = {name: ensemble.central_difference(cfg, name, seeds, duration, burn_in,
+                                                           step=step_of[name],
+                                                           progress=progress)
+                         for name in names}
+        timing["dem"] = time.perf_counter() - t0
+    timing["total"] = time.perf_counter() - t_start
+    result["timing_s"] = timing
     return result
+
+
+def _curve(name: str, value: float, h: float, points: dict[int, np.ndarray],
+           middle: tuple[float, float]) -> dict[str, Any]:
+    """A parameter's curve: the ensemble powers at ``value -+ h`` (``points``, per packing),
+    the design point's (``middle``: mean, SE) between them, and their central difference with
+    the standard error of its per-packing values."""
+    diff = (points[1] - points[-1]) / (2 * h)
+    return {
+        "h": h, "theta": [value - h, value, value + h],
+        "power_W": [float(points[-1].mean()), middle[0], float(points[1].mean())],
+        "power_se_W": [ensemble_mean(points[-1])[1], middle[1], ensemble_mean(points[1])[1]],
+        "central_difference": ensemble_mean(diff)[0],
+        "central_difference_se": ensemble_mean(diff)[1],
+    }
+
+
+def sensitivity_tasks(names: Sequence[str], packings: int, start: str, estimator: str,
+                      curve: bool, dem: bool) -> int:
+    """How many times :func:`sensitivity` calls ``progress`` (for a progress bar)."""
+    design, charge = split_parameters(names)
+    start = resolve_start(start, design) if design else "packing"
+    total = packings if start == "packing" else 0
+    total += 1 + (2 * len(design) if estimator == "horizon" and curve else 0)
+    total += len(charge) * 2 * (packings + 1)
+    return total + (2 * packings * len(names) if dem else 0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -885,6 +1165,47 @@ class DEMEnsemble:
                     [c["n_pp_contacts"] for c in chunks])))}
 
 
+    def central_difference(self, cfg: Config, name: str, seeds: Iterable[int], duration: float,
+                           burn_in: float, *, step: float | None = None,
+                           progress: Callable[[str], None] = lambda stage: None
+                           ) -> dict[str, Any]:
+        """The DEM's ensemble central difference of the power in one parameter ``name`` (a
+        design or a charge parameter) at ``cfg``: ``mean_k (P_k(theta + h) - P_k(theta - h)) /
+        2h`` over the packings of ``seeds`` (common placement seeds; a charge parameter's sides
+        settle packings of their own charge), with the standard error of the per-seed
+        differences: the DEM's side of a :func:`sensitivity`. ``h`` is ``step`` (default
+        :func:`default_step`); the powers are :meth:`power`'s over ``(burn_in, duration]``.
+        ``progress(stage)`` is called after every run.
+
+        Returns a JSON-ready dict: ``name``, ``h``, ``theta`` (theta - h, theta + h),
+        ``n_balls`` at each side, ``power_W`` and ``power_se_W`` at each side, ``powers_W``
+        (per seed, each side), ``central_difference``, ``central_difference_se``,
+        ``differences`` (per seed), ``seeds``.
+        """
+        seeds = _placement_seeds(seeds, "central_difference")
+        value = float(parameter_values_of(cfg, [name])[0])
+        h = _parameter_step(name, value, None if step is None else {name: step})
+        sides = {side: design_config(cfg, [name], [value + side * h]) for side in (-1, 1)}
+        for point in sides.values():   # both sides are valid DEM runs before any work
+            check_dem_config(point, warn=False)
+        powers = {}
+        for side, point in sides.items():
+            runs = []
+            for seed in seeds:
+                runs.append(self.power(point, seed, duration, burn_in)["power_W"])
+                progress(f"DEM {name} {side:+d}h, seed {seed}")
+            powers[side] = np.asarray(runs, np.float64)
+        diff = (powers[1] - powers[-1]) / (2 * h)
+        mean, se = ensemble_mean(diff)
+        return {"name": name, "h": h, "theta": [value - h, value + h],
+                "n_balls": [sides[-1].balls.n_balls, sides[1].balls.n_balls],
+                "power_W": [float(powers[s].mean()) for s in (-1, 1)],
+                "power_se_W": [ensemble_mean(powers[s])[1] for s in (-1, 1)],
+                "powers_W": [powers[s].tolist() for s in (-1, 1)],
+                "central_difference": mean, "central_difference_se": se,
+                "differences": diff.tolist(), "seeds": list(seeds)}
+
+
 def ensemble_mean(values: Sequence[float]) -> tuple[float, float]:
     """Mean and its standard error (ddof 1) of a list of per-packing values."""
     arr = np.asarray(values, np.float64)
@@ -898,17 +1219,25 @@ __all__ = [
     "DesignStudy",
     "Packings",
     "at_surrogate_step",
+    "case_charge",
+    "check_charge_study",
+    "check_ensemble_steps",
     "check_study_sizes",
     "design_config",
     "design_study",
     "ensemble_mean",
+    "ensemble_powers",
     "make_packings",
     "over_packings",
     "parameter_values_of",
+    "reads_charge",
     "resolve_start",
     "rollout_ensemble",
     "rollout_sweep",
     "seed_packings",
     "sensitivity",
+    "sensitivity_tasks",
     "shard_packings",
+    "split_parameters",
+    "surrogate_graph_spec",
 ]

@@ -47,6 +47,7 @@ from sgn_jax.pipelines.configure import (
     charge_from_config,
     contact_law_from_config,
     jar_params_from_config,
+    model_takes_charge,
     motion_from_config,
 )
 from sgn_jax.records.envelope import MotionEnvelope, harmonic_axis_amplitudes
@@ -344,8 +345,11 @@ def charge_key(cfg: Config) -> dict[str, float]:
 
 def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> ModelEnvelope:
     """The envelope a model states in its checkpoint meta (key ``envelope``), or else the one
-    point it was trained at: its training config's motion (within 1 %) and jar."""
+    point it was trained at: its training config's motion (within 1 %) and jar. Its charge is
+    the training config's, except for a kind that reads the charge (``model_takes_charge``:
+    it rolls out any charge) or an envelope that states ``any_charge``."""
     jar = model_config.jar
+    charge = None if model_takes_charge(model_config) else charge_key(model_config)
     jar_key = (jar.radius, jar.straight_length, jar.height, jar.post_radius)
     stated = (meta or {}).get("envelope")
     if stated:
@@ -359,16 +363,15 @@ def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> 
                              jar=None if stated.get("any_jar") else jar_key,
                              source="the model's stated envelope",
                              motion=MotionEnvelope.from_meta(stated),
-                             charge=None if stated.get("any_charge") else charge_key(
-                                 model_config))
+                             charge=None if stated.get("any_charge") else charge)
     m = model_config.motion
     if m.kind == "circle":
         return ModelEnvelope(circle_rpm=(m.rpm * 0.99, m.rpm * 1.01),
                              circle_amplitude=(m.amplitude * 0.99, m.amplitude * 1.01),
                              jar=jar_key, source="the single motion the model was trained on",
-                             charge=charge_key(model_config))
+                             charge=charge)
     return ModelEnvelope(jar=jar_key, source="the single motion the model was trained on",
-                         charge=charge_key(model_config))
+                         charge=charge)
 
 
 def _axis_amplitudes(m: Any) -> list[float]:
