@@ -106,6 +106,7 @@ def _packings_at_rest(cfg: sj.Config, k: int = 2) -> sj.Packings:
     return sj.Packings(windows=windows, t0=w * dt, seeds=tuple(range(k)), config=cfg)
 
 
+@pytest.mark.slow   # ~40 s on one free core: a model setup and an ensemble compile
 def test_an_ensemble_of_a_two_size_charge_carries_the_charge(model):
     cfg = _case(MIXTURE)
     packings = _packings_at_rest(cfg)
