@@ -382,7 +382,7 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
         "for DURATION s from each under the config's jar and motion, and estimate the "
         "ensemble-mean dissipation power over (BURN_IN, DURATION] and its gradient with respect "
         "to each --param (default: the ensemble central difference with common packings, "
-        "step --step or 10 %% of the value; docs/design.md). A charge parameter (balls.*: a "
+        "step --step or 10 % of the value; docs/design.md). A charge parameter (balls.*: a "
         "surrogate that reads the charge, e.g. --checkpoint runs/contact_charge/MODEL) is the "
         "central difference of surrogate ensembles at theta -+ h, each side with DEM packings "
         "of its own charge from the same seeds. --dem adds the DEM's ensemble central "

@@ -1,0 +1,31 @@
+#!/bin/bash
+# The charge-conditioned contact model's training recipe (docs/contact_charge.md, "Training"),
+# stage by stage on one core; each stage warm-starts from the one before and resumes after a
+# kill (rerun this script: a finished stage is skipped). Needs the charge design's DEM records
+# (experiments/charges/make_data.py --split train) and the standard charge's training motions
+# (data/envelope/train_*.npz, docs/training.md).
+#   OUT=runs/contact_charge CORE=1 bash experiments/charges/train.sh
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+OUT=${OUT:-runs/contact_charge}
+CORE=${CORE:-0}
+TRAIN="taskset -c $CORE python -m sgn_jax.pipelines.contact_charge_train_run --config sgn_jax/configs/contact_charge_train.toml --data data/charges"
+CHARGES=$(ls data/charges/*/seed_*.npz | tr '\n' ' ')
+stage() {   # stage NAME ARGS...: skip a finished stage, resume an interrupted one
+    local name=$1; shift
+    if [ -f "$OUT/$name/summary.json" ]; then echo "stage $name done"; return; fi
+    local resume=""
+    [ -d "$OUT/$name/checkpoints/latest" ] && resume="--resume"
+    $TRAIN --out "$OUT/$name" $resume "$@"
+}
+# 1. one-step-ahead behaviour on the charges: short unrolls, a high learning rate (~26 min)
+stage unroll6 --steps 4000 --batch-size 8 --unroll 6
+# 2. long unrolls fed with the model's own predictions, the charges (twice) and the standard
+#    charge's training motions (~8 min)
+stage unroll24 --records $CHARGES data/envelope/train_*.npz \
+    --init-from "$OUT/unroll6/checkpoints/latest" --unroll 24 --pushforward \
+    --lr-init 3e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
+# 3. the contact-state term: the model's balls touch where the DEM's do (~8 min)
+stage touch --records $CHARGES data/envelope/train_*.npz \
+    --init-from "$OUT/unroll24/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
+    --lr-init 2e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
