@@ -187,8 +187,8 @@ def _motion_parameter_problem(name: str, motion: Motion) -> str | None:
     return problem
 
 
-def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tuple[str, ...]:
-    """Validate ``names`` against the motion kind and the jar; returns them as a tuple."""
+def check_parameter_names(names: Sequence[str]) -> tuple[str, ...]:
+    """``names`` as a tuple; DesignError for none, a repeat or an unknown name."""
     names = tuple(names)
     if not names:
         raise DesignError("give at least one design parameter, e.g. 'motion.rpm'")
@@ -196,6 +196,13 @@ def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tu
         raise DesignError(f"design parameters repeat: {list(names)}")
     for name in names:
         parameter_unit(name)
+    return names
+
+
+def check_parameters(names: Sequence[str], motion: Motion, jar: JarParams) -> tuple[str, ...]:
+    """Validate ``names`` against the motion kind and the jar; returns them as a tuple."""
+    names = check_parameter_names(names)
+    for name in names:
         if is_charge_parameter(name):
             raise DesignError(
                 f"{name} is a charge parameter: it changes the balls (and with "

@@ -71,7 +71,12 @@ from sgn_jax.pipelines.experiments import (
     usable_cores,
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
-from sgn_jax.pipelines.rollout_eval import mean_se, rollout_against_dem, summarize_runs
+from sgn_jax.pipelines.rollout_eval import (
+    mean_se,
+    motion_misses,
+    rollout_against_dem,
+    summarize_runs,
+)
 from sgn_jax.pipelines.studies import over_packings, resolve_start
 from sgn_jax.pipelines.validation import check_dem_config
 from sgn_jax.records.cache import enable_compilation_cache
@@ -191,6 +196,7 @@ __all__ = [
     "contact_census",
     "rollout_against_dem",
     "summarize_runs",
+    "motion_misses",
     "mean_se",
     "jar_frame_speed",
     "mse_plateau",

@@ -60,11 +60,7 @@ def charge_bars(summaries: list[dict]) -> tuple[str, bool]:
             miss.append(f"power {s['power_error']:+.1%} (<= 20 %)")
         else:
             miss.append(f"power {s['power_error']:+.1%}")
-        if abs(s["speed_error"]) > SPEED_BAR:
-            miss.append(f"speed {s['speed_error']:+.1%}")
-        for kind in ("pp", "pw"):
-            if abs(s[f"{kind}_touching_error"]) > CONTACTS_BAR:
-                miss.append(f"{kind} contacts {s[f'{kind}_touching_error']:+.1%}")
+        miss += tools.motion_misses(s, SPEED_BAR, CONTACTS_BAR)
         if not s["model_deepest_pp_overlap_rel"] <= OVERLAP_REL_BAR:
             miss.append(f"overlap {s['model_deepest_pp_overlap_rel']:.1%}")
         if s["outside_ball_steps"] or s["non_finite_runs"]:

@@ -107,11 +107,7 @@ def misses(s: dict) -> list[str]:
     bar = power_bar(s["case"], s["power_bar"])
     if abs(s["power_error"]) > bar:
         out.append(f"power {s['power_error']:+.1%} (bar {bar:.0%})")
-    if abs(s["speed_error"]) > SPEED_BAR:
-        out.append(f"speed {s['speed_error']:+.1%}")
-    for kind in ("pp", "pw"):
-        if abs(s[f"{kind}_touching_error"]) > CONTACTS_BAR:
-            out.append(f"{kind} contacts {s[f'{kind}_touching_error']:+.1%}")
+    out += tools.motion_misses(s, SPEED_BAR, CONTACTS_BAR)
     if s["deepest_pp_overlap_m"] > OVERLAP_BAR_M:
         out.append(f"overlap {s['deepest_pp_overlap_m'] * 1e3:.2f} mm")
     if s["snapped_fraction"] > SNAPPED_BAR:

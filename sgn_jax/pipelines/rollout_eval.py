@@ -140,3 +140,17 @@ def summarize_runs(name: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
     out["pp_touching_error"] = (out["model_pp_touching_mean"] - out["dem_pp_touching_mean"]) / out["dem_pp_touching_mean"]
     out["pw_touching_error"] = (out["model_pw_touching_mean"] - out["dem_pw_touching_mean"]) / out["dem_pw_touching_mean"]
     return out
+
+
+def motion_misses(summary: dict[str, Any], speed_bar: float = 0.15,
+                  contacts_bar: float = 0.25) -> list[str]:
+    """The motion bars a case summary (:func:`summarize_runs`) misses: its mean jar-frame speed
+    and its touching ball-ball (``pp``) and ball-wall (``pw``) contacts per step against the
+    DEM's, each as "speed +x %" / "pp contacts +x %"."""
+    out = []
+    if abs(summary["speed_error"]) > speed_bar:
+        out.append(f"speed {summary['speed_error']:+.1%}")
+    for kind in ("pp", "pw"):
+        if abs(summary[f"{kind}_touching_error"]) > contacts_bar:
+            out.append(f"{kind} contacts {summary[f'{kind}_touching_error']:+.1%}")
+    return out

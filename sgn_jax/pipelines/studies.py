@@ -49,6 +49,7 @@ from sgn_jax.design import (
     anchored_window,
     apply_parameters,
     check_batching,
+    check_parameter_names,
     check_parameters,
     default_step,
     is_charge_parameter,
@@ -798,13 +799,7 @@ def split_parameters(names: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, 
     """``names`` split into the design parameters of a rollout (motion, jar) and the charge
     parameters (:data:`sgn_jax.design.CHARGE_PARAMETER_UNITS`), each in the given order;
     DesignError for none, a repeat or an unknown name."""
-    names = tuple(names)
-    if not names:
-        raise DesignError("give at least one design parameter, e.g. 'motion.rpm'")
-    if len(set(names)) != len(names):
-        raise DesignError(f"design parameters repeat: {list(names)}")
-    for name in names:
-        parameter_unit(name)
+    names = check_parameter_names(names)
     return (tuple(n for n in names if not is_charge_parameter(n)),
             tuple(n for n in names if is_charge_parameter(n)))
 
