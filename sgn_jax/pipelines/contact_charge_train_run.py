@@ -52,12 +52,12 @@ from sgn_jax.surrogate.contact_charge_train import (
 from sgn_jax.surrogate.contact_train import (
     ContactTrainState,
     UnrollSpec,
+    init_on_first_stretch,
     make_optimizer,
     make_train_step,
     share_logits,
     velocity_change_scale,
 )
-from sgn_jax.surrogate.graph import Window, build_graph
 from sgn_jax.surrogate.train import TrainingError
 
 
@@ -123,18 +123,7 @@ def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: 
     shares = tangential_damping_shares(trajectories)
 
     example = source.draw(np.random.default_rng(0), 1)
-    window = Window(positions=example.positions[0, : spec.window + 1],
-                    offsets=example.offsets[0, : spec.window],
-                    offset_velocities=example.offset_velocities[0, : spec.window],
-                    frequency_hz=jnp.zeros(()),
-                    spins=None if example.spins is None else example.spins[0, 0],
-                    charge=jax.tree_util.tree_map(lambda a: a[0], example.charge))
-
-    @jax.jit
-    def init_on_example(key, window, sdf):
-        return net.init(key, build_graph(window, sdf, spec, query)[0])["params"]
-
-    params = init_on_example(jax.random.PRNGKey(seed), window, sdf)
+    params = init_on_first_stretch(net, spec, sdf, query, example, jax.random.PRNGKey(seed))
     params = {**params, "share_logit": share_logits(shares)}
     if init_from is not None:   # a later stage: the earlier stage's weights, the same shapes
         warm = restore_checkpoint(init_from).params

@@ -48,13 +48,13 @@ from sgn_jax.surrogate.contact_train import (
     UnrollSpec,
     dissipation_shares,
     impact_stretches,
+    init_on_first_stretch,
     make_optimizer,
     make_train_step,
     make_unroll_loss,
     share_logits,
     velocity_change_scale,
 )
-from sgn_jax.surrogate.graph import Window, build_graph
 from sgn_jax.surrogate.normalization import Moments, NormStats
 from sgn_jax.surrogate.train import TrainingError
 
@@ -176,16 +176,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
     shares = dissipation_shares(trajectories)
 
     example = train_src.draw(np.random.default_rng(0), 1)
-    window = Window(positions=example.positions[0, : spec.window + 1],
-                    offsets=example.offsets[0, : spec.window],
-                    offset_velocities=example.offset_velocities[0, : spec.window],
-                    frequency_hz=jnp.zeros(()),
-                    spins=None if example.spins is None else example.spins[0, 0])
-    @jax.jit  # one program: op by op, the graph and the init are ~300 small compilations (~15 s)
-    def init_on_example(key, window, sdf):
-        return net.init(key, build_graph(window, sdf, spec, query)[0])["params"]
-
-    params = init_on_example(jax.random.PRNGKey(seed), window, sdf)
+    params = init_on_first_stretch(net, spec, sdf, query, example, jax.random.PRNGKey(seed))
     params = {**params, "share_logit": share_logits(shares)}
     if init_from is not None and existing is None:
         params, warm_names = _warm_start(params, restore_checkpoint(init_from).params, init_from)

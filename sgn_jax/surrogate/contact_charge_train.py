@@ -20,11 +20,10 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from sgn_jax.scene import SDFQuery, grid_query
 from sgn_jax.surrogate.contact_charge import ContactChargeNet
-from sgn_jax.surrogate.contact_train import StretchSource, UnrollSpec
+from sgn_jax.surrogate.contact_train import StretchSource, UnrollSpec, per_ball_error
 from sgn_jax.surrogate.graph import BallCharge, GraphSpec, Window, build_graph
 
 F64 = jnp.float64
@@ -113,12 +112,9 @@ def make_charge_unroll_loss(net: ContactChargeNet, spec: GraphSpec, sdf: Any,
     wall_query = query if query is not None else grid_query
 
     def error(new, true, true_prev, scale, mask):
-        if unroll.relative_floor > 0:
-            ref = jnp.sqrt(jnp.sum((true - true_prev) ** 2, axis=-1) + unroll.relative_floor ** 2)
-            ratio = jnp.sqrt(jnp.sum((new - true) ** 2, axis=-1) + 1e-30) / ref
-            per_ball = optax.huber_loss(ratio, delta=1.0)
-        else:
-            per_ball = jnp.sum((new - true) ** 2, axis=-1) / scale ** 2
+        per_ball = per_ball_error(new, true, true_prev, unroll.relative_floor)
+        if not unroll.relative_floor > 0:
+            per_ball = per_ball / scale ** 2
         return jnp.sum(per_ball * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
     def one(params, positions, offsets, offset_velocities, scale, spins, charge, key):
