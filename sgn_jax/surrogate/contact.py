@@ -249,6 +249,107 @@ def edge_kinematics(graph: jraph.GraphsTuple, window: int, dt: float, pp_reach: 
             "gap": gap, "v_t": v_t, "speed_t": speed_t}
 
 
+@dataclasses.dataclass(frozen=True)
+class InputScales:
+    """The scales of a contact's kinematic inputs (m, m/s; scalars, or (E,) per contact):
+    ``clip(gap / gap_coarse, -1, 3)``, ``tanh(gap / gap_fine)``,
+    ``clip(u / speed_coarse, -speed_bound, speed_bound)``, ``tanh(u / speed_fine)``, and the
+    tangential (slip) speeds alike, clipped to ``[0, speed_bound]``."""
+
+    gap_coarse: Any
+    gap_fine: Any
+    speed_coarse: Any
+    speed_fine: Any
+    speed_bound: float
+
+
+@dataclasses.dataclass(frozen=True)
+class GateRule:
+    """How a contact kind bounds overlaps and gates contacts (m; scalars or (E,)):
+    ``limit_on`` (the kind's ``overlap_limit`` > 0), the base limit ``limit``, the law's
+    ``law_factor`` L v^0.8 term with ``law_length`` L (m at ``speed_ref`` m/s), and the gate
+    margin ``gate_margin``."""
+
+    limit_on: bool
+    limit: Any
+    law_factor: float
+    law_length: Any
+    gate_margin: Any
+    speed_ref: float = 1.0
+
+
+def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: jax.Array,
+                 slip_c: jax.Array, *, history: int, dt: float, gravity: Any,
+                 scales: InputScales, gate_rule: GateRule, spin: bool,
+                 constant_inputs: tuple = ()) -> dict[str, jax.Array]:
+    """What every contact kind's :meth:`ContactNet._edge_geometry` builds from the edges'
+    kinematics (:func:`edge_kinematics`) and their slip: the tangent, the wall's relative
+    acceleration term, the inputs (the newest ``history`` slots' gap and gap rate, the
+    tangential and, with ``spin``, slip speeds by ``scales``; then ``constant_inputs``, (E,)
+    each), the overlap limit, the floor that keeps it, the gate (``gate_rule``), and with
+    ``spin`` ``contacts_max``. Returns the keys of :func:`edge_geometry` but ``speed_c`` and
+    the kind's extras."""
+    senders, receivers, is_pp, is_pw = (kin[k] for k in ("senders", "receivers", "is_pp",
+                                                         "is_pw"))
+    jar_vel, normal, u, gap, speed_t = (kin[k] for k in ("jar_vel", "normal", "u", "gap",
+                                                        "speed_t"))
+    w = gap.shape[0]
+    tangent = v_slip / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
+
+    g = jnp.asarray(gravity, DTYPE)
+    # Relative acceleration of the partner along n over one step (m/s): for a wall the jar's
+    # acceleration minus gravity (the ball falls, the jar is held); zero for a pair.
+    jar_dv = jar_vel[-1, senders] - jar_vel[-2, senders]
+    acc_term = jnp.where(is_pw, jnp.einsum("ec,ec->e", jar_dv - g * dt, normal), 0.0)
+
+    sc = scales
+    cols = []
+    for k in range(w - history, w):  # the newest slots, oldest first
+        cols += [jnp.clip(gap[k] / sc.gap_coarse, -1.0, 3.0),
+                 jnp.tanh(gap[k] / sc.gap_fine),
+                 jnp.clip(u[k] / sc.speed_coarse, -sc.speed_bound, sc.speed_bound),
+                 jnp.tanh(u[k] / sc.speed_fine)]
+    cols += [jnp.clip(speed_t / sc.speed_coarse, 0.0, sc.speed_bound),
+             jnp.tanh(speed_t / sc.speed_fine), jnp.tanh(acc_term / sc.speed_fine)]
+    if spin:
+        cols += [jnp.clip(slip_c / sc.speed_coarse, 0.0, sc.speed_bound),
+                 jnp.tanh(slip_c / sc.speed_fine)]
+    inputs = jnp.stack(cols + list(constant_inputs), axis=-1)
+
+    rule = gate_rule
+    gap_end = gap[-1] + u[-1] * dt
+    if rule.limit_on:
+        limit = rule.limit
+        if rule.law_factor > 0:
+            # the approach speed before the contact slowed it: the history's largest closing rate
+            approach = jnp.maximum(-jnp.min(u[w - history:], axis=0), 0.0)
+            limit = jnp.maximum(limit, rule.law_factor * rule.law_length
+                                * jnp.power(approach / rule.speed_ref + 1e-12, 0.8))
+        # The gap at the end of the step is gap + (u + acc_term + du_n) dt (semi-implicit Euler;
+        # du_n raises the gap rate by itself: m* du_n on each ball of a pair of reduced mass m*).
+        floor = jnp.maximum(-(gap[-1] + limit) / dt - u[-1] - acc_term, 0.0)
+    else:
+        limit = jnp.zeros_like(gap_end)
+        floor = jnp.zeros_like(gap_end)
+    reachable = jnp.minimum(gap[-1], gap_end) < rule.gate_margin
+    gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
+    extra = {}
+    if spin:
+        # Each contact's stick impulse is computed as if it were the ball's only one (a Jacobi
+        # sweep); a ball in a bed has several, whose impulses add up and would overshoot (and
+        # pump spin). Relaxed by the larger number of acting contacts of its two balls.
+        n_node = graph.nodes["features"].shape[0]
+        extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
+    return {
+        "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
+        "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
+        "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
+        "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
+        "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
+        "v_node": kin["vel"][-1], "u_n": u[-1], **extra,
+    }
+
+
 def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: bool = False,
                   spin: bool = False):
     """Per directed edge (E rows; E / 2 with ``primary_only``): frame, inputs, which edges act.
@@ -289,11 +390,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     """
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
     kin = edge_kinematics(graph, w, dt, 2.0 * radius, radius, primary_only)
-    senders, receivers, is_pp, is_pw = (kin[k] for k in ("senders", "receivers", "is_pp",
-                                                         "is_pw"))
-    vel, jar_vel, normal, u, gap = (kin[k] for k in ("vel", "jar_vel", "normal", "u", "gap"))
-    v_t, speed_t = kin["v_t"], kin["speed_t"]
-    slots = range(w - h, w)  # the newest h slots, oldest first
+    senders, receivers, is_pw = kin["senders"], kin["receivers"], kin["is_pw"]
+    normal, gap, v_t, speed_t = kin["normal"], kin["gap"], kin["v_t"], kin["speed_t"]
     extra = {}
     if spin:
         if "spin" not in graph.nodes:
@@ -311,57 +409,15 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         extra = {"w_node": w_node, "w_rel": w_r - w_s, "arm": arm, "slip": slip_c}
     else:
         v_slip, slip_c = v_t, speed_t
-    tangent = v_slip / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
-
-    g = jnp.asarray(phys.gravity, DTYPE)
-    # Relative acceleration of the partner along n over one step (m/s): for a wall the jar's
-    # acceleration minus gravity (the ball falls, the jar is held); zero for a pair.
-    jar_dv = jar_vel[-1, senders] - jar_vel[-2, senders]
-    acc_term = jnp.where(is_pw, jnp.einsum("ec,ec->e", jar_dv - g * dt, normal), 0.0)
-
-    cols = []
-    for k in slots:
-        cols += [jnp.clip(gap[k] / GAP_SCALE_COARSE_M, -1.0, 3.0),
-                 jnp.tanh(gap[k] / GAP_SCALE_FINE_M),
-                 jnp.clip(u[k], -10.0, 10.0),
-                 jnp.tanh(u[k] / SPEED_SCALE_FINE)]
-    cols += [jnp.clip(speed_t, 0.0, 10.0), jnp.tanh(speed_t / SPEED_SCALE_FINE),
-             jnp.tanh(acc_term / SPEED_SCALE_FINE)]
-    if spin:
-        cols += [jnp.clip(slip_c, 0.0, 10.0), jnp.tanh(slip_c / SPEED_SCALE_FINE)]
-    inputs = jnp.stack(cols, axis=-1)
-
-    gap_end = gap[-1] + u[-1] * dt
-    if phys.overlap_limit > 0:
-        limit = phys.overlap_limit
-        if phys.overlap_law_factor > 0:
-            # the approach speed before the contact slowed it: the history's largest closing rate
-            approach = jnp.maximum(-jnp.min(u[w - h:], axis=0), 0.0)
-            peak = jnp.where(is_pw, phys.overlap_peak_pw, phys.overlap_peak_pp)
-            limit = jnp.maximum(limit, phys.overlap_law_factor * peak
-                                * jnp.power(approach + 1e-12, 0.8))
-        # The gap at the end of the step is gap + (u + acc_term + du_n) dt (semi-implicit Euler;
-        # du_n raises the gap rate by itself: m* du_n on each ball of a pair of reduced mass m*).
-        floor = jnp.maximum(-(gap[-1] + limit) / dt - u[-1] - acc_term, 0.0)
-    else:
-        limit = jnp.zeros_like(gap_end)
-        floor = jnp.zeros_like(gap_end)
-    reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin
-    gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
-    if spin:
-        # Each contact's stick impulse is computed as if it were the ball's only one (a Jacobi
-        # sweep); a ball in a bed has several, whose impulses add up and would overshoot (and
-        # pump spin). Relaxed by the larger number of acting contacts of its two balls.
-        n_node = graph.nodes["features"].shape[0]
-        extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
-    return {
-        "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
-        "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
-        "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
-        "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
-        "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
-        "v_node": vel[-1], "u_n": u[-1], "speed_c": slip_c, **extra,
-    }
+    peak = (jnp.where(is_pw, phys.overlap_peak_pw, phys.overlap_peak_pp)
+            if phys.overlap_limit > 0 and phys.overlap_law_factor > 0 else 0.0)
+    rows = contact_rows(
+        graph, kin, v_slip, slip_c, history=h, dt=dt, gravity=phys.gravity,
+        scales=InputScales(GAP_SCALE_COARSE_M, GAP_SCALE_FINE_M, 1.0, SPEED_SCALE_FINE, 10.0),
+        gate_rule=GateRule(phys.overlap_limit > 0, phys.overlap_limit, phys.overlap_law_factor,
+                           peak, phys.gate_margin),
+        spin=spin)
+    return {**rows, "speed_c": slip_c, **extra}
 
 
 def _larger_ball_count(flags: jax.Array, receivers: jax.Array, senders: jax.Array,

@@ -66,11 +66,13 @@ from sgn_jax.dem.charge import Charge
 from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
 from sgn_jax.surrogate.contact import (
     DTYPE,
-    TANGENT_EPS,
     ContactModelError,
     ContactNet,
+    GateRule,
+    InputScales,
     _larger_ball_count,
     _safe_norm,
+    contact_rows,
     edge_kinematics,
 )
 from sgn_jax.surrogate.graph import BallCharge
@@ -236,9 +238,8 @@ class ContactChargeNet(ContactNet):
         m_node = jnp.asarray(graph.nodes["mass"], DTYPE)
         r_r, r_s = r_node[receivers], r_node[senders]
         kin = edge_kinematics(graph, w, dt, r_r + r_s, r_r, primary_only=True)
-        is_pp, is_pw = kin["is_pp"], kin["is_pw"]
-        vel, jar_vel, normal, u, gap = (kin[k] for k in ("vel", "jar_vel", "normal", "u", "gap"))
-        v_t, speed_t = kin["v_t"], kin["speed_t"]
+        is_pp = kin["is_pp"]
+        normal, gap, v_t, speed_t = kin["normal"], kin["gap"], kin["v_t"], kin["speed_t"]
         mat = _pair_columns(jnp.asarray(graph.edges["pair"][0::2], DTYPE))
 
         # Effective radius and mass; padding rows (no contact) get the receiver's (finite).
@@ -284,52 +285,21 @@ class ContactChargeNet(ContactNet):
                      "i_node": i_node}
         else:
             v_slip, slip_c = v_t, speed_t
-        tangent = v_slip / jnp.sqrt(slip_c * slip_c + TANGENT_EPS ** 2)[:, None]
-
-        g = jnp.asarray(phys.gravity, DTYPE)
-        jar_dv = jar_vel[-1, senders] - jar_vel[-2, senders]
-        acc_term = jnp.where(is_pw, jnp.einsum("ec,ec->e", jar_dv - g * dt, normal), 0.0)
-
-        cols = []
-        for s in range(w - h, w):
-            cols += [jnp.clip(gap[s] / (GAP_COARSE * scale_l), -1.0, 3.0),
-                     jnp.tanh(gap[s] / (GAP_FINE * scale_l)),
-                     jnp.clip(u[s] / (SPEED_COARSE * scale_v), -5.0, 5.0),
-                     jnp.tanh(u[s] / (SPEED_FINE * scale_v))]
-        cols += [jnp.clip(speed_t / (SPEED_COARSE * scale_v), 0.0, 5.0),
-                 jnp.tanh(speed_t / (SPEED_FINE * scale_v)),
-                 jnp.tanh(acc_term / (SPEED_FINE * scale_v))]
-        if self.spin:
-            cols += [jnp.clip(slip_c / (SPEED_COARSE * scale_v), 0.0, 5.0),
-                     jnp.tanh(slip_c / (SPEED_FINE * scale_v))]
-        cols += [jnp.log10(scale_v / SPEED_REF), mat["restitution"], mat["friction"],
-                 ROLLING_INPUT * mat["rolling_friction"], size_ratio, mass_balance]
-        inputs = jnp.stack(cols, axis=-1)
 
         lengths = scale_l / L_REF
-        gap_end = gap[-1] + u[-1] * dt
-        if phys.overlap_limit > 0:
-            limit = phys.overlap_limit * lengths
-            if phys.overlap_law_factor > 0:
-                approach = jnp.maximum(-jnp.min(u[w - h:], axis=0), 0.0)
-                limit = jnp.maximum(limit, phys.overlap_law_factor * scale_l
-                                    * jnp.power(approach / SPEED_REF + 1e-12, 0.8))
-            floor = jnp.maximum(-(gap[-1] + limit) / dt - u[-1] - acc_term, 0.0)
-        else:
-            limit = jnp.zeros_like(gap_end)
-            floor = jnp.zeros_like(gap_end)
-        reachable = jnp.minimum(gap[-1], gap_end) < phys.gate_margin * lengths
-        gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
-        if self.spin:
-            n_node = graph.nodes["features"].shape[0]
-            extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
+        rows = contact_rows(
+            graph, kin, v_slip, slip_c, history=h, dt=dt, gravity=phys.gravity,
+            scales=InputScales(GAP_COARSE * scale_l, GAP_FINE * scale_l, SPEED_COARSE * scale_v,
+                               SPEED_FINE * scale_v, 5.0),
+            gate_rule=GateRule(phys.overlap_limit > 0, phys.overlap_limit * lengths,
+                               phys.overlap_law_factor, scale_l, phys.gate_margin * lengths,
+                               SPEED_REF),
+            spin=self.spin,
+            constant_inputs=(jnp.log10(scale_v / SPEED_REF), mat["restitution"],
+                             mat["friction"], ROLLING_INPUT * mat["rolling_friction"],
+                             size_ratio, mass_balance))
         return {
-            "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate,
-            "floor": floor, "is_pp": is_pp, "is_pw": is_pw, "senders": senders,
-            "receivers": receivers, "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
-            "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
-            "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
-            "v_node": vel[-1], "u_n": u[-1], "speed_c": slip_c,
+            **rows, "speed_c": slip_c,
             "m_node": m_node, "m_star": m_star, "scale_l": scale_l, "scale_v": scale_v,
             "mu": mat["friction"], "mu_r": mat["rolling_friction"], "k": k, **extra,
         }
