@@ -11,7 +11,7 @@ Two tables (compile time apart, best of ``--repeats``):
 2. **Ball count** (6 mm steel balls, 300 rpm, 24 to 220 balls, as bench_charge_scaling.py): the
    surrogate's time per step and per ball-step, from a 0.03 s DEM run of each count.
 
-    taskset -c 0 python benchmarks/bench_charge_ratio.py --model runs/contact_charge/second \
+    taskset -c 0 python benchmarks/bench_charge_ratio.py --model runs/contact_charge/unroll24 \
         [--markdown docs/benchmarks.md]
 
 Writes JSON to --out; prints markdown tables (or replaces them in --markdown).
@@ -105,9 +105,7 @@ def main() -> None:
         cfg = replace_section(load_config(builtin_config_path("emax_300rpm")), "balls",
                               count=count, radius=0.003)
         with tempfile.TemporaryDirectory() as tmp:
-            run = sj.run_dem(cfg, duration=0.03, seed=0, out_path=Path(tmp) / "r.npz",
-                             progress=False)
-            del run
+            sj.run_dem(cfg, duration=0.03, seed=0, out_path=Path(tmp) / "r.npz", progress=False)
             record = sj.load_trajectory(Path(tmp) / "r.npz")
             row = {"balls": count, **surrogate_seconds_per_second(
                 model, record, replace_section(cfg, "dem", dt=model_dt), args.duration,
