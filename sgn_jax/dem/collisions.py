@@ -133,14 +133,31 @@ class CollisionBuffer:
 
 @flax.struct.dataclass
 class CollisionLedger:
-    """Per-slot tracks of ball-ball (``pp``, K slots) and ball-wall (``pw``, N slots: a ball's
-    contact with the jar, whatever patches it touches) contacts, the wall patch each ball-wall
-    contact first touched (``wall_patch`` (N,) int32) and the event buffer."""
+    """The tracks of every contact slot, ``track`` (K + N slots: the K ball-ball slots of the
+    pair list, then one per ball for its contact with the jar, whatever patches it touches;
+    one track, so that each step updates all slots in one pass), the wall patch each ball-wall
+    contact first touched (``wall_patch`` (N,) int32) and the event buffer. ``pp`` and ``pw``
+    are the two kinds' slots."""
 
-    pp: ContactTrack
-    pw: ContactTrack
+    track: ContactTrack
     wall_patch: jnp.ndarray
     buffer: CollisionBuffer
+
+    @property
+    def n_balls(self) -> int:
+        return self.wall_patch.shape[0]
+
+    @property
+    def pp(self) -> ContactTrack:
+        """The ball-ball slots (K,)."""
+        n = self.n_balls
+        return jax.tree_util.tree_map(lambda a: a[:a.shape[0] - n], self.track)
+
+    @property
+    def pw(self) -> ContactTrack:
+        """The ball-wall slots (N,), one per ball."""
+        n = self.n_balls
+        return jax.tree_util.tree_map(lambda a: a[a.shape[0] - n:], self.track)
 
 
 def empty_track(shape: tuple[int, ...]) -> ContactTrack:
@@ -157,7 +174,7 @@ def empty_track(shape: tuple[int, ...]) -> ContactTrack:
 def empty_ledger(n_pair_slots: int, n_balls: int, capacity: int) -> CollisionLedger:
     """A collision ledger with nothing in progress and an empty buffer of ``capacity`` events."""
     return CollisionLedger(
-        pp=empty_track((n_pair_slots,)), pw=empty_track((n_balls,)),
+        track=empty_track((n_pair_slots + n_balls,)),
         wall_patch=jnp.zeros((n_balls,), jnp.int32),
         buffer=CollisionBuffer(ints=jnp.zeros((capacity, N_INTS), jnp.int64),
                                floats=jnp.zeros((capacity, N_FLOATS), jnp.float64),
@@ -165,9 +182,15 @@ def empty_ledger(n_pair_slots: int, n_balls: int, capacity: int) -> CollisionLed
 
 
 def carry_pp_track(track: ContactTrack, where: jnp.ndarray, found: jnp.ndarray) -> ContactTrack:
-    """The ball-ball tracks after a pair-list rebuild: new slot k takes old slot ``where[k]``
-    when ``found[k]`` (the same pair), else starts empty. A pair in contact is always in the new
-    list (its gap is below the skin), so no event in progress is lost."""
+    """The tracks (K + N slots, :class:`CollisionLedger`) after a pair-list rebuild: new
+    ball-ball slot k takes old slot ``where[k]`` when ``found[k]`` (the same pair), else starts
+    empty; the ball-wall slots stay. A pair in contact is always in the new list (its gap is
+    below the skin), so no event in progress is lost."""
+    k = where.shape[0]
+    n = track.active.shape[0] - k
+    where = jnp.concatenate([where, k + jnp.arange(n, dtype=where.dtype)])
+    found = jnp.concatenate([found, jnp.ones((n,), bool)])
+
     def take(a: jnp.ndarray) -> jnp.ndarray:
         mask = found.reshape(found.shape + (1,) * (a.ndim - 1))
         return jnp.where(mask, a[where], jnp.zeros_like(a))
@@ -178,8 +201,8 @@ def carry_pp_track(track: ContactTrack, where: jnp.ndarray, found: jnp.ndarray) 
 def update_track(track: ContactTrack, step: jnp.ndarray, in_contact: jnp.ndarray,
                  overlap: jnp.ndarray, normal_force: jnp.ndarray, approach_speed: jnp.ndarray,
                  tangential_speed_sq: jnp.ndarray, energy: tuple, spring_old_now: jnp.ndarray,
-                 spring_new: jnp.ndarray) -> tuple[ContactTrack, jnp.ndarray]:
-    """Advance the tracks by one step; returns ``(track, ended)``.
+                 spring_new: jnp.ndarray) -> tuple[ContactTrack, jnp.ndarray, jnp.ndarray]:
+    """Advance the tracks by one step; returns ``(track, started, ended)``.
 
     Args (all over the slots' shape S):
         step: () int64, the DEM step being taken (a contact touching now began at ``step``).
@@ -191,7 +214,8 @@ def update_track(track: ContactTrack, step: jnp.ndarray, in_contact: jnp.ndarray
         spring_old_now, spring_new: J, the tangential spring energy of the old displacement at the
             current stiffness, and the energy stored after the step (ContactForces fields).
 
-    ``ended`` marks the slots whose contact opened this step; the new track holds their
+    ``started`` marks the slots whose contact began this step, ``ended`` those whose contact
+    opened this step; the new track holds their
     values including this step's terms (the energy the spring releases as it opens): a slot
     out of contact keeps the values of its last event until its next one begins.
     """
@@ -216,7 +240,7 @@ def update_track(track: ContactTrack, step: jnp.ndarray, in_contact: jnp.ndarray
                      for e, inc in zip(track.energy, increments, strict=True)),
         spring=spring_new.astype(f64),
     )
-    return new, ended
+    return new, started, ended
 
 
 def write_events(buffer: CollisionBuffer, ended_parts: tuple,
@@ -257,7 +281,7 @@ def restart_window(ledger: CollisionLedger) -> CollisionLedger:
     def restart(track: ContactTrack) -> ContactTrack:
         return track.replace(energy=tuple(jnp.zeros_like(e) for e in track.energy))
 
-    return ledger.replace(pp=restart(ledger.pp), pw=restart(ledger.pw),
+    return ledger.replace(track=restart(ledger.track),
                           buffer=ledger.buffer.replace(count=jnp.zeros((), jnp.int32)))
 
 

@@ -617,7 +617,7 @@ def make_dem_step(
     def step(params: DEMParams, state: DEMState) -> DEMState:
         if mode == "neighbour":
             moved = jnp.max(jnp.sum((state.pos - state.pairs.ref_pos) ** 2, axis=-1))
-            track = None if state.collisions is None else state.collisions.pp
+            track = None if state.collisions is None else state.collisions.track
             pairs, history, track = jax.lax.cond(
                 moved > (0.5 * spec.neighbour_skin) ** 2,
                 lambda parts: _rebuild_pairs(spec, params.radius, state.pos, state.offset,
@@ -625,7 +625,7 @@ def make_dem_step(
                 lambda parts: parts, (state.pairs, state.pp_history, track))
             state = state.replace(pairs=pairs, pp_history=history)
             if track is not None:
-                state = state.replace(collisions=state.collisions.replace(pp=track))
+                state = state.replace(collisions=state.collisions.replace(track=track))
         pos, vel, omega = state.pos, state.vel, state.omega
         radius = jnp.asarray(params.radius, dtype)
         pairs = state.pairs
@@ -727,37 +727,36 @@ def make_dem_step(
             return v_n, jnp.maximum(jnp.sum(v * v, axis=-1) - v_n * v_n, 0.0)
 
         v_n, v_t = speeds(v_rel, pp.normal)
-        track_pp, ended_pp = coll.update_track(
-            collisions.pp, step_now, f_pp.in_contact, pp.overlap, f_pp.normal_total, v_n, v_t,
-            (d_pp.normal, d_pp.tangential, d_pp.slip, d_pp.rolling),
-            f_pp.spring_energy_old_now, f_pp.spring_energy)
-
         deepest_patch = jnp.argmax(pw.overlap, axis=1)                      # (N,)
         deepest = jax.nn.one_hot(deepest_patch, spec.n_patches, dtype=pw.overlap.dtype)
         v_n_w, v_t_w = speeds(v_rel_w, pw.normal)
 
-        def over_patches(x: jnp.ndarray) -> jnp.ndarray:
-            return jnp.sum(x, axis=1)
+        def both(x_pp: jnp.ndarray, x_pw: jnp.ndarray, reduce: Any = jnp.sum) -> jnp.ndarray:
+            """(K + N,) the ball-ball slots' values, then each ball's over its wall patches."""
+            return jnp.concatenate([x_pp, reduce(x_pw, axis=1)])
 
-        track_pw, ended_pw = coll.update_track(
-            collisions.pw, step_now, jnp.any(f_pw.in_contact, axis=1),
-            jnp.max(pw.overlap, axis=1), over_patches(f_pw.normal_total),
-            over_patches(deepest * v_n_w), over_patches(deepest * v_t_w),
-            tuple(over_patches(x) for x in (d_pw.normal, d_pw.tangential, d_pw.slip,
-                                            d_pw.rolling)),
-            over_patches(f_pw.spring_energy_old_now), over_patches(f_pw.spring_energy))
-        patch = jnp.where(track_pw.active & ~collisions.pw.active, deepest_patch.astype(jnp.int32),
-                          collisions.wall_patch)
+        track, started, ended = coll.update_track(
+            collisions.track, step_now, both(f_pp.in_contact, f_pw.in_contact, jnp.any),
+            both(pp.overlap, pw.overlap, jnp.max), both(f_pp.normal_total, f_pw.normal_total),
+            both(v_n, deepest * v_n_w), both(v_t, deepest * v_t_w),
+            tuple(both(getattr(d_pp, k), getattr(d_pw, k))
+                  for k in ("normal", "tangential", "slip", "rolling")),
+            both(f_pp.spring_energy_old_now, f_pw.spring_energy_old_now),
+            both(f_pp.spring_energy, f_pw.spring_energy))
+        n_pp = pairs.i.shape[0]
+        patch = jnp.where(started[n_pp:], deepest_patch.astype(jnp.int32), collisions.wall_patch)
+        ledger = coll.CollisionLedger(track=track, wall_patch=patch, buffer=collisions.buffer)
 
         def rows() -> tuple[jnp.ndarray, jnp.ndarray]:
+            # From the new values only (a slot that ended this step kept its start and its
+            # patch), so that the step needs no copy of the old ones.
             ints = jnp.concatenate([
-                coll.event_ints(pairs.i, pairs.j, False, collisions.pp, step_now),
-                coll.event_ints(balls, collisions.wall_patch, True, collisions.pw, step_now)])
-            floats = jnp.concatenate([track_pp.values, track_pw.values])
-            return ints, floats
+                coll.event_ints(pairs.i, pairs.j, False, ledger.pp, step_now),
+                coll.event_ints(balls, patch, True, ledger.pw, step_now)])
+            return ints, track.values
 
-        buffer = coll.write_events(collisions.buffer, (ended_pp, ended_pw), rows)
-        return coll.CollisionLedger(pp=track_pp, pw=track_pw, wall_patch=patch, buffer=buffer)
+        buffer = coll.write_events(collisions.buffer, (ended,), rows)
+        return coll.CollisionLedger(track=track, wall_patch=patch, buffer=buffer)
 
     return step
 
