@@ -365,7 +365,7 @@ class DEMConfig:
             impacts at known speeds, training data for contact models (docs/contact.md).
         collisions: keep the collision ledger (docs/collisions.md): every contact from first
             touch to separation as one event, written with the trajectory record as
-            ``collision_*`` arrays (it makes the DEM about 18 % slower; false leaves it out).
+            ``collision_*`` arrays (it makes the DEM 14-15 % slower; false leaves it out).
         collision_capacity: events the ledger's buffer holds per chunk of ``chunk_samples``
             samples; 0 (the default) sizes it from the chunk's duration and the ball count
             (1,000 events per ball per second, at least 4,096). More events in a chunk stop
