@@ -335,15 +335,17 @@ def test_cli_charge_sweep_with_a_surrogate_checkpoint(model, tmp_path, session_c
 
 
 def test_a_model_that_reads_the_charge_has_no_training_charge_in_its_envelope():
-    """The envelope of a contact_charge model names no charge (it rolls out any); a model of
-    another kind names every ball count or radius that differs from its training charge."""
+    """The envelope of a contact_charge model names no training charge (it covers the charge
+    envelope, whose notes are the charge envelope's); a model of another kind names every ball
+    count or radius that differs from its training charge."""
     from sgn_jax.pipelines.validation import envelope_notes, model_envelope
 
     std = sj.load_config("emax_300rpm")
     five = _case(FIVE)
     charged = replace_section(std, "model", kind="contact_charge")
     assert model_envelope(charged).charge is None
-    assert not [n for n in envelope_notes(five, model_envelope(charged)) if "charge" in n]
+    assert not [n for n in envelope_notes(five, model_envelope(charged))
+                if "model's charge" in n]
     plain = replace_section(std, "model", kind="contact")
     assert any("[balls] count = 5 differs from the model's charge (24)" in n
                for n in envelope_notes(five, model_envelope(plain)))

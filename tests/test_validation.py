@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -223,3 +224,80 @@ def test_a_charge_the_model_was_not_trained_on_is_named(std):
                                                  "circle_amplitude": [0.01, 0.02],
                                                  "any_charge": True}})
     assert envelope_notes(small, anything) == []
+
+
+def _charge_model(std):
+    """A contact_charge model config and the meta of a checkpoint that states the recipe's
+    envelope (the shipped motion envelope and the shipped charge envelope), built by hand."""
+    from sgn_jax.records.charge_envelope import charge_model_envelope, load_charge_envelope
+    from sgn_jax.records.envelope import load_envelope
+
+    meta = {"envelope": charge_model_envelope(load_envelope(), load_charge_envelope())}
+    return replace_section(std, "model", kind="contact_charge"), meta
+
+
+def test_a_charge_model_warns_naming_a_charge_parameter_outside_its_envelope(std):
+    from sgn_jax.pipelines.validation import warn_outside_envelope
+    from sgn_jax.records.charge_envelope import load_charge_envelope
+    from sgn_jax.records.envelope import load_envelope
+
+    model_cfg, meta = _charge_model(std)
+    small = replace_section(std, "balls", count=373, radius=0.002)  # 4 mm balls, 10 % of the jar
+    expected = "ball class 0 diameter (m) = 0.004 is outside the charge envelope [0.006, 0.015]"
+    with pytest.warns(EnvelopeWarning) as caught:
+        notes = warn_outside_envelope(small, model_cfg, meta)
+    assert notes[:-1] == [expected], notes          # the last note names the envelope's source
+    assert str(caught[0].message) == f"outside the surrogate's envelope: {expected}"
+    # a checkpoint trained before the charge model stated its envelope covers the recipe's
+    derived = model_envelope(model_cfg, {})
+    assert derived.charges == load_charge_envelope() and derived.motion == load_envelope()
+    assert envelope_notes(small, derived)[0] == expected
+
+
+def test_a_charge_model_covers_its_charges_on_the_motion_envelope_and_its_circles(std):
+    from sgn_jax.geometry import jar_volume
+    from sgn_jax.pipelines.configure import jar_params_from_config
+    from sgn_jax.records.charge_envelope import (
+        ball_volume,
+        charge_model_envelope,
+        load_charge_envelope,
+    )
+
+    model_cfg, meta = _charge_model(std)
+    env = model_envelope(model_cfg, meta)
+    volume = float(jar_volume(jar_params_from_config(std.jar)))
+    count = round(0.10 * volume / ball_volume(0.008))          # 8 mm balls, 10 % of the jar
+    eight = replace_section(std, "balls", count=count, radius=0.004)
+    at = lambda cfg, rpm: replace_section(cfg, "motion", rpm=rpm)  # noqa: E731
+    motion1 = load_config(builtin_config_path("motion1"))
+    assert envelope_notes(at(eight, 400.0), env) == []
+    assert envelope_notes(at(eight, 574.0), env) == []        # a charge circle, past 500 rpm
+    assert envelope_notes(motion1, env) == []                   # the motion envelope
+    fast = envelope_notes(at(eight, 650.0), env)                # outside both: both ranges
+    assert any("rpm = 650" in n and "[150, 500]" in n for n in fast), fast
+    assert any("rpm = 650" in n and "charge envelope's circles [200, 600]" in n for n in fast)
+    circles = model_envelope(model_cfg, {"envelope": charge_model_envelope(
+        None, load_charge_envelope())})                         # trained on the circles only
+    assert envelope_notes(at(eight, 574.0), circles) == []
+    assert envelope_notes(motion1, circles)[0].startswith("[motion] kind = 'harmonic': the "
+                                                          "charge envelope's motions are circles")
+    # the contact kind over the motion envelope: no charge circles, its one training charge
+    from sgn_jax.records.envelope import load_envelope
+
+    contact = model_envelope(std, {"envelope": load_envelope().to_meta()})
+    assert contact.charges is None
+    assert any("rpm = 574" in n for n in envelope_notes(at(std, 574.0), contact))
+    assert any("differs from the model's charge" in n for n in envelope_notes(eight, contact))
+
+
+def test_a_charge_training_states_the_circles_and_the_motion_envelope_it_saw(std):
+    from sgn_jax.pipelines.contact_charge_train_run import stated_envelope
+    from sgn_jax.records.envelope import load_envelope
+
+    model_cfg, _ = _charge_model(std)
+    heldout = load_config(Path(__file__).parents[1] / "experiments" / "charges" / "configs"
+                          / "heldout_05.toml")                       # 574 rpm, 17 mm
+    circles = stated_envelope(model_cfg, [heldout])
+    assert set(circles) == {"charge"} and circles["charge"]["rpm"] == [200.0, 600.0]
+    both = stated_envelope(model_cfg, [heldout, load_config(builtin_config_path("motion1"))])
+    assert both == {**load_envelope().to_meta(), "charge": circles["charge"]}

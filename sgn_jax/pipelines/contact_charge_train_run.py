@@ -7,6 +7,8 @@ materials (:func:`sgn_jax.pipelines.configure.charge_from_config`), its ``ball_r
 set (:mod:`sgn_jax.surrogate.contact_charge_train`). The training config (e.g.
 ``sgn_jax/configs/contact_charge_train.toml``) gives the jar (every record must have it), the
 step, the graph and the model; its ``[balls]`` is only the reference ball of the graph's skins.
+The checkpoint states the envelope the model covers (:func:`stated_envelope`, meta key
+``envelope``; docs/contact_charge.md, "What it covers").
 
     python -m sgn_jax.pipelines.contact_charge_train_run --config contact_charge_train \\
         --data data/charges --out runs/contact_charge --steps 200
@@ -34,7 +36,12 @@ from sgn_jax.pipelines.configure import (
     surrogate_walls_from_config,
 )
 from sgn_jax.pipelines.contact_train_run import identity_stats
-from sgn_jax.pipelines.train_run import at_model_step
+from sgn_jax.pipelines.train_run import at_model_step, named_envelope
+from sgn_jax.records.charge_envelope import (
+    charge_circle_notes,
+    charge_model_envelope,
+    load_charge_envelope,
+)
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import write_json
 from sgn_jax.records.trajectory import load_trajectory
@@ -91,6 +98,18 @@ def charge_source(cfg: Any, trajectories: Sequence[Any], n_max: int, classes: in
                                unroll=unroll, spins=spins if spin else None)
 
 
+def stated_envelope(cfg: Any, record_configs: Sequence[Any]) -> dict[str, Any]:
+    """The ``envelope`` meta of a charge model trained on records of ``record_configs``: the
+    charge envelope (sgn_jax/data/charge_envelope.toml: its charges on its circles) and, when
+    a record's motion is not one of those circles (the standard charge's training motions of
+    the recipe's later stages), the motion envelope ``[train] envelope`` names (the default
+    one when it names none): :func:`sgn_jax.records.charge_envelope.charge_model_envelope`."""
+    charges = load_charge_envelope()
+    off_circle = any(charge_circle_notes(c.motion, charges) for c in record_configs)
+    motion = named_envelope(cfg.train.envelope or "default") if off_circle else None
+    return charge_model_envelope(motion, charges)
+
+
 def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: str | Path, *,
                          steps: int = 1000, batch_size: int = 8,
                          unroll: UnrollSpec | None = None, lr_init: float = 1e-3,
@@ -121,6 +140,7 @@ def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: 
     source = charge_source(cfg, trajectories, n_max, classes, unroll.unroll, net.spin)
     sdf, query = surrogate_walls_from_config(cfg)
     shares = tangential_damping_shares(trajectories)
+    envelope = stated_envelope(cfg, [config_from_dict(t.meta["config"]) for t in trajectories])
 
     example = source.draw(np.random.default_rng(0), 1)
     params = init_on_first_stretch(net, spec, sdf, query, example, jax.random.PRNGKey(seed))
@@ -168,7 +188,7 @@ def train_contact_charge(cfg: Any, record_paths: Sequence[str | Path], out_dir: 
         save_checkpoint(ckpt_latest, step, params=state.params,
                         norm_stats=identity_stats(spec.window), opt_state=state.opt_state,
                         meta={"config": config_to_dict(cfg), "info": info,
-                              "global_step": step}, keep=1)
+                              "envelope": envelope, "global_step": step}, keep=1)
         write_json(out_dir / "losses.json", losses)
 
     for step_no in range(first, steps):

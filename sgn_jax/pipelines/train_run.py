@@ -33,7 +33,7 @@ from sgn_jax.config import (
 from sgn_jax.pipelines.configure import graph_spec_from_config, sdf_grid_from_config
 from sgn_jax.pipelines.features import featurize_trajectory
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-from sgn_jax.records.envelope import ENVELOPE_PATH, load_envelope
+from sgn_jax.records.envelope import ENVELOPE_PATH, MotionEnvelope, load_envelope
 from sgn_jax.records.io_utils import atomic_write, git_commit, write_json
 from sgn_jax.surrogate.graph import GraphError, GraphSpec, SDFQuery, make_graph_builder
 from sgn_jax.surrogate.model import ModelKindError, count_params, model_factory, model_kind
@@ -62,14 +62,19 @@ METRIC_FIELDS = ("epoch", "step", "lr", "train_loss", "train_node", "train_globa
                  "best")
 
 
+def named_envelope(name: str) -> MotionEnvelope:
+    """The motion envelope a ``[train] envelope`` value names: "default" (the shipped one,
+    sgn_jax/data/envelope.toml) or a TOML path."""
+    return load_envelope(ENVELOPE_PATH if name == "default" else Path(name))
+
+
 def envelope_meta(train_cfg: Any) -> dict[str, Any]:
     """``{"envelope": ...}`` for a checkpoint's meta when the ``[train]`` section names the
     motion envelope the model is trained for (``envelope`` = "default" or a TOML path), else
     ``{}`` (the model then covers only its training motion: ``model_envelope``)."""
     if not getattr(train_cfg, "envelope", ""):
         return {}
-    path = ENVELOPE_PATH if train_cfg.envelope == "default" else Path(train_cfg.envelope)
-    return {"envelope": load_envelope(path).to_meta()}
+    return {"envelope": named_envelope(train_cfg.envelope).to_meta()}
 
 
 def write_metrics(out_dir: Path, history: list[dict[str, Any]],

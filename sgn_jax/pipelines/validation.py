@@ -22,13 +22,17 @@ The rules, each with its reason (docs/validation.md has the table and the number
   jar speed of :data:`DEM_VALIDATED_PEAK_SPEED` (2000 rpm at 17 mm).
 - **Surrogate envelope** (a warning): a model promises what it was trained on
   (:func:`model_envelope`); outside it the answer may be wrong (docs/results.md section 4, "The
-  motion-general SGN on held-out motions": the paper-setting SGN off its training motion).
+  motion-general SGN on held-out motions": the paper-setting SGN off its training motion). A
+  model that reads the charge also names each charge parameter outside its charge envelope
+  (docs/contact_charge.md, "What it covers").
 
-Pure functions of a :class:`sgn_jax.config.Config`; they never read files.
+Pure functions of a :class:`sgn_jax.config.Config`; they read no file but the shipped
+envelopes, for a charge model whose checkpoint states none.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -50,7 +54,14 @@ from sgn_jax.pipelines.configure import (
     model_takes_charge,
     motion_from_config,
 )
-from sgn_jax.records.envelope import MotionEnvelope, harmonic_axis_amplitudes
+from sgn_jax.records.charge_envelope import (
+    ChargeEnvelope,
+    charge_circle_notes,
+    charge_envelope_notes,
+    charge_model_envelope,
+    load_charge_envelope,
+)
+from sgn_jax.records.envelope import MotionEnvelope, harmonic_axis_amplitudes, load_envelope
 from sgn_jax.records.envelope import envelope_notes as motion_envelope_notes
 
 RSA_FILL_LIMIT = 0.38
@@ -319,7 +330,9 @@ class ModelEnvelope:
     checks are :func:`sgn_jax.records.envelope.envelope_notes`, per-harmonic limits included).
     ``charge``: the one charge the model was trained on, ``{"[balls] count": 24, ...}`` (the
     ball count, radius and density, the material's restitution, friction and rolling
-    friction), or None for any charge.
+    friction), or None for any charge. ``charges``: the charge envelope of a model that reads
+    the charge, or None; such a model covers every charge inside it, on the motions above and
+    on the charge envelope's own circles (``charges.rpm`` at ``charges.amplitude``).
     """
 
     circle_rpm: tuple[float, float] | None = None
@@ -330,6 +343,7 @@ class ModelEnvelope:
     source: str = ""
     motion: MotionEnvelope | None = None
     charge: dict[str, float] | None = None
+    charges: ChargeEnvelope | None = None
 
 
 def charge_key(cfg: Config) -> dict[str, float]:
@@ -343,15 +357,32 @@ def charge_key(cfg: Config) -> dict[str, float]:
             "[material] rolling_friction": material.rolling_friction}
 
 
+@functools.cache
+def recipe_charge_envelope() -> dict[str, Any]:
+    """The ``envelope`` meta of the charge model's training recipe (experiments/charges/
+    train.sh): the shipped motion envelope and the shipped charge envelope. Not to be mutated
+    (cached)."""
+    return charge_model_envelope(load_envelope(), load_charge_envelope())
+
+
 def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> ModelEnvelope:
     """The envelope a model states in its checkpoint meta (key ``envelope``), or else the one
     point it was trained at: its training config's motion (within 1 %) and jar. Its charge is
     the training config's, except for a kind that reads the charge (``model_takes_charge``:
-    it rolls out any charge) or an envelope that states ``any_charge``."""
+    it covers the charge envelope its meta states under ``envelope.charge``) or an envelope
+    that states ``any_charge``. A kind that reads the charge and states no envelope (trained
+    before its checkpoints stated one) covers its training recipe's,
+    :func:`recipe_charge_envelope`."""
     jar = model_config.jar
-    charge = None if model_takes_charge(model_config) else charge_key(model_config)
+    takes_charge = model_takes_charge(model_config)
+    charge = None if takes_charge else charge_key(model_config)
     jar_key = (jar.radius, jar.straight_length, jar.height, jar.post_radius)
     stated = (meta or {}).get("envelope")
+    source = "the model's stated envelope"
+    if not stated and takes_charge:
+        stated = recipe_charge_envelope()
+        source = ("the envelope of the charge model's training recipe "
+                  "(docs/contact_charge.md; its checkpoint states none)")
     if stated:
         def pair(key):
             return tuple(stated[key]) if stated.get(key) is not None else None
@@ -361,9 +392,11 @@ def model_envelope(model_config: Config, meta: dict[str, Any] | None = None) -> 
                              harmonic_base_hz=pair("harmonic_base_hz"),
                              harmonic_max_axis_amplitude=stated.get("harmonic_max_axis_amplitude"),
                              jar=None if stated.get("any_jar") else jar_key,
-                             source="the model's stated envelope",
+                             source=source,
                              motion=MotionEnvelope.from_meta(stated),
-                             charge=None if stated.get("any_charge") else charge)
+                             charge=None if stated.get("any_charge") else charge,
+                             charges=(ChargeEnvelope.from_meta(stated.get("charge"))
+                                      if takes_charge else None))
     m = model_config.motion
     if m.kind == "circle":
         return ModelEnvelope(circle_rpm=(m.rpm * 0.99, m.rpm * 1.01),
@@ -379,10 +412,9 @@ def _axis_amplitudes(m: Any) -> list[float]:
     return [sum(amps) for amps in harmonic_axis_amplitudes(m).values()]
 
 
-def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
-    """Why ``cfg``'s motion and jar lie outside ``envelope`` (empty list: inside)."""
-    notes = []
-    m = cfg.motion
+def _motion_notes(m: Any, envelope: ModelEnvelope) -> list[str]:
+    """Why the motion ``m`` lies outside ``envelope``'s motions (empty list: inside)."""
+    notes: list[str] = []
 
     def outside(value, bounds, what):
         if bounds is None:
@@ -407,6 +439,23 @@ def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
                              f"model's {limit:g} m")
     else:
         notes.append(f"[motion] kind = {m.kind!r}: the model covers no {m.kind} motion")
+    return notes
+
+
+def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
+    """Why ``cfg``'s motion, jar and charge lie outside ``envelope`` (empty list: inside). A
+    motion is inside when it lies in the envelope's motions or, for a model with a charge
+    envelope, on that envelope's circles; outside both, the notes name both ranges."""
+    notes = _motion_notes(cfg.motion, envelope)
+    if envelope.charges is not None:
+        circle = charge_circle_notes(cfg.motion, envelope.charges)
+        if not circle:
+            notes = []
+        elif (envelope.motion is None and envelope.circle_rpm is None
+              and envelope.harmonic_base_hz is None):   # the charge envelope's circles only
+            notes = circle
+        elif notes:
+            notes = notes + circle
     if envelope.jar is not None:
         j = cfg.jar
         key = (j.radius, j.straight_length, j.height, j.post_radius)
@@ -419,6 +468,10 @@ def envelope_notes(cfg: Config, envelope: ModelEnvelope) -> list[str]:
             if not math.isclose(value, trained, rel_tol=1e-6):
                 notes.append(f"{what} = {value:g} differs from the model's charge ({trained:g}): "
                              "it was trained on one charge (docs/charge.md)")
+    if envelope.charges is not None:
+        volume = (float(jar_volume(jar_params_from_config(cfg.jar))) if cfg.jar.kind == "emax"
+                  else None)   # an STL cavity's volume needs its mesh (its jar note is above)
+        notes.extend(charge_envelope_notes(cfg, envelope.charges, volume))
     if notes:
         notes.append(f"the model's envelope is {envelope.source}; outside it its powers and "
                      "gradients are extrapolations (docs/validation.md)")
@@ -452,5 +505,6 @@ __all__ = [
     "max_resolved_impact_speed",
     "model_envelope",
     "motion_peaks",
+    "recipe_charge_envelope",
     "warn_outside_envelope",
 ]

@@ -10,7 +10,13 @@ same material), one size or a mixture of two, at 200-600 rpm.
 it and returns :class:`ChargeDesign` rows; :meth:`ChargeDesign.apply` turns one into a config.
 Optional constraints put chosen rows into a sub-range of one parameter (a held-out set that
 must hold a mixture, a large charge, a light or a bouncy material) while the other parameters
-stay space-filling. :func:`charge_envelope_notes` says why a config's charge lies outside.
+stay space-filling. :func:`charge_envelope_notes` says why a config's charge lies outside,
+:func:`charge_circle_notes` why its motion is not one of the envelope's circles.
+
+A model that reads the charge states the envelope it covers in its checkpoint meta
+(:func:`charge_model_envelope`): the charge envelope under the key ``charge``
+(:meth:`ChargeEnvelope.to_meta`) beside the motion envelope's keys
+(:meth:`sgn_jax.records.envelope.MotionEnvelope.to_meta`) when it was trained over one too.
 """
 
 from __future__ import annotations
@@ -28,10 +34,11 @@ from sgn_jax.config import (
     Config,
     ConfigError,
     MaterialConfig,
+    MotionConfig,
     read_toml,
     replace_section,
 )
-from sgn_jax.records.envelope import bounds_pair
+from sgn_jax.records.envelope import MotionEnvelope, bounds_pair
 
 CHARGE_ENVELOPE_PATH = Path(__file__).resolve().parents[1] / "data" / "charge_envelope.toml"
 CHARGE_MATERIAL = "charge"
@@ -59,6 +66,21 @@ class ChargeEnvelope:
     poisson: float
     rpm: tuple[float, float]
     amplitude: float
+
+    def to_meta(self) -> dict[str, Any]:
+        """The JSON form stored in a checkpoint's ``envelope`` meta under ``charge``."""
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any] | None) -> ChargeEnvelope | None:
+        """The inverse of :meth:`to_meta`; None when ``meta`` is None or lacks one of its
+        keys."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        if not isinstance(meta, dict) or any(meta.get(k) is None for k in names):
+            return None
+        return cls(**{k: (float(meta[k][0]), float(meta[k][1])) if isinstance(meta[k], list)
+                      else float(meta[k]) for k in names})
 
 
 @dataclass(frozen=True)
@@ -210,9 +232,11 @@ def latin_hypercube_charges(env: ChargeEnvelope, n: int, seed: int, jar_volume: 
             for i in range(n)]
 
 
-def charge_envelope_notes(cfg: Config, env: ChargeEnvelope, jar_volume: float) -> list[str]:
+def charge_envelope_notes(cfg: Config, env: ChargeEnvelope, jar_volume: float | None
+                          ) -> list[str]:
     """Why the charge of ``cfg`` lies outside the envelope (empty: inside), one line per
-    parameter, naming the value and the range."""
+    parameter, naming the value and the range. ``jar_volume`` (m^3) is the cavity's; None (an
+    STL cavity, whose volume needs its mesh) leaves the fill unchecked."""
     notes = []
 
     def check(value: float, bounds: tuple[float, float], what: str) -> None:
@@ -229,10 +253,40 @@ def charge_envelope_notes(cfg: Config, env: ChargeEnvelope, jar_volume: float) -
         mat = cfg.material_named(c.material)
         check(mat.restitution, env.restitution, f"ball class {k} restitution")
         check(mat.friction, env.friction, f"ball class {k} friction")
-    check(cfg.balls.solid_volume / jar_volume, env.fill, "the balls' volume fraction of the jar")
+    if jar_volume is not None:
+        check(cfg.balls.solid_volume / jar_volume, env.fill,
+              "the balls' volume fraction of the jar")
     return notes
 
 
+def charge_circle_notes(m: MotionConfig, env: ChargeEnvelope) -> list[str]:
+    """Why the motion ``m`` is not one of the charge envelope's circles, ``env.rpm`` at
+    amplitude ``env.amplitude`` (empty: it is one), naming the value and the range."""
+    if m.kind != "circle":
+        return [f"[motion] kind = {m.kind!r}: the charge envelope's motions are circles "
+                f"({env.rpm[0]:g}-{env.rpm[1]:g} rpm at {env.amplitude:g} m)"]
+    notes = []
+    lo, hi = env.rpm
+    if not lo * (1 - 1e-9) <= m.rpm <= hi * (1 + 1e-9):
+        notes.append(f"[motion] rpm = {m.rpm:g} is outside the charge envelope's circles "
+                     f"[{lo:g}, {hi:g}]")
+    if not math.isclose(m.amplitude, env.amplitude, rel_tol=1e-6):
+        notes.append(f"[motion] amplitude (m) = {m.amplitude:g} is not the charge envelope's "
+                     f"circles' {env.amplitude:g}")
+    return notes
+
+
+def charge_model_envelope(motion: MotionEnvelope | None, charge: ChargeEnvelope
+                          ) -> dict[str, Any]:
+    """The ``envelope`` meta of a model that reads the charge: the keys of ``motion``
+    (:meth:`MotionEnvelope.to_meta`; None: a model trained on the charge envelope's circles
+    only) and ``charge``, the charge envelope (:meth:`ChargeEnvelope.to_meta`). The model
+    covers every charge of ``charge`` on every motion of ``motion`` and on ``charge``'s
+    circles (docs/contact_charge.md, "What it covers")."""
+    return {**(motion.to_meta() if motion is not None else {}), "charge": charge.to_meta()}
+
+
 __all__ = ["CHARGE_ENVELOPE_PATH", "CHARGE_MATERIAL", "ChargeDesign", "ChargeEnvelope",
-           "DIMENSIONS", "ball_volume", "charge_envelope_notes", "design_row",
-           "latin_hypercube_charges", "load_charge_envelope"]
+           "DIMENSIONS", "ball_volume", "charge_circle_notes", "charge_envelope_notes",
+           "charge_model_envelope", "design_row", "latin_hypercube_charges",
+           "load_charge_envelope"]
