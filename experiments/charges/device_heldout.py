@@ -3,7 +3,7 @@ inside a fixed wall-time budget (run by experiments/charges/device_heldout.sh, w
 the call and sets the environment).
 
     python experiments/charges/device_heldout.py --models runs/contact_charge/touch [NAME=PATH ...] \
-        [--seeds 104 105 106 107] [--names heldout_00 ...] [--duration 2.5] [--budget 450] \
+        [--seeds 104 105 106 107] [--names heldout_00 ...] [--duration 2.5] [--budget 470] \
         [--jobs 16] [--cores 0-15] [--work /tmp/device_heldout] [--out $OUT]
 
 One process per job on its own core (``sched_setaffinity``), ``--jobs`` at a time:
@@ -323,9 +323,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[104, 105, 106, 107])
     ap.add_argument("--names", nargs="*", default=None)
     ap.add_argument("--duration", type=float, default=2.5)
-    ap.add_argument("--budget", type=float, default=450.0,
+    ap.add_argument("--budget", type=float, default=470.0,
                     help="s from DH_T0 (the shell script's start) to the end of the packing")
-    ap.add_argument("--eval-reserve", type=float, default=70.0)
+    ap.add_argument("--eval-reserve", type=float, default=60.0)
     ap.add_argument("--pack-reserve", type=float, default=20.0)
     ap.add_argument("--jobs", type=int, default=0, help="processes at a time (0: one per core)")
     ap.add_argument("--cores", default=None, help="e.g. 0-15 (default: this process's cores)")

@@ -5,17 +5,18 @@
 #   bash experiments/charges/device_heldout.sh MODEL [MODEL ...]
 #
 # MODEL: a training run folder or a checkpoint folder, or NAME=PATH (at most 5 models); a model
-# that is not committed travels as a carried ignored path (e.g. runs/contact_charge/touch).
+# that is not committed travels as a carried ignored path (e.g. runs/contact_charge/fourth_touch).
 # Missing Python packages travel as wheels in .whl/ (ignored; carried), installed into $SITE.
 # Settings from the environment (defaults):
 #   SEEDS="104 105 106 107"  NAMES="" (all six)  DURATION=2.5 (s of DEM per record)
-#   BUDGET=450 (s from this script's start to the end of the packing)  JOBS=0 (one per core)
+#   BUDGET=470 (s from this script's start to the end of the packing)  JOBS=0 (one per core)
 #   TRIM_WINDOW=16 TRIM_DT=2e-4 (the trimmed records hold TRIM_WINDOW + 2 samples at TRIM_DT)
 #   WORK=/tmp/device_heldout  OUT (the results; the device tool sets it)  PYTHON=python3
 #   SITE=/tmp/site (where the wheels go)  CORES="" (e.g. 0-15; default: every core allowed)
 #
-# The lead's call of the device tool (`run`, timeout_s 540, carry [".whl", "runs/contact_charge/touch"]):
-#   bash experiments/charges/device_heldout.sh runs/contact_charge/touch
+# The call of the device tool (`run`, timeout_s 540, carry [".whl",
+# "runs/contact_charge/fourth_touch"]; carry a run folder itself, not a symbolic link to it):
+#   bash experiments/charges/device_heldout.sh touch=runs/contact_charge/fourth_touch
 #
 # What comes back ($OUT; experiments/charges/device_heldout.py says more): eval_<model>.json
 # (evaluate.py's JSON over every charge: runs keyed <charge>_seed_<K>, summaries; a later model
@@ -23,7 +24,7 @@
 # records_trimmed.tar.gz (NAME/seed_K.npz, the first window of each new record),
 # logs.tar.gz (every job's log, the per-charge evaluations, the bars, the job table) and
 # device_heldout.log. Each stage is time-bounded: DEM jobs that cannot end by
-# BUDGET - 90 s are skipped or killed, evaluations are killed at BUDGET - 20 s.
+# BUDGET - 80 s are skipped or killed, evaluations are killed at BUDGET - 20 s.
 set -uo pipefail
 export DH_T0=$(date +%s.%N)
 PYTHON=${PYTHON:-python3}
@@ -52,5 +53,5 @@ for m in "$@"; do MODELS+=("$m"); done
 # shellcheck disable=SC2086
 exec "$PYTHON" experiments/charges/device_heldout.py --models "${MODELS[@]}" \
     --seeds ${SEEDS:-104 105 106 107} ${NAMES:+--names $NAMES} --duration "${DURATION:-2.5}" \
-    --budget "${BUDGET:-450}" --jobs "${JOBS:-0}" ${CORES:+--cores $CORES} \
+    --budget "${BUDGET:-470}" --jobs "${JOBS:-0}" ${CORES:+--cores $CORES} \
     --trim-window "${TRIM_WINDOW:-16}" --trim-dt "${TRIM_DT:-2e-4}" --work "$WORK" --out "$OUT"
