@@ -2,7 +2,7 @@
 
     python experiments/charges/evaluate.py --model runs/contact_charge/second \
         [--data data/charges_heldout] [--names heldout_00 ...] [--seeds 100 101 ...] \
-        [--out runs/charge_eval] [--name heldout]
+        [--out runs/charge_eval] [--name heldout] [--dem-reference runs/charge_eval/heldout.json]
     python experiments/charges/evaluate.py --bars runs/charge_eval/heldout.json
 
 Every complete DEM record ``DATA/NAME/seed_K.npz`` of the held-out charges of
@@ -14,6 +14,11 @@ power (the DEM's normal + tangential damping against the model's target), mean j
 touching ball-ball and ball-wall contacts per step (each pair's own r_i + r_j), the deepest
 ball-ball overlap as a fraction of the pair's smaller radius, balls outside, non-finite runs,
 the model's ledger. Resumable (runs already in OUT/NAME.json are kept).
+
+With ``--dem-reference JSON`` (repeatable: earlier evaluations, e.g. of another model on the same
+records) a record whose run (``<charge>_seed_<K>``) is in one of them takes the DEM's numbers
+from that row and rolls out for that row's ``steps``: the record need only hold its first window,
+as a record trimmed by experiments/tools/trim_records.py does (a later file's row wins).
 
 The bars (docs/contact_charge.md): at least 5 of the 6 charges within max(10 %, 2 SE) of the
 DEM's mean power, the sixth within 20 %, Spearman >= 0.9 over the six; speed within 15 %,
@@ -95,6 +100,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="*", default=None)
     ap.add_argument("--out", default="runs/charge_eval")
     ap.add_argument("--name", default="heldout")
+    ap.add_argument("--dem-reference", action="append", default=[], metavar="JSON",
+                    help="an earlier evaluation whose rows give the DEM's numbers and the steps")
     args = ap.parse_args()
     if args.bars:
         for path in args.bars:
@@ -106,6 +113,9 @@ def main() -> None:
     model = tools.load_trained_model(tools.resolve_checkpoint(args.model), which="latest")
     model_dt = float(model.config.dem.dt)
     window = int(model.config.graph.window)
+    refs = {}
+    for path in args.dem_reference:
+        refs.update(json.loads(Path(path).read_text())["runs"])
     design = tomllib.loads((HERE / "design.toml").read_text())["heldout"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -124,9 +134,17 @@ def main() -> None:
             key = f"{name}_{path.stem}"
             if key not in done["runs"]:
                 traj = sj.load_trajectory(path).at_step(model_dt)
-                duration = (len(traj.t) - 2 - window) * model_dt
-                duration = round(duration / model_dt / 10) * 10 * model_dt
-                row = tools.rollout_against_dem(model, cfg, traj, duration, window)
+                ref = refs.get(key)
+                if ref is not None:   # the DEM's side and the interval from the reference
+                    duration = int(ref["steps"]) * model_dt
+                else:
+                    duration = (len(traj.t) - 2 - window) * model_dt
+                    duration = round(duration / model_dt / 10) * 10 * model_dt
+                    if not duration > 0:
+                        raise SystemExit(f"{path} holds {len(traj.t)} samples at "
+                                         f"{model_dt:g} s: too few to compare with the DEM; "
+                                         "give an evaluation of it with --dem-reference")
+                row = tools.rollout_against_dem(model, cfg, traj, duration, window, dem_ref=ref)
                 row["n_balls"] = int(np.shape(traj.pos)[1])
                 done["runs"][key] = row
                 write_json(json_path, done)
@@ -142,6 +160,8 @@ def main() -> None:
             summaries.append(summary)
     done["summaries"] = summaries
     done["model"] = str(args.model)
+    if args.dem_reference:
+        done["dem_reference"] = [str(p) for p in args.dem_reference]
     write_json(json_path, done)
     text, _ = charge_bars(summaries)
     (out / f"{args.name}.md").write_text(text)
