@@ -527,6 +527,11 @@ class ModelConfig:
         overlap_law_factor: kind "contact" only; 0 = off (needs overlap_limit > 0). The limit
             grows with the contact's approach speed as this factor times the DEM contact law's
             own deepest overlap at that speed (fast impacts go as deep as the DEM's, scaled).
+        law_rebound: contact kinds only (needs overlap_law_factor > 0). A fresh impact (a
+            contact whose gap was open within the model's window) ends with the contact law's
+            rebound: once the law's contact time t_c(v) at its closing speed v has passed, the
+            step ends with the pair separating at e v at least (docs/contact.md, "One step",
+            item 7).
         overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed
@@ -545,6 +550,7 @@ class ModelConfig:
     spin: bool = False
     overlap_limit: float = 0.0
     overlap_law_factor: float = 0.0
+    law_rebound: bool = False
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
 
@@ -552,9 +558,10 @@ class ModelConfig:
     # (the SGN, a registered kind) reads every key or refuses a value it cannot use itself.
     _KEYS_BY_KIND = {
         "contact": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
-                    "overlap_law_factor", "overlap_sweeps", "friction_sweeps"},
+                    "overlap_law_factor", "law_rebound", "overlap_sweeps", "friction_sweeps"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
-                           "overlap_law_factor", "overlap_sweeps", "friction_sweeps"},
+                           "overlap_law_factor", "law_rebound", "overlap_sweeps",
+                           "friction_sweeps"},
     }
 
     def __post_init__(self) -> None:
@@ -568,6 +575,10 @@ class ModelConfig:
         if self.overlap_law_factor > 0 and self.overlap_limit <= 0:
             raise ConfigError("[model] overlap_law_factor needs overlap_limit > 0 (the limit of "
                               "a contact at rest, m), got overlap_limit = 0")
+        if self.law_rebound and self.overlap_law_factor <= 0:
+            raise ConfigError("[model] law_rebound = true needs overlap_law_factor > 0 (the "
+                              "law's scale, from which its contact time follows), got "
+                              f"overlap_law_factor = {self.overlap_law_factor}")
         if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
             raise ConfigError(f"[model] overlap_sweeps must be >= 0 and needs overlap_limit > 0 "
                               f"(m), got overlap_sweeps = {self.overlap_sweeps} and "

@@ -789,3 +789,38 @@ def test_the_law_scaled_limit_is_the_dem_laws_own_deepest_overlap():
     assert 0.8 * phys.overlap_peak_pw < phys.overlap_peak_pp < phys.overlap_peak_pw
     with pytest.raises(ConfigError, match="overlap_limit"):
         replace_section(cfg, "model", overlap_limit=0.0)
+
+
+def test_a_fresh_impact_ends_with_the_laws_rebound_once_its_contact_time_has_passed():
+    """``law_rebound`` (``rebound_time_pp/pw``): a ball that met the floor at 0.3 m/s 2.8 slots
+    before the end of the step, longer than the law's contact time there (t_c = ratio peak
+    v^0.8 / v = 225 us), ends the step leaving the floor at e v at least; one whose contact
+    began within the step (50 us before its end) and one resting on the floor keep the
+    network's impulse, as without the rule."""
+    v, e, ratio = 0.3, 0.74, 3.4
+    vel = np.zeros((5, 3))
+    vel[:2, 1] = -v
+    centres = np.array([[0.0, R - 1.8 * v * DT, 0.0],     # fresh: open at the oldest slot
+                        [0.03, R + 0.5 * v * DT, 0.0],    # will touch within this step
+                        [0.06, R - 1e-6, 0.0],            # resting
+                        [0.09, 0.05, 0.0], [0.12, 0.05, 0.0]])   # far from everything
+    pos = centres[None] + np.arange(-W, 1)[:, None, None] * DT * vel[None]   # W + 1 positions
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
+
+    def end_velocity(rebound_time):
+        phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
+                                 "overlap_law_factor": 1.5, "rebound_time_pp": rebound_time,
+                                 "rebound_time_pw": rebound_time, "restitution": e})
+        net = ContactNet(physics=phys, hidden=16, mlp_layers=2, spin=False)
+        params = net.init(jax.random.PRNGKey(0), graph)["params"]
+        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+        return vel + np.asarray(terms["dv"][:5], np.float64)
+
+    t_c = ratio * PHYS.overlap_peak_pw * v ** 0.8 / v
+    assert 2.0 * DT < t_c < 2.8 * DT
+    without, with_rule = end_velocity(0.0), end_velocity(ratio)
+    assert without[0, 1] < e * v - 0.05                   # the network alone: no such rebound
+    assert with_rule[0, 1] >= e * v - 1e-6                # leaving the floor at e v (float32)
+    np.testing.assert_allclose(with_rule[1:], without[1:], rtol=0, atol=1e-12)

@@ -386,3 +386,30 @@ def test_the_touch_term_counts_contacts_the_model_and_the_dem_disagree_on():
     # a ball the model leaves on the wall that the DEM's left
     wall_m = far.at[0].set(-0.005 + 1e-6)
     assert float(touch_mismatch(x_dem, x_dem, radius, present, wall_m, far)) > 0.15
+
+
+def test_the_law_rebound_time_of_a_pair_depends_on_its_restitution_alone():
+    """The pair table's ``rebound_time`` (the law's head-on contact time times the speed over
+    its peak overlap, :func:`head_on_contact_time`) is the same for every size and mass of a
+    material pair (the law is self-similar), grows as the restitution falls (longer damped
+    contacts), and tends to Hertz's elastic 2.94 as e -> 1 (its time, 2.87 (m*^2 / (R* Y*^2
+    v))^(1/5), within 1 %)."""
+    from sgn_jax.dem.contact import head_on_contact_time, hertz_contact_time
+    from sgn_jax.surrogate.contact_charge import PAIR_COLUMNS, pair_table
+
+    column = PAIR_COLUMNS.index("rebound_time")
+    table = pair_table(MIX)[..., column]             # steel-steel, steel-zirconia, walls
+    for a, b in ((0, 0), (0, 2), (1, 2)):            # class 1: zirconia, class 2: the wall
+        assert np.isfinite(table[a, b]) and table[a, b] > 2.94
+    law_a = make_contact_law(2.05e9, 0.235, 0.3, 0.3, 0.0, 0.005, 0.004)
+    law_b = make_contact_law(2.05e9, 0.235, 0.3, 0.3, 0.0, 0.0015, 2e-4, radius_2=0.007,
+                             mass_2=0.01)
+    ratio_a = head_on_contact_time(law_a) / head_on_peak_overlap(law_a)
+    assert ratio_a == pytest.approx(table[0, 2], rel=1e-6)   # steel ball, steel wall
+    assert head_on_contact_time(law_b) / head_on_peak_overlap(law_b) == pytest.approx(ratio_a,
+                                                                                    rel=2e-3)
+    bouncy = make_contact_law(2.05e9, 0.235, 0.74, 0.3, 0.0, 0.005, 0.004)
+    assert head_on_contact_time(bouncy) / head_on_peak_overlap(bouncy) < ratio_a
+    elastic = make_contact_law(2.05e9, 0.235, 0.999, 0.3, 0.0, 0.005, 0.004)
+    assert head_on_contact_time(elastic, 0.5) == pytest.approx(hertz_contact_time(elastic, 0.5),
+                                                               rel=0.01)

@@ -149,6 +149,23 @@ def head_on_peak_overlap(law: ContactLaw, speed: float = 1.0, steps: int = 2000)
     return d
 
 
+def head_on_contact_time(law: ContactLaw, speed: float = 1.0, steps: int = 2000) -> float:
+    """The duration (s) of a head-on impact at ``speed`` m/s under ``law``, from first touch
+    until the overlap is back to zero (its Hertz spring and damping, no gravity), integrated
+    with ``steps`` steps per Hertz contact time. Self-similar like the peak
+    (:func:`head_on_peak_overlap`): it scales as speed^-0.2, so ``speed * time / peak`` depends
+    on the restitution alone (5.09 at e = 0.3, 3.41 at 0.74; Hertz's elastic 2.94). numpy, host
+    side (the contact models' law rebound)."""
+    h = hertz_contact_time(law, speed) / steps
+    d, rate, t = 0.0, float(speed), 0.0
+    while True:
+        rate -= float(head_on_normal_force(law, d, rate)) / law.mass_eff * h
+        d += rate * h
+        t += h
+        if d <= 0.0:
+            return t
+
+
 # --------------------------------------------------------------------------------------------
 # Forces
 

@@ -61,7 +61,7 @@ import jax
 import jax.numpy as jnp
 import jraph
 
-from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
+from sgn_jax.dem.contact import head_on_contact_time, head_on_peak_overlap, make_contact_law
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.surrogate.collisions import contact_grid
 from sgn_jax.surrogate.graph import SLOT_DIM
@@ -117,6 +117,15 @@ class ContactPhysics:
         overlap_peak_pp, overlap_peak_pw: m, the DEM law's deepest overlap of a head-on impact
             at 1 m/s, ball-ball and ball-wall (:func:`sgn_jax.dem.contact.head_on_peak_overlap`;
             ``physics_from_config`` sets them from the config's material).
+        rebound_time_pp, rebound_time_pw, restitution: the law rebound (``[model]
+            law_rebound``; 0 = off; needs ``overlap_law_factor``): the DEM law's
+            ``v t_c(v) / peak(v)`` (its head-on contact time at speed v over its peak,
+            :func:`sgn_jax.dem.contact.head_on_contact_time`; 3.4 for e = 0.74, 5.1 for 0.3)
+            and its restitution e. A fresh impact (a contact whose gap was open at a slot of
+            the window) that began more than ``t_c(v) = ratio * peak * v^0.8 / v`` before the
+            end of the step is over in the DEM, its balls separating at e v: its normal impulse
+            is at least the one that ends the step separating at e v (docs/contact.md, "One
+            step", item 7).
         overlap_sweeps: 0 = off (``[model] overlap_sweeps``; needs ``overlap_limit`` > 0). The
             floor above is computed for each contact alone; in a chain (a ball struck while it
             rests on others, a bed compressed by an impact) the impulses of a ball's other
@@ -151,6 +160,9 @@ class ContactPhysics:
     overlap_law_factor: float = 0.0
     overlap_peak_pp: float = 4.53e-5
     overlap_peak_pw: float = 5.21e-5
+    rebound_time_pp: float = 0.0
+    rebound_time_pw: float = 0.0
+    restitution: float = 0.0
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
 
@@ -172,6 +184,9 @@ class ContactPhysics:
         if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
             raise ContactModelError(f"overlap_sweeps must be >= 0 and needs overlap_limit > 0, "
                                     f"got {self.overlap_sweeps} and {self.overlap_limit}")
+        if self.rebound_time_pp and self.overlap_law_factor <= 0:
+            raise ContactModelError("the law rebound (rebound_time_pp/pw > 0) needs the law's "
+                                    "limit (overlap_law_factor > 0)")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
 
@@ -268,7 +283,10 @@ class GateRule:
     """How a contact kind bounds overlaps and gates contacts (m; scalars or (E,)):
     ``limit_on`` (the kind's ``overlap_limit`` > 0), the base limit ``limit``, the law's
     ``law_factor`` L v^0.8 term with ``law_length`` L (m at ``speed_ref`` m/s), and the gate
-    margin ``gate_margin``."""
+    margin ``gate_margin``. ``rebound_time`` (None: off; needs the law term) and
+    ``restitution``: the law's ``v t_c(v) / peak(v)`` (its contact time over its peak,
+    :func:`sgn_jax.dem.contact.head_on_contact_time`) and restitution, for the law rebound of
+    :func:`contact_rows`."""
 
     limit_on: bool
     limit: Any
@@ -276,6 +294,8 @@ class GateRule:
     law_length: Any
     gate_margin: Any
     speed_ref: float = 1.0
+    rebound_time: Any = None
+    restitution: Any = None
 
 
 def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: jax.Array,
@@ -328,6 +348,33 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
         # The gap at the end of the step is gap + (u + acc_term + du_n) dt (semi-implicit Euler;
         # du_n raises the gap rate by itself: m* du_n on each ball of a pair of reduced mass m*).
         floor = jnp.maximum(-(gap[-1] + limit) / dt - u[-1] - acc_term, 0.0)
+        if rule.rebound_time is not None:
+            # Fresh impacts (the law's rebound, complete at the law's contact time). A contact
+            # whose gap was open at some slot of the window began at a time the slots tell:
+            # between the last open slot k and the next (or, open now, within this step). In
+            # the DEM an impact at closing speed v lasts t_c(v) = ratio L v^0.8 / v and ends
+            # with the pair separating at e v; when it began more than t_c before the end of
+            # this step, the step ends with the pair moving apart at e v at least.
+            apart = gap > 0                                                  # (W, E)
+            fresh = jnp.any(apart, axis=0)
+            k_a = w - 1 - jnp.argmax(apart[::-1], axis=0)                   # last open slot
+            k_b = jnp.minimum(k_a + 1, w - 1)
+
+            def at(x: jax.Array, k: jax.Array) -> jax.Array:
+                return jnp.take_along_axis(x, k[None], axis=0)[0]
+
+            gap_a, gap_b = at(gap, k_a), at(gap, k_b)
+            closing = jnp.maximum(jnp.maximum(-at(u, k_a), -at(u, k_b)), 0.0)
+            open_now = k_a == w - 1
+            # the share of the interval after slot k_a before the first touch
+            share = jnp.where(open_now, gap_a / jnp.maximum((closing + 1e-12) * dt, 1e-30),
+                              gap_a / jnp.maximum(gap_a - gap_b, 1e-30))
+            since_touch = (w - k_a - share) * dt               # s, at the end of this step
+            t_contact = (rule.rebound_time * rule.law_length
+                         * jnp.power(closing / rule.speed_ref + 1e-12, -0.2) / rule.speed_ref)
+            over = fresh & (closing > 0) & (since_touch > t_contact)
+            rebound = rule.restitution * closing - u[-1] - acc_term
+            floor = jnp.where(over, jnp.maximum(floor, rebound), floor)
     else:
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
@@ -415,7 +462,11 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
         graph, kin, v_slip, slip_c, history=h, dt=dt, gravity=phys.gravity,
         scales=InputScales(GAP_SCALE_COARSE_M, GAP_SCALE_FINE_M, 1.0, SPEED_SCALE_FINE, 10.0),
         gate_rule=GateRule(phys.overlap_limit > 0, phys.overlap_limit, phys.overlap_law_factor,
-                           peak, phys.gate_margin),
+                           peak, phys.gate_margin,
+                           rebound_time=(jnp.where(is_pw, phys.rebound_time_pw,
+                                                   phys.rebound_time_pp)
+                                         if phys.rebound_time_pp > 0 else None),
+                           restitution=phys.restitution),
         spin=spin)
     return {**rows, "speed_c": slip_c, **extra}
 
@@ -897,6 +948,10 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
             law = make_contact_law(mat.young, mat.poisson, mat.restitution, mat.friction,
                                    mat.rolling_friction, radius, mass, **partner)
             peaks[f"overlap_peak_{kind}"] = head_on_peak_overlap(law)
+            if getattr(cfg.model, "law_rebound", False):
+                peaks[f"rebound_time_{kind}"] = (head_on_contact_time(law)
+                                                / peaks[f"overlap_peak_{kind}"])
+                peaks["restitution"] = float(mat.restitution)
     return ContactPhysics(ball_radius=radius, ball_mass=mass, dt=float(cfg.dem.dt),
                           gravity=tuple(float(g) for g in cfg.dem.gravity),
                           friction=float(cfg.material.friction), window=int(cfg.graph.window),

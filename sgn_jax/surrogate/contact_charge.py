@@ -63,7 +63,7 @@ import jraph
 import numpy as np
 
 from sgn_jax.dem.charge import Charge
-from sgn_jax.dem.contact import head_on_peak_overlap, make_contact_law
+from sgn_jax.dem.contact import head_on_contact_time, head_on_peak_overlap, make_contact_law
 from sgn_jax.surrogate.contact import (
     DTYPE,
     ContactModelError,
@@ -82,8 +82,11 @@ from sgn_jax.surrogate.model import register_model
 # table's last class): restitution, Coulomb friction, rolling friction (EDEM type A), the Hertz
 # effective modulus Y* (Pa) and the law's peak coefficient, the deepest overlap of a head-on
 # impact at 1 m/s over (m* / (Y* sqrt(R*)))^(2/5) (the law is self-similar: it depends on the
-# restitution alone, so a ball of any size of the class pair gets its L from it).
-PAIR_COLUMNS = ("restitution", "friction", "rolling_friction", "young_eff", "peak_coef")
+# restitution alone, so a ball of any size of the class pair gets its L from it), and the
+# law's v t_c(v) / peak(v) (its contact time over its peak, also a function of the restitution
+# alone: the law rebound of ChargePhysics.law_rebound).
+PAIR_COLUMNS = ("restitution", "friction", "rolling_friction", "young_eff", "peak_coef",
+                "rebound_time")
 PAIR_DIM = len(PAIR_COLUMNS)
 
 L_REF = 4.53e-5          # m, the standard 10 mm steel ball-ball peak at 1 m/s (the contact kind's)
@@ -115,6 +118,9 @@ class ChargePhysics:
         wall_patches: the graphs' ``GraphSpec.wall_patches`` or None (as the contact kind's).
         overlap_limit: m at L_REF; 0 = off. overlap_law_factor: c (0 = off); the limit of a
             contact is ``max(overlap_limit L / L_REF, c L v^0.8)``.
+        law_rebound: fresh impacts end with each contact's own law's rebound, as the contact
+            kind's ``rebound_time_pp/pw`` (the pair table's ``rebound_time`` column; needs
+            ``overlap_law_factor``).
         overlap_sweeps, friction_sweeps: as the contact kind's.
     """
 
@@ -126,6 +132,7 @@ class ChargePhysics:
     wall_patches: int | None = None
     overlap_limit: float = 0.0
     overlap_law_factor: float = 0.0
+    law_rebound: bool = False
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
 
@@ -134,6 +141,8 @@ class ChargePhysics:
             raise ContactModelError(f"history must be in 1..window={self.window}, got {self.history}")
         if not (self.overlap_limit >= 0 and self.overlap_law_factor >= 0):
             raise ContactModelError("overlap_limit and overlap_law_factor must be >= 0")
+        if self.law_rebound and self.overlap_law_factor <= 0:
+            raise ContactModelError("law_rebound needs the law's limit (overlap_law_factor > 0)")
         if self.overlap_law_factor > 0 and self.overlap_limit <= 0:
             raise ContactModelError("overlap_law_factor needs overlap_limit > 0")
         if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
@@ -153,8 +162,9 @@ def _pair_row(a_material: Any, b_material: Any, rule: Any, radius_1: float, mass
                            radius_2=radius_2, mass_2=mass_2, young_2=b_material.young,
                            poisson_2=b_material.poisson)
     scale = (law.mass_eff / (law.young_eff * math.sqrt(law.radius_eff))) ** 0.4
+    peak = head_on_peak_overlap(law)
     return [rule.restitution, rule.friction, rule.rolling_friction, law.young_eff,
-            head_on_peak_overlap(law) / scale]
+            peak / scale, head_on_contact_time(law) / peak]
 
 
 def pair_table(charge: Charge, classes: int | None = None) -> np.ndarray:
@@ -293,7 +303,9 @@ class ContactChargeNet(ContactNet):
                                SPEED_FINE * scale_v, 5.0),
             gate_rule=GateRule(phys.overlap_limit > 0, phys.overlap_limit * lengths,
                                phys.overlap_law_factor, scale_l, phys.gate_margin * lengths,
-                               SPEED_REF),
+                               SPEED_REF,
+                               rebound_time=mat["rebound_time"] if phys.law_rebound else None,
+                               restitution=mat["restitution"]),
             spin=self.spin,
             constant_inputs=(jnp.log10(scale_v / SPEED_REF), mat["restitution"],
                              mat["friction"], ROLLING_INPUT * mat["rolling_friction"],
@@ -456,6 +468,7 @@ def physics_from_config(cfg: Any) -> ChargePhysics:
                          window=int(cfg.graph.window), wall_patches=int(cfg.graph.wall_patches),
                          overlap_limit=float(getattr(cfg.model, "overlap_limit", 0.0)),
                          overlap_law_factor=float(getattr(cfg.model, "overlap_law_factor", 0.0)),
+                         law_rebound=bool(getattr(cfg.model, "law_rebound", False)),
                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)))
 
