@@ -647,6 +647,9 @@ class TrainStage:
         position_noise: m, std of the random-walk noise on the training positions (0 = off).
         batch_size: stretches per optimiser step.
         checkpoint_every: steps between checkpoints and log lines.
+        init_from: a checkpoint the stage starts from instead of the previous stage's best (a
+            shipped model's name such as "contact", a training run or a checkpoint directory;
+            a fine-tuning stage); empty: the previous stage's best, the first from scratch.
     """
 
     name: str
@@ -662,6 +665,7 @@ class TrainStage:
     position_noise: float = 0.0
     batch_size: int = 32
     checkpoint_every: int = 100
+    init_from: str = ""
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_-]+", self.name):

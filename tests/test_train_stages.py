@@ -107,6 +107,25 @@ def test_a_pattern_without_records_is_refused_before_any_work(tmp_path, data_dir
         "r3.npz", "r1.npz", "r2.npz"]
 
 
+def test_a_stage_starts_from_the_checkpoint_it_names(tmp_path, data_dir):
+    """``init_from``: a fine-tuning stage starts from a training run's best checkpoint (or a
+    shipped model's); one that names nothing that exists is refused before any work."""
+    base = tmp_path / "base"
+    train_stages(staged_config(stage("first", ["a/*.npz"])), data_dir, base, progress=False,
+                 load=load_synthetic, log=lambda _: None)
+    out = tmp_path / "tuned"
+    train_stages(staged_config(stage("tune", ["b/*.npz"], init_from=str(base / "first"))),
+                 data_dir, out,
+                 progress=False, load=load_synthetic, log=lambda _: None)
+    info = json.loads((out / "tune" / "run_info.json").read_text())
+    assert info["init_from"] == str(base / "first" / "checkpoints" / "best")
+    missing = staged_config(stage("tune", ["b/*.npz"], init_from=str(tmp_path / "nothing")))
+    with pytest.raises(TrainingError, match="init_from"):
+        train_stages(missing, data_dir, tmp_path / "never", progress=False,
+                     load=load_synthetic, log=lambda _: None)
+    assert not (tmp_path / "never").exists()
+
+
 def test_stage_settings_are_checked():
     with pytest.raises(ConfigError, match="schedule_steps"):
         stage("s", ["a/*.npz"], steps=10, schedule_steps=5)

@@ -40,6 +40,7 @@ from sgn_jax.pipelines.train_run import (
 )
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import git_commit, write_json
+from sgn_jax.records.shipped_models import ShippedModelError, resolve_checkpoint
 from sgn_jax.records.trajectory import load_trajectory
 from sgn_jax.surrogate.contact import make_contact_net
 from sgn_jax.surrogate.contact_train import (
@@ -304,6 +305,18 @@ def stage_records(data_dir: str | Path, patterns: Sequence[str]) -> list[Path]:
     return files
 
 
+def stage_start(init_from: str) -> Path:
+    """The checkpoint directory a stage's ``init_from`` names (a shipped model's name, a
+    training run, whose ``checkpoints/best`` it takes, or a checkpoint directory); refused
+    before any work when it does not exist."""
+    try:
+        path = resolve_checkpoint(init_from)
+    except ShippedModelError as exc:
+        raise TrainingError(f"[[train.stages]] init_from = {init_from!r}: {exc}") from exc
+    best = path / "checkpoints" / "best"
+    return best if best.is_dir() else path
+
+
 def train_stages(cfg: Any, data_dir: str | Path, out_dir: str | Path, *,
                  resume: bool = False, progress: bool = True,
                  load: Callable[[Path], Any] | None = None,
@@ -312,7 +325,8 @@ def train_stages(cfg: Any, data_dir: str | Path, out_dir: str | Path, *,
 
     Stage ``k`` trains in ``out_dir/<name>/`` with :func:`train_contact` on the records its
     globs match under ``data_dir``; a stage after the first warm-starts from the previous
-    stage's ``checkpoints/best``. Every stage's record patterns are checked before the first
+    stage's ``checkpoints/best``, a stage with ``init_from`` from that checkpoint
+    (:func:`stage_start`). Every stage's record patterns are checked before the first
     step. With ``resume=True`` a finished stage (its ``summary.json`` written with all its
     steps) is skipped and an interrupted one goes on from its latest checkpoint, so a killed
     run continues where it stopped. ``load`` reads a record (default
@@ -328,6 +342,7 @@ def train_stages(cfg: Any, data_dir: str | Path, out_dir: str | Path, *,
     load = load_trajectory if load is None else load
     out_dir = Path(out_dir)
     files_of = {stage.name: stage_records(data_dir, stage.records) for stage in stages}
+    starts = {stage.name: stage_start(stage.init_from) for stage in stages if stage.init_from}
     if out_dir.exists() and any(out_dir.iterdir()) and not resume:
         raise TrainingError(f"{out_dir} already holds a training run; pass resume=True "
                             "(--resume) to continue it or choose another --out")
@@ -347,6 +362,7 @@ def train_stages(cfg: Any, data_dir: str | Path, out_dir: str | Path, *,
                 previous_best = stage_dir / "checkpoints" / "best"
                 continue
         files = files_of[stage.name]
+        previous_best = starts.get(stage.name, previous_best)
         log(f"stage {k + 1}/{len(stages)} {stage.name}: {stage.steps} steps, unroll "
             f"{stage.unroll}, {len(files)} records"
             + (f", from {previous_best}" if previous_best is not None else ", from scratch"))
