@@ -9,14 +9,15 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT=${OUT:-runs/contact_charge}
 CORE=${CORE:-0}
-TRAIN="taskset -c $CORE python -m sgn_jax.pipelines.contact_charge_train_run --config sgn_jax/configs/contact_charge_train.toml --data data/charges"
+DRIVER="taskset -c $CORE python -m sgn_jax.pipelines.contact_charge_train_run --data data/charges"
+TRAIN="$DRIVER --config sgn_jax/configs/contact_charge_train.toml"
 CHARGES=$(ls data/charges/*/seed_*.npz | tr '\n' ' ')
 stage() {   # stage NAME ARGS...: skip a finished stage, resume an interrupted one
     local name=$1; shift
     if [ -f "$OUT/$name/summary.json" ]; then echo "stage $name done"; return; fi
     local resume=""
     [ -d "$OUT/$name/checkpoints/latest" ] && resume="--resume"
-    $TRAIN --out "$OUT/$name" $resume "$@"
+    ${TRAINER:-$TRAIN} --out "$OUT/$name" $resume "$@"
 }
 # 1. one-step-ahead behaviour on the charges: short unrolls, a high learning rate (~26 min)
 stage unroll6 --steps 4000 --batch-size 8 --unroll 6
@@ -28,4 +29,9 @@ stage unroll24 --records $CHARGES data/envelope/train_*.npz \
 # 3. the contact-state term: the model's balls touch where the DEM's do (~8 min)
 stage touch --records $CHARGES data/envelope/train_*.npz \
     --init-from "$OUT/unroll24/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
+    --lr-init 2e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
+# 4. the law rebound on (experiments/charges/rebound_train.toml), the same settings (~8 min)
+TRAINER="$DRIVER --config experiments/charges/rebound_train.toml" \
+stage rebound --records $CHARGES data/envelope/train_*.npz \
+    --init-from "$OUT/touch/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
     --lr-init 2e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
