@@ -9,7 +9,7 @@ import pytest
 
 import sgn_jax.api as sj
 from sgn_jax.config import ConfigError, TrainStage, resolve_config
-from sgn_jax.pipelines.contact_train_run import stage_records, train_stages
+from sgn_jax.pipelines.contact_train_run import stage_records, stage_start, train_stages
 from sgn_jax.surrogate.train import TrainingError
 from sgn_jax.testing import synthetic_trajectory
 
@@ -107,23 +107,27 @@ def test_a_pattern_without_records_is_refused_before_any_work(tmp_path, data_dir
         "r3.npz", "r1.npz", "r2.npz"]
 
 
+@pytest.mark.slow
 def test_a_stage_starts_from_the_checkpoint_it_names(tmp_path, data_dir):
     """``init_from``: a fine-tuning stage starts from a training run's best checkpoint (or a
-    shipped model's); one that names nothing that exists is refused before any work."""
+    shipped model's)."""
     base = tmp_path / "base"
     train_stages(staged_config(stage("first", ["a/*.npz"])), data_dir, base, progress=False,
                  load=load_synthetic, log=lambda _: None)
     out = tmp_path / "tuned"
     train_stages(staged_config(stage("tune", ["b/*.npz"], init_from=str(base / "first"))),
-                 data_dir, out,
-                 progress=False, load=load_synthetic, log=lambda _: None)
+                 data_dir, out, progress=False, load=load_synthetic, log=lambda _: None)
     info = json.loads((out / "tune" / "run_info.json").read_text())
     assert info["init_from"] == str(base / "first" / "checkpoints" / "best")
+
+
+def test_a_stage_that_starts_from_nothing_is_refused_before_any_work(tmp_path, data_dir):
     missing = staged_config(stage("tune", ["b/*.npz"], init_from=str(tmp_path / "nothing")))
     with pytest.raises(TrainingError, match="init_from"):
         train_stages(missing, data_dir, tmp_path / "never", progress=False,
                      load=load_synthetic, log=lambda _: None)
     assert not (tmp_path / "never").exists()
+    assert stage_start("contact").is_dir()          # a shipped model's name
 
 
 def test_stage_settings_are_checked():
