@@ -135,35 +135,38 @@ def head_on_normal_force(law: ContactLaw, overlap: Any, approach_rate: Any) -> A
     return np.where(np.asarray(overlap) > 0, spring + gamma_n * approach_rate, 0.0)
 
 
-def head_on_peak_overlap(law: ContactLaw, speed: float = 1.0, steps: int = 2000) -> float:
-    """The deepest overlap (m) of a head-on impact at ``speed`` m/s under ``law`` (its Hertz
-    spring and damping, no gravity), integrated with ``steps`` steps per Hertz contact time.
+def head_on_impact(law: ContactLaw, speed: float = 1.0, steps: int = 2000
+                   ) -> tuple[float, float]:
+    """``(peak, duration)`` of a head-on impact at ``speed`` m/s under ``law`` (its Hertz
+    spring and damping, no gravity), integrated with ``steps`` steps per Hertz contact time:
+    the deepest overlap (m) and the time (s) from first touch until the overlap is back to zero.
     With this damping (gamma_n ~ (R d)^(1/4)) the impact is self-similar: the peak scales as
-    speed^0.8 exactly (the restitution is the same at every speed), so one call at 1 m/s gives
-    it at every speed. numpy, host side (the contact model's overlap limit)."""
+    speed^0.8 and the duration as speed^-0.2 exactly (the restitution is the same at every
+    speed), so one call at 1 m/s gives both at every speed, and ``speed * duration / peak``
+    depends on the restitution alone (5.09 at e = 0.3, 3.41 at 0.74; Hertz's elastic 2.94).
+    numpy, host side (the contact models' overlap limit and law rebound)."""
     h = hertz_contact_time(law, speed) / steps
-    d, rate = 0.0, float(speed)
-    while rate > 0.0:
-        rate -= float(head_on_normal_force(law, d, rate)) / law.mass_eff * h
-        d += rate * h
-    return d
-
-
-def head_on_contact_time(law: ContactLaw, speed: float = 1.0, steps: int = 2000) -> float:
-    """The duration (s) of a head-on impact at ``speed`` m/s under ``law``, from first touch
-    until the overlap is back to zero (its Hertz spring and damping, no gravity), integrated
-    with ``steps`` steps per Hertz contact time. Self-similar like the peak
-    (:func:`head_on_peak_overlap`): it scales as speed^-0.2, so ``speed * time / peak`` depends
-    on the restitution alone (5.09 at e = 0.3, 3.41 at 0.74; Hertz's elastic 2.94). numpy, host
-    side (the contact models' law rebound)."""
-    h = hertz_contact_time(law, speed) / steps
-    d, rate, t = 0.0, float(speed), 0.0
+    d, rate, t, peak = 0.0, float(speed), 0.0, None
     while True:
         rate -= float(head_on_normal_force(law, d, rate)) / law.mass_eff * h
         d += rate * h
         t += h
+        if peak is None and rate <= 0.0:
+            peak = d
         if d <= 0.0:
-            return t
+            return peak, t
+
+
+def head_on_peak_overlap(law: ContactLaw, speed: float = 1.0, steps: int = 2000) -> float:
+    """The deepest overlap (m) of a head-on impact at ``speed`` m/s under ``law``
+    (:func:`head_on_impact`)."""
+    return head_on_impact(law, speed, steps)[0]
+
+
+def head_on_contact_time(law: ContactLaw, speed: float = 1.0, steps: int = 2000) -> float:
+    """The duration (s) of a head-on impact at ``speed`` m/s under ``law``, first touch to
+    separation (:func:`head_on_impact`)."""
+    return head_on_impact(law, speed, steps)[1]
 
 
 # --------------------------------------------------------------------------------------------

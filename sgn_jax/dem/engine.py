@@ -755,8 +755,7 @@ def make_dem_step(
                 coll.event_ints(balls, patch, True, ledger.pw, step_now)])
             return ints, track.values
 
-        buffer = coll.write_events(collisions.buffer, (ended,), rows)
-        return coll.CollisionLedger(track=track, wall_patch=patch, buffer=buffer)
+        return ledger.replace(buffer=coll.write_events(collisions.buffer, (ended,), rows))
 
     return step
 

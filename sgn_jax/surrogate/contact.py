@@ -61,7 +61,7 @@ import jax
 import jax.numpy as jnp
 import jraph
 
-from sgn_jax.dem.contact import head_on_contact_time, head_on_peak_overlap, make_contact_law
+from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.surrogate.collisions import contact_grid
 from sgn_jax.surrogate.graph import SLOT_DIM
@@ -947,10 +947,10 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
         for kind, partner in (("pp", {"radius_2": radius, "mass_2": mass}), ("pw", {})):
             law = make_contact_law(mat.young, mat.poisson, mat.restitution, mat.friction,
                                    mat.rolling_friction, radius, mass, **partner)
-            peaks[f"overlap_peak_{kind}"] = head_on_peak_overlap(law)
+            peak, duration = head_on_impact(law)
+            peaks[f"overlap_peak_{kind}"] = peak
             if getattr(cfg.model, "law_rebound", False):
-                peaks[f"rebound_time_{kind}"] = (head_on_contact_time(law)
-                                                / peaks[f"overlap_peak_{kind}"])
+                peaks[f"rebound_time_{kind}"] = duration / peak
                 peaks["restitution"] = float(mat.restitution)
     return ContactPhysics(ball_radius=radius, ball_mass=mass, dt=float(cfg.dem.dt),
                           gravity=tuple(float(g) for g in cfg.dem.gravity),

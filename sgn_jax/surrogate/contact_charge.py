@@ -63,7 +63,7 @@ import jraph
 import numpy as np
 
 from sgn_jax.dem.charge import Charge
-from sgn_jax.dem.contact import head_on_contact_time, head_on_peak_overlap, make_contact_law
+from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.surrogate.contact import (
     DTYPE,
     ContactModelError,
@@ -162,9 +162,9 @@ def _pair_row(a_material: Any, b_material: Any, rule: Any, radius_1: float, mass
                            radius_2=radius_2, mass_2=mass_2, young_2=b_material.young,
                            poisson_2=b_material.poisson)
     scale = (law.mass_eff / (law.young_eff * math.sqrt(law.radius_eff))) ** 0.4
-    peak = head_on_peak_overlap(law)
+    peak, duration = head_on_impact(law)
     return [rule.restitution, rule.friction, rule.rolling_friction, law.young_eff,
-            peak / scale, head_on_contact_time(law) / peak]
+            peak / scale, duration / peak]
 
 
 def pair_table(charge: Charge, classes: int | None = None) -> np.ndarray:
