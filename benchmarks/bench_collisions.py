@@ -3,8 +3,8 @@
 The standard case (24 balls, 300 rpm), a settled bed after 0.05 s of motion (seed 0), advanced
 ``--steps`` DEM steps by the jitted scan with the ledger off (``collision_capacity = 0``) and
 on; the timings alternate, best of ``--repeats`` each, compile time apart. The same for the
-shipped contact model's rollout (collisions off / on, ``--rollout-steps`` steps of 2e-4 s;
-benchmarks/bench_surrogate_collisions.py).
+rollouts of the shipped models ``contact`` and ``contact_rebound`` (collisions off / on,
+``--rollout-steps`` steps of 2e-4 s; benchmarks/bench_surrogate_collisions.py).
 
     taskset -c 0 python benchmarks/bench_collisions.py [--steps 50000] [--markdown docs/benchmarks.md]
 
@@ -82,14 +82,15 @@ def main() -> None:
     rows = dem_rows(args.steps, args.repeats)
     from bench_surrogate_collisions import rollout_cost  # this folder is on sys.path
 
-    r = rollout_cost(args.rollout_steps, args.repeats)
-    rows.append({"what": "contact model rollout, standard case", "steps": r["steps"],
-                 "off_s": r["ms_per_step_off"] * 1e-3 * r["steps"],
-                 "on_s": r["ms_per_step_on"] * 1e-3 * r["steps"],
-                 "off_steps_per_s": 1e3 / r["ms_per_step_off"],
-                 "on_steps_per_s": 1e3 / r["ms_per_step_on"], "slowdown": r["slowdown"],
-                 "compile_off_s": r["compile_s_off"], "compile_on_s": r["compile_s_on"],
-                 "events": r["events"]})
+    for name in ("contact", "contact_rebound"):
+        r = rollout_cost(args.rollout_steps, args.repeats, checkpoint=name)
+        rows.append({"what": f"`{name}` rollout, standard case", "steps": r["steps"],
+                     "off_s": r["ms_per_step_off"] * 1e-3 * r["steps"],
+                     "on_s": r["ms_per_step_on"] * 1e-3 * r["steps"],
+                     "off_steps_per_s": 1e3 / r["ms_per_step_off"],
+                     "on_steps_per_s": 1e3 / r["ms_per_step_on"], "slowdown": r["slowdown"],
+                     "compile_off_s": r["compile_s_off"], "compile_on_s": r["compile_s_on"],
+                     "events": r["events"]})
     machine = {**machine_info(), "affinity": sorted(os.sched_getaffinity(0))}
     result = {"benchmark": "collision_ledger_cost", "commit": git_commit(),
               "sgn_jax": sgn_jax.__version__, "machine": machine, "rows": rows}

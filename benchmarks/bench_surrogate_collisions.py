@@ -25,10 +25,12 @@ from sgn_jax.pipelines.configure import graph_spec_from_config, surrogate_walls_
 from sgn_jax.surrogate.rollout import init_state, make_rollout_advance, single_rollout_model
 
 
-def rollout_cost(steps: int = 5000, repeats: int = 3, capacity: int = 20000) -> dict:
+def rollout_cost(steps: int = 5000, repeats: int = 3, capacity: int = 20000,
+                 checkpoint: str | None = None) -> dict:
     """ms per step with the ledger off and on (best of ``repeats``), the slowdown and the
-    events' closure against the model's ledger."""
-    trained = sj.load_surrogate()
+    events' closure against the model's ledger, for the shipped model ``checkpoint`` (default:
+    the default model)."""
+    trained = sj.load_surrogate(checkpoint)
     cfg = sj.at_surrogate_step(sj.load_config("emax_300rpm"), trained)
     packings = sj.make_packings(cfg, seeds=[0])
     window = jax.tree_util.tree_map(lambda a: np.asarray(a)[0], packings.windows)

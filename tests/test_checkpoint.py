@@ -213,10 +213,12 @@ def test_intact_checkpoint_is_verified_and_loads(setup, saved, tmp_path):
     assert verify_checkpoint_digest(step_dir) is True  # restoring wrote nothing into the step
 
 
-def test_shipped_model_verifies():
-    from sgn_jax.records.shipped_models import shipped_model_dir
+@pytest.mark.parametrize("name", ["contact", "contact_rebound", "emax_300rpm", "envelope"])
+def test_shipped_model_verifies(name):
+    from sgn_jax.records.shipped_models import registry, shipped_model_dir
 
-    ck = Path(shipped_model_dir("emax_300rpm"))
+    assert name in registry().names
+    ck = Path(shipped_model_dir(name))
     steps = [p for p in ck.iterdir() if p.is_dir() and p.name.isdigit()]
     assert len(steps) == 1 and (steps[0] / DIGEST_FILE).is_file()
     assert verify_checkpoint_digest(steps[0]) is True
@@ -293,3 +295,18 @@ def test_damaged_shipped_model_says_reinstall(saved, tmp_path, monkeypatch):
     (ck / "1" / "meta" / "metadata").write_bytes(b"")
     with pytest.raises(CheckpointError, match="re-install the package"):
         restore_checkpoint(ck)
+
+
+def test_the_rebound_model_is_the_contact_model_with_the_law_rebound():
+    """``contact_rebound`` (docs/collisions.md) differs from the default only by the rule and
+    its fine-tuned weights: same network, same step, the rule on."""
+    from sgn_jax.records.checkpoint import load_trained_model
+    from sgn_jax.records.shipped_models import resolve_checkpoint
+
+    default = load_trained_model(resolve_checkpoint(None))
+    rebound = load_trained_model(resolve_checkpoint("contact_rebound"))
+    assert rebound.config.model.law_rebound and not default.config.model.law_rebound
+    assert rebound.config.model.kind == default.config.model.kind == "contact"
+    assert float(rebound.config.dem.dt) == float(default.config.dem.dt)
+    assert (rebound.config.graph, rebound.config.model.hidden) == (
+        default.config.graph, default.config.model.hidden)

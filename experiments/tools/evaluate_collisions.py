@@ -40,14 +40,21 @@ BARS = {"frequency": 0.15, "stress_energy": 0.15, "normal_share_pp": 0.05, "deca
 def _save_table(path: Path, table) -> None:
     fields = {f.name: getattr(table, f.name) for f in dataclasses.fields(table)}
     fields["path"] = "" if fields["path"] is None else str(fields["path"])
+    if fields["ball_class"] is None:  # one ball class: nothing to store (np.load refuses objects)
+        del fields["ball_class"]
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, **{k: np.asarray(v) for k, v in fields.items()})
     tmp.replace(path)
 
 
 def _load_table(path: Path):
-    with np.load(path) as data:
+    # allow_pickle: a cache this script wrote with ball_class = None holds it as an object
+    # array (one ball class), which np.load refuses otherwise
+    with np.load(path, allow_pickle=True) as data:
         fields = {k: data[k] for k in data.files}
+    ball_class = fields.pop("ball_class", None)
+    if ball_class is not None and ball_class.dtype != object:
+        fields["ball_class"] = ball_class
     for name in ("record_duration_s", "record_start_s", "total_mass_kg"):
         fields[name] = float(fields[name])
     fields["n_balls"] = int(fields["n_balls"])

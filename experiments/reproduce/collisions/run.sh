@@ -1,20 +1,21 @@
 #!/bin/bash
 # The collision ledgers and spectra (docs/collisions.md, "How well it does"): the DEM's records
-# of the six held-out envelope motions (8 packings each) with their collision tables, the
-# surrogate ledger's force floor fitted on three training runs, the contact model's collision
-# statistics against the DEM's on the held-out motions, and the DEM's statistics at dt and
-# dt/2. Resumable (finished records and rollouts are kept). JOBS=1 for one core.
+# of the six held-out envelope motions (16 packings each) with their collision tables, the
+# surrogate ledger's force floor fitted on three training runs, the collision statistics of the
+# shipped models contact_rebound and contact against the DEM's on the held-out motions, and the
+# DEM's statistics at dt and dt/2. Resumable (finished records and rollouts are kept). JOBS=1
+# for one core.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
 JOBS=${JOBS:-2}
 OUT=${OUT:-runs/collisions_eval}
 D=data/collisions
-HELDOUT=heldout_c00,heldout_c01,heldout_c02,heldout_h00,heldout_h01,heldout_h02
 CONFIGS=experiments/envelope/configs
 
-# 1. The DEM's held-out records ([dem] collisions = true, the default, writes the events).
-python experiments/tools/generate_data.py --ensembles experiments/envelope/ensembles.toml \
-    --cases $HELDOUT --split eval --jobs "$JOBS" --out $D/envelope
+# 1. The DEM's held-out records ([dem] collisions = true, the default, writes the events):
+# packings 4-19 of the six held-out motions.
+python experiments/tools/generate_data.py --ensembles experiments/envelope/collisions16.toml \
+    --split eval --jobs "$JOBS" --out $D/envelope
 
 # 2. Three training runs (training motions and packings) and the force floor fitted on them.
 mkdir -p $D/calibration $D/halfstep
@@ -29,9 +30,12 @@ dem $CONFIGS/train_h00.toml 1120 $D/calibration/train_h00_seed1120.npz
 python experiments/tools/calibrate_event_floor.py --data $D/calibration \
     --fractions 0.01,0.03,0.1,0.3 --out $OUT/calibration.json
 
-# 3. The contact model's statistics against the DEM's, with the figures of each motion.
-python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/ensembles.toml \
-    --cases $HELDOUT --data $D/envelope --out $OUT --name heldout --figures
+# 3. The models' statistics against the DEM's, with the figures of each motion: the model for
+# collision statistics (contact_rebound), then the default (contact).
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions16.toml \
+    --model contact_rebound --data $D/envelope --out $OUT --name heldout_rebound --figures
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions16.toml \
+    --model contact --data $D/envelope --out $OUT --name heldout
 
 # 4. The DEM at half its step: four packings of heldout_c01.
 for seed in 4 5 6 7; do
