@@ -1,6 +1,6 @@
 #!/bin/bash
 # The collision ledgers and spectra (docs/collisions.md, "How well it does"): the DEM's records
-# of the six held-out envelope motions (16 packings each) with their collision tables, the
+# of the six held-out envelope motions (24 packings each) with their collision tables, the
 # surrogate ledger's force floor fitted on three training runs, the collision statistics of the
 # shipped models contact_rebound and contact against the DEM's on the held-out motions, and the
 # DEM's statistics at dt and dt/2. Resumable (finished records and rollouts are kept). JOBS=1
@@ -13,8 +13,8 @@ D=data/collisions
 CONFIGS=experiments/envelope/configs
 
 # 1. The DEM's held-out records ([dem] collisions = true, the default, writes the events):
-# packings 4-19 of the six held-out motions.
-python experiments/tools/generate_data.py --ensembles experiments/envelope/collisions16.toml \
+# packings 4-27 of the six held-out motions.
+python experiments/tools/generate_data.py --ensembles experiments/envelope/collisions24.toml \
     --split eval --jobs "$JOBS" --out $D/envelope
 
 # 2. Three training runs (training motions and packings) and the force floor fitted on them.
@@ -32,9 +32,9 @@ python experiments/tools/calibrate_event_floor.py --data $D/calibration \
 
 # 3. The models' statistics against the DEM's, with the figures of each motion: the model for
 # collision statistics (contact_rebound), then the default (contact).
-python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions16.toml \
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
     --model contact_rebound --data $D/envelope --out $OUT --name heldout_rebound --figures
-python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions16.toml \
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
     --model contact --data $D/envelope --out $OUT --name heldout
 
 # 4. The DEM at half its step: four packings of heldout_c01.
