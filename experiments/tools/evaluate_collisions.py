@@ -63,11 +63,14 @@ def _load_table(path: Path):
     return sj.EventTable(**fields)
 
 
-def surrogate_table(model, cfg, traj, window: int, n_steps: int, key: str):
-    """The model's events over ``n_steps`` steps from sample ``window`` of ``traj``."""
+def surrogate_table(model, cfg, traj, window: int, n_steps: int, key: str,
+                    force_fraction: float | None = None):
+    """The model's events over ``n_steps`` steps from sample ``window`` of ``traj`` (the
+    ledger's force floor ``force_fraction``; None: the ledger's default)."""
     dt = float(cfg.dem.dt)
+    extra = {} if force_fraction is None else {"collision_force_fraction": force_fraction}
     res = sj.run_rollout(model, traj, window, n_steps * dt, None, cfg, save_every=1,
-                         progress=False, collisions=True)
+                         progress=False, collisions=True, **extra)
     a = res["arrays"]
     if not np.all(np.isfinite(np.asarray(a["pos"]))):
         raise SystemExit(f"{key}: the rollout went non-finite")
@@ -137,6 +140,9 @@ def main() -> None:
     ap.add_argument("--cases", default=None)
     ap.add_argument("--threshold", type=float, default=1e-4,
                     help="J of dissipated energy per collision (default 1e-4)")
+    ap.add_argument("--force-fraction", type=float, default=None,
+                    help="the surrogate ledger's force floor as a fraction of m* g (default: "
+                         "the ledger's, sgn_jax.surrogate.collisions.EVENT_FORCE_FRACTION)")
     ap.add_argument("--out", default="runs/collisions_eval")
     ap.add_argument("--figures", action="store_true", help="the figures of each case")
     args = ap.parse_args()
@@ -169,7 +175,8 @@ def main() -> None:
                 table = _load_table(cached)
             else:
                 start = time.perf_counter()
-                table = surrogate_table(model, cfg, traj, window, n_steps, key)
+                table = surrogate_table(model, cfg, traj, window, n_steps, key,
+                                        args.force_fraction)
                 wall += time.perf_counter() - start
                 _save_table(cached, table)
             model_tables.append(table)

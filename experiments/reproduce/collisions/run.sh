@@ -30,6 +30,15 @@ dem $CONFIGS/train_h00.toml 1120 $D/calibration/train_h00_seed1120.npz
 python experiments/tools/calibrate_event_floor.py --data $D/calibration \
     --fractions 0.01,0.03,0.1,0.3 --out $OUT/calibration.json
 
+# 2b. The floor checked on more data: 24 packings that no model trained on, of eight training
+# motions (experiments/envelope/collisions_val.toml), for both shipped contact models.
+python experiments/tools/generate_data.py --ensembles experiments/envelope/collisions_val.toml \
+    --split eval --jobs "$JOBS" --out $D/validation
+for model in contact contact_rebound; do
+    python experiments/tools/calibrate_event_floor.py --model $model --data $D/validation \
+        --fractions 0.05,0.1,0.2,0.4 --out $OUT/calibration_val_$model.json
+done
+
 # 3. The models' statistics against the DEM's, with the figures of each motion: the model for
 # collision statistics (contact_rebound), then the default (contact).
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
