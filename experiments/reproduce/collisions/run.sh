@@ -45,6 +45,9 @@ python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope
     --model contact_rebound --data $D/envelope --out $OUT --name heldout_rebound --figures
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
     --model contact --data $D/envelope --out $OUT --name heldout
+# ... and contact_rebound on the validation set of step 2b (training motions, new packings)
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions_val.toml \
+    --model contact_rebound --data $D/validation --out $OUT --name validation_rebound
 
 # 4. The DEM at half its step: four packings of heldout_c01.
 for seed in 4 5 6 7; do
