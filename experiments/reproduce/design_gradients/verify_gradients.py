@@ -279,12 +279,16 @@ def cmd_merge(parts: Sequence[Path]) -> None:
     merged: dict = {}
     for part in parts:
         for point, res in json.loads((part / "surrogate.json").read_text()).items():
-            into = merged.setdefault(point, {"theta0": res.get("theta0"), "names": [],
+            into = merged.setdefault(point, {"theta0": [], "names": [],
                                              "estimate": {}, "surrogate_fd": {}, "runs": []})
             if not into["estimate"]:   # the first run's (its centre power; no horizon estimate)
                 into["estimate"] = {k: v for k, v in res.get("estimate", {}).items()
                                     if not k.startswith("gradient")}
-            into["names"] += [n for n in res.get("names", []) if n not in into["names"]]
+            # theta0 stays aligned with names: each parameter's centre from the run that gave it
+            for name, x0 in zip(res.get("names", []), res.get("theta0") or [], strict=True):
+                if name not in into["names"]:
+                    into["names"].append(name)
+                    into["theta0"].append(x0)
             into["surrogate_fd"].update(res.get("surrogate_fd", {}))
             into["runs"].append({"file": str(part / "surrogate.json"),
                                  **{k: res.get(k) for k in ("names", "start", "seeds",
