@@ -35,6 +35,8 @@ def test_cache_root_and_switch(monkeypatch, tmp_path):
     assert cache.cache_enabled() and cache.settled_dir() == tmp_path / "x" / "settled"
 
 
+# The slow tier (`pytest -m slow`; the default run's time): two DEM runs through the settled-packing cache.
+@pytest.mark.slow
 def test_second_run_reuses_the_settled_packing_bit_for_bit(tiny_cfg, cache_dir):
     first = driver.run_dem(tiny_cfg, duration=0.002, seed=5, progress=False)
     assert not first.summary["settle_cached"]

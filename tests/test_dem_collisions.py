@@ -194,6 +194,8 @@ def test_an_overflowing_chunk_stops_the_run(tiny_cfg):
         driver.run_dem(cfg, seed=2, progress=False)
 
 
+# The slow tier (`pytest -m slow`; the default run's time): one more DEM run with the ledger off.
+@pytest.mark.slow
 def test_collisions_off_leaves_the_record_without_a_table(tiny_cfg):
     cfg = replace_section(tiny_cfg, "dem", collisions=False, settle_time=0.002)
     result = driver.run_dem(cfg, duration=0.001, seed=2, progress=False)

@@ -85,6 +85,8 @@ def test_interrupted_run_resumes_from_its_last_chunk(tiny_cfg, tmp_path, monkeyp
     assert other.summary["dem_steps"] == (20 + 30) * 106
 
 
+# The slow tier (`pytest -m slow`; the default run's time): two more DEM runs (dt override, float32).
+@pytest.mark.slow
 def test_dt_dem_override_and_float32(tiny_cfg):
     result = driver.run_dem(tiny_cfg, duration=0.001, dt_dem=4.75e-7, progress=False)
     assert result.meta["substeps"] == 211  # smallest k with 1e-4 / k <= 4.75e-7

@@ -183,6 +183,8 @@ def standard_setup():
     return setup_from_config(replace_section(cfg, "balls", count=N_BALLS))
 
 
+# The slow tier (`pytest -m slow`; the default run's time): a DEM run driven by the example motion; its registration and kinematics stay in the default run.
+@pytest.mark.slow
 def test_dem_driven_by_the_elliptical_motion(standard_setup):
     setup = standard_setup
     motion = _ellipse()

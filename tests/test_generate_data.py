@@ -163,6 +163,8 @@ def test_dry_run_prints_the_commands_and_runs_nothing(tiny, capsys):
     assert not tiny["out"].exists()
 
 
+# The slow tier (`pytest -m slow`; the default run's time): three DEM runs in subprocesses; the ensembles file's validation stays in the default run.
+@pytest.mark.slow
 def test_generates_records_skips_and_redoes(tiny, capsys, monkeypatch):
     out, cfg = tiny["out"], tiny["cfg"]
     assert gd.main(_args(tiny)) == 0

@@ -263,6 +263,8 @@ def _init(model, stats, window0, motion, sdf, t0, spec, query=None, bias_seed=No
     return jax.device_get(jax.jit(init)(window0))
 
 
+# The slow tier (`pytest -m slow`; the default run's time): the rollout's gradient against finite differences; the design study's estimate (tests/test_design.py) keeps a gradient check in the default run.
+@pytest.mark.slow
 def test_gradients_match_finite_differences():
     """d E(100 steps) / d (rpm, amplitude, straight_length) by jax.grad through the rollout vs
     central finite differences (least-squares slope through E at x0 + j h, j = -5..5).
@@ -481,6 +483,8 @@ def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
     np.testing.assert_allclose(pred.t_step, whole.t_step, rtol=0, atol=1e-12)
 
 
+# The slow tier (`pytest -m slow`; the default run's time): a coarser model step; the chunked rollout's equality stays in the default run.
+@pytest.mark.slow
 def test_run_rollout_with_a_coarser_step_starts_from_the_coarsened_record(dem, tiny, checkpoint):
     """A model whose step is 2 dt of the record (a fast tier at 2e-4 s on 1e-4 s data) starts
     from the record's window coarsened by 2: the same rollout as one from ``coarsen(2)``."""

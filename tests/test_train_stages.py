@@ -42,6 +42,8 @@ def load_synthetic(path):
     return synthetic_trajectory(40, 6, seed=int(path.stem[1:]))
 
 
+# The slow tier (`pytest -m slow`; the default run's time): three training stages; the stage config's validation stays in the default run.
+@pytest.mark.slow
 def test_stages_run_in_order_each_from_the_last(tmp_path, data_dir):
     cfg = staged_config(stage("first", ["a/*.npz"]),
                         stage("second", ["a/*.npz", "b/*.npz"], unroll=3, pushforward=True))
