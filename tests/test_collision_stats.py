@@ -197,6 +197,9 @@ def test_decade_comparison_and_the_result_object():
     rows = {row["lo_J"]: row for row in result.decades()}
     assert rows[1e-4]["power_relative_difference"] == pytest.approx(0.1)
     assert rows[1e-7]["power_relative_difference"] is None  # under 5 % of the DEM's power
+    # identical packings: no scatter, so the difference is known exactly
+    assert rows[1e-4]["power_relative_difference_se"] == pytest.approx(0.0, abs=1e-12)
+    assert rows[1e-7]["power_relative_difference_se"] is None
     text = result.table()
     assert "collisions per ball per s, all" in text and "surr vs DEM" in text
     out = result.to_json()
@@ -351,3 +354,19 @@ def test_inconsistent_event_arrays_are_refused():
     del arrays["collision_flags"]
     with pytest.raises(C.CollisionDataError, match="collision_flags"):
         C.events_from_arrays(arrays, {"ball_mass": 4e-3}, source="dem")
+
+
+def test_a_decades_difference_carries_the_scatter_of_both_ensembles():
+    """Per-decade SEs from the packings' own decade powers, propagated to the relative
+    difference: DEM packings 2e-4 and 4e-4 J in one second (mean 3e-4, SE 1e-4), surrogate
+    3e-4 and 3.6e-4 (mean 3.3e-4, SE 3e-5)."""
+    dem = [make_table([(False, 0.1, 0.5, 2e-3, energy(e), 0)], duration=1.0)
+           for e in (2e-4, 4e-4)]
+    surr = [make_table([(False, 0.1, 0.5, 2e-3, energy(e), 0)], duration=1.0,
+                       source="surrogate") for e in (3e-4, 3.6e-4)]
+    row = {r["lo_J"]: r for r in collision_spectra(dem=dem, surrogate=surr).decades()}[1e-4]
+    assert row["power_se_W"]["reference"] == pytest.approx(1e-4)
+    assert row["power_se_W"]["other"] == pytest.approx(3e-5)
+    assert row["power_relative_difference"] == pytest.approx(0.1)
+    expected = 1.1 * math.hypot(3e-5 / 3.3e-4, 1e-4 / 3e-4)
+    assert row["power_relative_difference_se"] == pytest.approx(expected)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -107,14 +108,20 @@ def _fmt_se(mean: float, se: float, scale: float = 1.0, digits: int = 3) -> str:
     return f"{mean * scale:.{digits}g} ({se * scale:.2g})"
 
 
+def _se_text(se: float | None) -> str:
+    """`` (SE)`` in percent points, or nothing (a report written before decades had SEs)."""
+    return "" if se is None or not math.isfinite(se) else f" ({100 * se:.0f})"
+
+
 def markdown(rows: list[dict]) -> str:
     head = ("| case | collisions /ball/s DEM | model | error | mean stress energy (uJ) DEM | "
             "model | error | normal share DEM | model | diff (pp) | power above 1e-4 J (W) DEM "
-            "| model | error | decades (power error) | misses |")
+            "| model | error | decades (power error (SE)) | misses |")
     lines = [head, "|" + "---|" * 16]
     for r in rows:
         d, m, b = r["dem"], r["model"], r["bars"]
-        dec = ", ".join(f"{row['lo_J']:.0e}: {100 * row['power_relative_difference']:+.0f} %"
+        dec = ", ".join(f"{row['lo_J']:.0e}: {100 * row['power_relative_difference']:+.0f}"
+                        + _se_text(row.get("power_relative_difference_se")) + " %"
                         for row in b["decades"])
         lines.append(
             f"| {r['case']} | {_fmt_se(*d['frequency'])} | {_fmt_se(*m['frequency'])} | "

@@ -827,7 +827,13 @@ def decade_comparison(reference: EnsembleStatistics, other: EnsembleStatistics, 
         one dict per decade: ``lo_J``, ``hi_J``, ``reference_share``, ``power_W`` and
         ``rate_hz`` ({"reference", "other"}), ``power_relative_difference`` and
         ``rate_relative_difference`` ((other - reference) / reference; None for a decade below
-        ``min_share``).
+        ``min_share``), ``power_se_W`` ({"reference", "other"}: the standard error over the
+        packings of the decade's power, NaN for an ensemble of one) and
+        ``power_relative_difference_se`` (first-order propagation of the two SEs,
+        (other / reference) sqrt((se_o / other)^2 + (se_r / reference)^2); None below
+        ``min_share``). The SE says how far a decade's difference can be trusted: a decade of
+        few, energetic collisions per packing scatters far more between packings than the
+        mean power does.
     """
     if spectrum not in ("dissipation", "stress"):
         raise ValueError(f"spectrum={spectrum!r}: use 'dissipation' or 'stress'")
@@ -847,11 +853,20 @@ def decade_comparison(reference: EnsembleStatistics, other: EnsembleStatistics, 
                  for name, e in (("reference", reference), ("other", other))}
         rate = {name: float(np.nansum(e.mean[f"{spectrum}_rate_hz"][lo:hi]))
                 for name, e in (("reference", reference), ("other", other))}
+        power_se = {name: float(mean_and_se(np.asarray(
+                        [np.nansum(np.asarray(r[f"{spectrum}_power_W"])[lo:hi])
+                         for r in e.per_record], dtype=np.float64))[1])
+                    for name, e in (("reference", reference), ("other", other))}
         share = power["reference"] / ref_total if ref_total > 0 else math.nan
         counted = share >= min_share
+        ratio = power["other"] / power["reference"] if power["reference"] > 0 else math.nan
+        ratio_se = ratio * math.hypot(
+            power_se["other"] / power["other"] if power["other"] > 0 else math.nan,
+            power_se["reference"] / power["reference"] if power["reference"] > 0 else math.nan)
         rows.append({
             "lo_J": float(edges[lo]), "hi_J": float(edges[hi]), "reference_share": share,
-            "power_W": power, "rate_hz": rate,
+            "power_W": power, "rate_hz": rate, "power_se_W": power_se,
+            "power_relative_difference_se": ratio_se if counted else None,
             "power_relative_difference": (power["other"] - power["reference"])
             / power["reference"] if counted else None,
             "rate_relative_difference": (rate["other"] - rate["reference"]) / rate["reference"]
