@@ -5,6 +5,7 @@ record writers."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -370,3 +371,27 @@ def test_a_decades_difference_carries_the_scatter_of_both_ensembles():
     assert row["power_relative_difference"] == pytest.approx(0.1)
     expected = 1.1 * math.hypot(3e-5 / 3.3e-4, 1e-4 / 3e-4)
     assert row["power_relative_difference_se"] == pytest.approx(expected)
+
+
+def test_merging_recontacts_joins_a_pairs_contacts_closer_than_the_gap():
+    """Pair (0, 1) touches at 0.1 s and 0.1002 s (parted 0.1 ms) and at 0.2 s; ball 0 meets
+    the wall in between: at a 0.15 ms resolution the pair's first two contacts are one event
+    (energies summed, the first one's impact, the last one's end), the rest stay apart."""
+    rows = [(False, 0.1, 0.5, 2e-3, energy(3e-4), 0),
+            (False, 0.1002, 0.2, 2e-3, energy(1e-4, 2e-5), 2),
+            (False, 0.2, 0.3, 2e-3, energy(5e-5), 0),
+            (True, 0.1001, 0.4, 4e-3, energy(2e-4), 1)]
+    table = dataclasses.replace(make_table(rows), duration_s=np.full(4, 1e-4))
+    merged = table.merge_recontacts(1.5e-4)
+    assert merged.n_events == 3
+    first = np.flatnonzero(~merged.wall & (merged.start_s < 0.15))[0]
+    assert merged.duration_s[first] == pytest.approx(0.1003 - 0.1)
+    assert merged.impact_normal[first] == pytest.approx(0.5)
+    assert merged.energy[first] == pytest.approx(energy(4e-4, 2e-5))
+    assert merged.flags[first] == C.FLAG_OPEN_AT_END          # the last part's
+    assert merged.flags[merged.wall][0] == C.FLAG_BEGAN_BEFORE
+    assert merged.dissipated.sum() == pytest.approx(table.dissipated.sum())
+    # a gap shorter than the parting merges nothing; negative gaps are refused
+    assert table.merge_recontacts(0.5e-4).n_events == 4
+    with pytest.raises(ValueError, match="gap_s"):
+        table.merge_recontacts(-1.0)
