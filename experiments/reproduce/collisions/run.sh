@@ -49,6 +49,22 @@ python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions_val.toml \
     --model contact_rebound --data $D/validation --out $OUT --name validation_rebound
 
+# 3b. Why the top decades are high (a diagnostic): contact_rebound against the DEM's events with
+# a pair's re-contacts within 0.2, 0.4 and 0.6 ms merged (its events are the ones of step 3) ...
+for gap in 2e-4 4e-4 6e-4; do
+    mkdir -p $OUT/merged_$gap
+    ln -sfn "$(cd $OUT && pwd)/heldout_rebound_events" $OUT/merged_$gap/heldout_rebound_events
+    python experiments/tools/evaluate_collisions.py --model contact_rebound \
+        --ensembles experiments/envelope/collisions24.toml --data $D/envelope \
+        --out $OUT/merged_$gap --name heldout_rebound --dem-merge-gap $gap
+done
+# ... and the same recipe at half the step (not shipped), trained and evaluated.
+[ -d runs/contact_rebound_fine/rebound/checkpoints/best ] || sgn-jax train \
+    --config experiments/contact/rebound_fine_train.toml --data data --out runs/contact_rebound_fine
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
+    --model runs/contact_rebound_fine/rebound/checkpoints/best --data $D/envelope --out $OUT \
+    --name heldout_rebound_fine
+
 # 4. The DEM at half its step: four packings of heldout_c01.
 for seed in 4 5 6 7; do
     dem $CONFIGS/heldout_c01.toml $seed $D/halfstep/heldout_c01_seed$seed.npz --dt-dem 4.75e-7 &
