@@ -312,15 +312,13 @@ class EventTable:
             np.maximum.at(out, group, np.nan_to_num(values[order], nan=-np.inf))
             return np.where(np.isneginf(out), np.nan, out)
 
-        last_end = np.full(n, -np.inf)
-        np.maximum.at(last_end, group, end)
         energy = np.zeros((n, self.energy.shape[1]))
         np.add.at(energy, group, self.energy[order])
         last = np.flatnonzero(np.r_[first[1:], True])       # the last part of each group
         flags = ((self.flags[lead] & FLAG_BEGAN_BEFORE)
                  | (self.flags[order][last] & FLAG_OPEN_AT_END)).astype(self.flags.dtype)
         fields = {name: getattr(self, name)[lead] for name in EVENT_FIELDS}
-        fields.update(duration_s=last_end - self.start_s[lead], energy=energy, flags=flags,
+        fields.update(duration_s=end[last] - self.start_s[lead], energy=energy, flags=flags,
                       max_overlap=largest(self.max_overlap), peak_force=largest(self.peak_force))
         return dataclasses.replace(self, **fields)
 
