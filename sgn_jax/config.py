@@ -540,6 +540,12 @@ class ModelConfig:
             Coulomb sticking over all contacts together after the impulses, so that a packed
             bed holds as the DEM's does instead of creeping (docs/contact.md, "One step",
             item 8).
+        damping_target: kind "contact" only: how the model's dissipation target (the DEM's
+            damping, what `dE` and the power report) comes from its own losses: "kind" (a
+            share of all losses per contact kind, fitted from the records) or "contact" (per
+            contact: the normal losses whole, the tangential ones by the DEM's tangential
+            damping share, rolling friction's none; the charge kind's rule; docs/contact.md,
+            "The dissipation target").
     """
 
     kind: str = "sgn"
@@ -553,12 +559,14 @@ class ModelConfig:
     law_rebound: bool = False
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
+    damping_target: str = "kind"
 
     # The keys a built-in kind reads, for a kind that does not read them all; a kind not listed
     # (the SGN, a registered kind) reads every key or refuses a value it cannot use itself.
     _KEYS_BY_KIND = {
         "contact": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
-                    "overlap_law_factor", "law_rebound", "overlap_sweeps", "friction_sweeps"},
+                    "overlap_law_factor", "law_rebound", "overlap_sweeps", "friction_sweeps",
+                    "damping_target"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
                            "overlap_law_factor", "law_rebound", "overlap_sweeps",
                            "friction_sweeps"},
@@ -593,6 +601,10 @@ class ModelConfig:
         # later loads.
         if not self.kind or not self.kind.strip():
             raise ConfigError("[model] kind must be a non-empty string (default 'sgn')")
+        if self.damping_target not in ("kind", "contact"):
+            raise ConfigError("[model] damping_target must be 'kind' (a damping share of all "
+                              "losses per contact kind) or 'contact' (per contact, from its "
+                              f"normal and tangential losses), got {self.damping_target!r}")
         if self.velocity_encoding not in ("absolute", "differences"):
             raise ConfigError("[model] velocity_encoding must be 'absolute' or 'differences', "
                               f"got {self.velocity_encoding!r}")

@@ -531,6 +531,51 @@ def test_spin_energy_ledger_closes_over_a_rollout():
     assert abs(d_rot.sum()) > 1e-3 * abs(diss.sum())
 
 
+@pytest.mark.parametrize("rolling", [0.0, 0.045])
+def test_the_per_contact_damping_target_splits_each_contacts_losses(rolling):
+    """``damping_target = "contact"``: the target is each contact's normal loss whole and its
+    tangential loss (less rolling friction's) by the kind's share. With the share 1 and no
+    rolling friction it is the model's whole dissipation; with the share 0 the normal losses
+    alone (positive, smaller); linear in the share between; rolling friction's loss (a
+    spinning scene) is never counted. The per-kind target (the default) is share x losses."""
+    window, _ = spinning_scene(3)
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
+    net = net_with((0.0, -9.81, 0.0), spin=True)
+    phys = dataclasses.replace(net.physics, rolling_friction=rolling)
+    by_kind = net.clone(physics=phys)
+    by_contact = net.clone(physics=dataclasses.replace(phys, damping_target="contact"))
+    params = random_params(by_kind, graph, seed=2)
+
+    def target(model, share):
+        logit = np.log(share / (1.0 - share)) if 0 < share < 1 else 30.0 * (2 * share - 1)
+        p = {**params, "share_logit": jnp.full((2,), logit, jnp.float32)}
+        terms = model.apply({"params": p}, graph, method=ContactNet.step_terms)
+        return (float(terms["dE_target"][0]),
+                float(terms["diss_pp"][0]) + float(terms["diss_pw"][0]))
+
+    whole, losses = target(by_contact, 1.0)
+    normal, _ = target(by_contact, 0.0)
+    half, _ = target(by_contact, 0.5)
+    assert losses > 0 and 0 < normal < whole
+    assert half == pytest.approx(0.5 * (normal + whole), rel=1e-4)
+    if rolling == 0.0:
+        assert whole == pytest.approx(losses, rel=1e-4)
+    else:   # rolling friction brakes the spins: its loss is left out
+        assert whole < losses * (1 - 1e-4)
+    kind_half, _ = target(by_kind, 0.5)
+    assert kind_half == pytest.approx(0.5 * losses, rel=1e-4)
+
+
+def test_a_contact_config_refuses_an_unknown_damping_target():
+    from sgn_jax.config import ConfigError, ModelConfig
+    from sgn_jax.surrogate.contact import ContactModelError
+
+    with pytest.raises(ConfigError, match="damping_target"):
+        ModelConfig(kind="contact", hidden=8, mlp_layers=2, damping_target="share")
+    with pytest.raises(ContactModelError, match="damping_target"):
+        ContactPhysics(damping_target="share")
+
+
 def test_the_rollout_integrates_the_spins_of_a_spin_model():
     """The rollout carries the spins: w_{n+1} = w_n + dw of the model's step, saved per frame
     (``RolloutResult.spins``, the prediction's ``omega_model``); a window without spins starts

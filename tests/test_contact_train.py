@@ -198,7 +198,8 @@ def test_warm_start_takes_the_matching_submodules_and_refuses_a_foreign_checkpoi
 def test_the_checkpoint_states_its_envelope_and_a_derived_model_keeps_it(tmp_path, unbroken_run):
     """A contact run whose [train] names the envelope records it in the checkpoint meta (so the
     API's envelope checks use it, not the training motion alone); ``derive_contact_model``
-    saves the same parameters under a changed [model] section, with where they came from."""
+    saves the same parameters under a changed [model] section, with where they came from (and
+    new damping shares where the damping target changes)."""
     from sgn_jax.pipelines.validation import model_envelope
 
     _, whole_dir = unbroken_run
@@ -213,4 +214,12 @@ def test_the_checkpoint_states_its_envelope_and_a_derived_model_keeps_it(tmp_pat
         np.testing.assert_array_equal(x, y)
     with pytest.raises(FileExistsError):
         derive_contact_model(str(whole_dir), out, overlap_limit=2e-4)
+    # a change of the damping target changes what the fitted shares mean: it needs new ones
+    with pytest.raises(ValueError, match="shares"):
+        derive_contact_model(str(whole_dir), str(tmp_path / "split"), damping_target="contact")
+    split = load_trained_model(derive_contact_model(
+        str(whole_dir), str(tmp_path / "split2"), shares=(0.9, 0.8), damping_target="contact"))
+    assert split.model.physics.damping_target == "contact"
+    share = 1.0 / (1.0 + np.exp(-np.asarray(split.params["share_logit"], np.float64)))
+    np.testing.assert_allclose(share, [0.9, 0.8], rtol=1e-5)
 

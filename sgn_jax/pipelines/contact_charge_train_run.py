@@ -45,11 +45,7 @@ from sgn_jax.records.charge_envelope import (
 from sgn_jax.records.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from sgn_jax.records.io_utils import write_json
 from sgn_jax.records.trajectory import load_trajectory
-from sgn_jax.surrogate.contact_charge import (
-    ball_charge,
-    make_contact_charge_net,
-    tangential_damping_shares,
-)
+from sgn_jax.surrogate.contact_charge import ball_charge, make_contact_charge_net
 from sgn_jax.surrogate.contact_charge_train import (
     ChargeStretchSource,
     make_charge_unroll_loss,
@@ -63,6 +59,7 @@ from sgn_jax.surrogate.contact_train import (
     make_optimizer,
     make_train_step,
     share_logits,
+    tangential_damping_shares,
     velocity_change_scale,
 )
 from sgn_jax.surrogate.train import TrainingError

@@ -43,6 +43,7 @@ from sgn_jax.pipelines.rollout_run import _effective_config, run_rollout
 from sgn_jax.pipelines.train_run import envelope_meta
 from sgn_jax.records.checkpoint import TrainedModel, load_trained_model, save_checkpoint
 from sgn_jax.surrogate.contact import ContactNet, edge_geometry
+from sgn_jax.surrogate.contact_train import share_logits
 from sgn_jax.surrogate.graph import build_graph, windows_from_arrays
 from sgn_jax.surrogate.rollout import single_rollout_model, snap_back_shift
 
@@ -183,19 +184,32 @@ def floor_activity_run(trained: TrainedModel, replay: dict[str, Any], traj: Any,
                       replay["sdf"], replay["query"], traj, round(duration / spec.dt), every)
 
 
-def derive_contact_model(checkpoint: str, out: str, **model_changes: Any) -> str:
+def derive_contact_model(checkpoint: str, out: str, shares: Any = None,
+                         **model_changes: Any) -> str:
     """Save ``checkpoint``'s model (a run or checkpoint directory) with its ``[model]`` section
     changed by ``model_changes`` (e.g. ``overlap_limit=1e-4``) as a new run directory ``out``
     (``out/checkpoints/best``), the same parameters; its meta's ``derived_from`` names the
     source and the change, and a source without the envelope its ``[train]`` section names
-    (older contact runs did not record it) gets it. Refuses an existing ``out`` and
-    a model that is not a contact model. Returns ``out``."""
+    (older contact runs did not record it) gets it. ``shares`` (ball-ball, ball-wall) replace
+    the fitted damping shares (``share_logit``): a change of ``damping_target`` changes what
+    they mean and needs them (``tangential_damping_shares`` or ``dissipation_shares`` of the
+    model's training records, sgn_jax.surrogate.contact_train). Refuses an existing ``out``,
+    a model that is not a contact model and a ``damping_target`` change without ``shares``.
+    Returns ``out``."""
     if os.path.exists(out):
         raise FileExistsError(f"{out} exists: choose a new directory")
     trained = load_trained_model(checkpoint)
     if getattr(trained.config.model, "kind", "sgn") != "contact":
         raise ValueError(f"{checkpoint} is not a contact model")
     cfg = replace_section(trained.config, "model", **model_changes)
+    params = trained.params
+    if shares is not None:
+        params = {**params, "share_logit": share_logits(tuple(float(x) for x in shares))}
+        model_changes = {**model_changes, "shares": [float(x) for x in shares]}
+    elif cfg.model.damping_target != trained.config.model.damping_target:
+        raise ValueError(f"damping_target {trained.config.model.damping_target!r} -> "
+                         f"{cfg.model.damping_target!r} changes what the fitted shares mean: "
+                         "pass shares= (tangential_damping_shares of the training records)")
     meta = {k: v for k, v in dict(trained.meta).items()
             if not k.endswith("_digest") and k not in ("format_version", "has_opt_state")}
     if "envelope" not in meta:   # models trained before the contact trainer recorded it
@@ -204,5 +218,5 @@ def derive_contact_model(checkpoint: str, out: str, **model_changes: Any) -> str
                 derived_from={"model": os.path.abspath(checkpoint),
                               "change": {k: model_changes[k] for k in sorted(model_changes)}})
     save_checkpoint(os.path.join(out, "checkpoints", "best"), int(meta.get("step", 0)),
-                    params=trained.params, norm_stats=trained.norm_stats, meta=meta, keep=1)
+                    params=params, norm_stats=trained.norm_stats, meta=meta, keep=1)
     return out

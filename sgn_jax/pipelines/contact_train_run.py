@@ -54,6 +54,7 @@ from sgn_jax.surrogate.contact_train import (
     make_train_step,
     make_unroll_loss,
     share_logits,
+    tangential_damping_shares,
     velocity_change_scale,
 )
 from sgn_jax.surrogate.normalization import Moments, NormStats
@@ -174,7 +175,8 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
 
     train_src = source(trajectories)
     val_src = source(val_trajectories) if val_trajectories else None
-    shares = dissipation_shares(trajectories)
+    shares = (tangential_damping_shares(trajectories)
+              if net.physics.damping_target == "contact" else dissipation_shares(trajectories))
 
     example = train_src.draw(np.random.default_rng(0), 1)
     params = init_on_first_stretch(net, spec, sdf, query, example, jax.random.PRNGKey(seed))
@@ -233,6 +235,7 @@ def train_contact(cfg: Any, trajectories: Sequence[Any], out_dir: str | Path, *,
             "impact_weight": impact_weight, "n_impacts": n_impacts if impact_weight > 0 else 0,
             "spin": net.spin, "spin_weight": unroll.spin_weight,
             "init_from": None if init_from is None else str(init_from),
+            "damping_target": net.physics.damping_target,
             "dissipation_shares": {"pp": shares[0], "pw": shares[1]},
             "loss_scales": train_src.scales.tolist(), "git_commit": git_commit(),
             "sgn_jax_version": sgn_jax.__version__}

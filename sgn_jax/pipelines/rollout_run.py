@@ -379,9 +379,11 @@ def run_rollout(trained_model: Any, init_traj: Any, start_index: int | None, dur
                               "force_fraction": float(collision_force_fraction),
                               "pending_J": summary["collision_pending_J"]}
         share = getattr(trained_model.params, "get", lambda _k: None)("share_logit")
-        if share is not None:   # dE reports share_pp diss_pp + share_pw diss_pw
+        if share is not None:   # dE: share_pp diss_pp + share_pw diss_pw, or per contact
             share_pp, share_pw = (float(x) for x in 1.0 / (1.0 + np.exp(-np.asarray(share))))
-            meta["collisions"].update(share_pp=share_pp, share_pw=share_pw)
+            meta["collisions"].update(
+                share_pp=share_pp, share_pw=share_pw,
+                damping_target=str(getattr(trained_model.config.model, "damping_target", "kind")))
     if out_path is not None:
         save_prediction(out_path, arrays, meta)
         summary["out"] = str(out_path)

@@ -85,6 +85,10 @@ TANGENT_EPS = 1.0e-4          # m/s: t = v_t / sqrt(|v_t|^2 + eps^2), smooth at 
 SINGLE_ROLLOUT_ACTING_PER_BALL = 1.5
 
 
+DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
+"""The dissipation targets of :class:`ContactPhysics` ``damping_target``."""
+
+
 @dataclasses.dataclass(frozen=True)
 class ContactPhysics:
     """The known physics of the contact model (static, hashable).
@@ -144,6 +148,16 @@ class ContactPhysics:
             gets the tangential impulse that stops its contact point's slip, shared among the
             acting contacts of its balls, its total tangential impulse kept inside the cone
             ``mu du_n`` (equal and opposite, with its torque on both balls, in the ledger).
+        damping_target: how the dissipation target (the DEM's damping, the paper's target)
+            comes from the model's own losses (``[model] damping_target``;
+            :data:`DAMPING_TARGETS`). ``"kind"``: a share of all losses per contact kind,
+            ``share_logit`` = the DEM's damping share of all its losses
+            (:func:`sgn_jax.surrogate.contact_train.dissipation_shares`). ``"contact"``: per
+            contact, its normal part whole (the DEM's normal losses are all damping), its
+            rolling friction's none, the rest by the kind's tangential damping share,
+            ``share_logit`` = the DEM's tangential damping against its Coulomb slip
+            (:func:`sgn_jax.surrogate.contact_train.tangential_damping_shares`); the share then
+            follows the contact's own split, higher where impacts dominate (docs/contact.md).
     """
 
     ball_radius: float = 0.005
@@ -165,6 +179,7 @@ class ContactPhysics:
     restitution: float = 0.0
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
+    damping_target: str = "kind"
 
     @property
     def inertia(self) -> float:
@@ -189,6 +204,9 @@ class ContactPhysics:
                                     "limit (overlap_law_factor > 0)")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
+        if self.damping_target not in DAMPING_TARGETS:
+            raise ContactModelError(f"damping_target must be one of {DAMPING_TARGETS}, got "
+                                    f"{self.damping_target!r}")
 
 
 def _slot(features: jax.Array, k: int, cols: slice) -> jax.Array:
@@ -637,12 +655,14 @@ class ContactNet(nn.Module):
     def _dissipation_target(self, parts: dict[str, jax.Array],
                             seg: Any) -> jax.Array:
         """(n_graph,) J, the paper's target from the step's dissipation: ``share_pp D_pp +
-        share_pw D_pw``. ``parts``: ``d_pp``, ``d_pw`` (n_graph,) and per contact row the
+        share_pw D_pw`` (``damping_target = "kind"``) or the sum of
+        :func:`per_contact_damping` (``"contact"``). ``parts``: ``d_pp``, ``d_pw`` (n_graph,) and per contact row the
         terms :meth:`_terms_and_contacts` has (``geo``, ``impulse``, ``angular``,
         ``wbar_node``, ``edge_pp``, ``edge_pw``, ``edge_normal``); ``seg`` sums rows per
         graph."""
-        del seg
         share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
+        if self.physics.damping_target == "contact":
+            return seg(per_contact_damping(parts, share, self.spin))
         return share[0] * parts["d_pp"] + share[1] * parts["d_pw"]
 
     def _reduced_mass(self, geo: dict[str, jax.Array]) -> jax.Array:
@@ -927,6 +947,32 @@ class ContactNet(nn.Module):
         return self._accelerations(terms), terms["dE_target"]
 
 
+def per_contact_damping(parts: dict[str, Any], share: jax.Array, spin: bool) -> jax.Array:
+    """(E,) J per contact row, the DEM's damping in it from the model's own losses: the
+    normal part whole (the Hertz spring stores, the normal damper dissipates: the DEM's normal
+    losses are all damping), the rolling friction's none (the DEM's rolling losses), the rest
+    (the tangential impulse and its torques) by the kind's tangential damping share
+    ``share`` (2,) = (ball-ball, ball-wall), the DEM's tangential damping against its Coulomb
+    slip. ``parts``: the rows' ``geo`` (with ``arm``, ``normal``, ``receivers``, ``senders``,
+    ``is_pp``, ``is_pw``), ``impulse``, ``angular`` (the final angular impulses), ``wbar_node``
+    (the midpoint spins), ``edge_pp``, ``edge_pw`` and ``edge_normal`` (the rows' losses)."""
+    geo = parts["geo"]
+    total = parts["edge_pp"] + parts["edge_pw"]
+    normal = parts["edge_normal"]
+    rolling = jnp.zeros_like(total)
+    if spin:
+        # the rolling impulse from the final angular impulses: a_recv = a_r n x J + l_roll
+        # (the sweeps add only torques of J, the normal sweeps none)
+        a_recv = parts["angular"][0]
+        l_roll = a_recv - geo["arm"][:, None] * jnp.cross(geo["normal"], parts["impulse"])
+        wbar = parts["wbar_node"]
+        w_rel_bar = wbar[geo["receivers"]] - jnp.where(geo["is_pp"][:, None],
+                                                       wbar[geo["senders"]], 0.0)
+        rolling = -jnp.sum(l_roll * w_rel_bar, axis=-1) * (geo["is_pp"] | geo["is_pw"])
+    tangential = total - normal - rolling
+    return normal + jnp.where(geo["is_pw"], share[1], share[0]) * tangential
+
+
 def _edge_graph_index(graph: jraph.GraphsTuple) -> jax.Array:
     n_edge_total = graph.senders.shape[0]
     n_graph = graph.n_edge.shape[0]
@@ -960,7 +1006,9 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
                           overlap_limit=float(getattr(cfg.model, "overlap_limit", 0.0)),
                           overlap_law_factor=factor,
                           overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
-                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)), **peaks)
+                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
+                          damping_target=str(getattr(cfg.model, "damping_target", "kind")),
+                          **peaks)
 
 
 def make_contact_net(cfg: Any) -> ContactNet:

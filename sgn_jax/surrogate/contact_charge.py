@@ -47,7 +47,8 @@ by each ball's own mass and inertia.
 The dissipation target per contact from its own impulses: the normal part of its dissipation
 is all damping (the Hertz spring stores, the normal damper dissipates), its rolling friction
 none, its tangential part a share ``sigmoid(share_logit[kind])`` (the DEM's tangential damping
-against its Coulomb slip, fitted from records: :func:`tangential_damping_shares`).
+against its Coulomb slip, fitted from records:
+:func:`sgn_jax.surrogate.contact_train.tangential_damping_shares`).
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ from sgn_jax.surrogate.contact import (
     _safe_norm,
     contact_rows,
     edge_kinematics,
+    per_contact_damping,
 )
 from sgn_jax.surrogate.graph import BallCharge
 from sgn_jax.surrogate.model import register_model
@@ -427,38 +429,8 @@ class ContactChargeNet(ContactNet):
         rolling friction's not at all (the DEM's rolling losses), the rest (the tangential
         impulse and its torques) by the kind's tangential damping share, the DEM's tangential
         damping against its Coulomb slip (``share_logit``, fitted from records)."""
-        geo = parts["geo"]
         share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
-        total = parts["edge_pp"] + parts["edge_pw"]
-        normal = parts["edge_normal"]
-        rolling = jnp.zeros_like(total)
-        if self.spin:
-            # the rolling impulse from the final angular impulses: a_recv = a_r n x J + l_roll
-            # (the sweeps add only torques of J, the normal sweeps none)
-            a_recv = parts["angular"][0]
-            l_roll = a_recv - geo["arm"][:, None] * jnp.cross(geo["normal"], parts["impulse"])
-            wbar = parts["wbar_node"]
-            w_rel_bar = wbar[geo["receivers"]] - jnp.where(geo["is_pp"][:, None],
-                                                           wbar[geo["senders"]], 0.0)
-            rolling = -jnp.sum(l_roll * w_rel_bar, axis=-1) * (geo["is_pp"] | geo["is_pw"])
-        tangential = total - normal - rolling
-        per_edge = normal + jnp.where(geo["is_pw"], share[1], share[0]) * tangential
-        return seg(per_edge)
-
-
-def tangential_damping_shares(trajectories: list[Any]) -> tuple[float, float]:
-    """The DEM's tangential damping share of its tangential losses (damping + Coulomb slip),
-    ball-ball and ball-wall, over the trajectories (1 where a record has no slip arrays)."""
-    def total(t: Any, name: str) -> float:
-        values = getattr(t, name, None)
-        return 0.0 if values is None else float(np.sum(values))
-
-    out = []
-    for kind in ("pp", "pw"):
-        damping = sum(total(t, f"diss_{kind}_tangential") for t in trajectories)
-        losses = damping + sum(total(t, f"diss_{kind}_slip") for t in trajectories)
-        out.append(damping / losses if losses > 0 else 1.0)
-    return out[0], out[1]
+        return seg(per_contact_damping(parts, share, self.spin))
 
 
 def physics_from_config(cfg: Any) -> ChargePhysics:

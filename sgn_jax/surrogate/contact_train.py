@@ -284,6 +284,21 @@ def dissipation_shares(trajectories: list[Any]) -> tuple[float, float]:
     return out[0], out[1]
 
 
+def tangential_damping_shares(trajectories: list[Any]) -> tuple[float, float]:
+    """The DEM's tangential damping share of its tangential losses (damping + Coulomb slip),
+    ball-ball and ball-wall, over the trajectories (1 where a record has no slip arrays)."""
+    def total(t: Any, name: str) -> float:
+        values = getattr(t, name, None)
+        return 0.0 if values is None else float(np.sum(values))
+
+    out = []
+    for kind in ("pp", "pw"):
+        damping = sum(total(t, f"diss_{kind}_tangential") for t in trajectories)
+        losses = damping + sum(total(t, f"diss_{kind}_slip") for t in trajectories)
+        out.append(damping / losses if losses > 0 else 1.0)
+    return out[0], out[1]
+
+
 def share_logits(shares: tuple[float, float]) -> jax.Array:
     s = np.clip(np.asarray(shares, np.float64), 1e-4, 1 - 1e-4)
     return jnp.asarray(np.log(s / (1 - s)), jnp.float32)
