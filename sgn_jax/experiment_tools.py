@@ -110,7 +110,7 @@ from sgn_jax.regime import (
 )
 from sgn_jax.scene import analytic_jar_query
 from sgn_jax.surrogate.contact_charge import ball_charge
-from sgn_jax.surrogate.contact_train import UnrollSpec
+from sgn_jax.surrogate.contact_train import UnrollSpec, tangential_damping_shares
 from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 from sgn_jax.surrogate.rollout import make_rollout_advance, model_predictor
 
@@ -187,6 +187,7 @@ __all__ = [
     "train_contact",
     "UnrollSpec",
     "derive_contact_model",
+    "tangential_damping_shares",
     "make_floor_replay",
     "floor_activity_run",
     "dem_params_from_config",

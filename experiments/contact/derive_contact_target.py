@@ -18,7 +18,6 @@ import os
 
 import sgn_jax.experiment_tools as tools
 from sgn_jax.api import load_config, load_trajectory
-from sgn_jax.surrogate.contact_train import tangential_damping_shares
 
 
 def main() -> None:
@@ -35,7 +34,7 @@ def main() -> None:
                     for f in glob.glob(os.path.join(args.data, pattern))})
     if not files:
         raise SystemExit(f"no records match {stage.records} under {args.data}")
-    shares = tangential_damping_shares([load_trajectory(f) for f in files])
+    shares = tools.tangential_damping_shares([load_trajectory(f) for f in files])
     out = tools.derive_contact_model(tools.resolve_checkpoint(args.model), args.out,
                                      shares=shares, damping_target="contact")
     print(json.dumps({"out": out, "records": len(files), "tangential_damping_shares":
