@@ -532,6 +532,9 @@ class ModelConfig:
             rebound: once the law's contact time t_c(v) at its closing speed v has passed, the
             step ends with the pair separating at e v at least (docs/contact.md, "One step",
             item 7).
+        law_rebound_exact: kind "contact" only (needs law_rebound): the law rebound is also
+            the ceiling of such a contact's normal impulse, so the step ends with the pair
+            separating at e v exactly (or as the overlap limit needs), not faster.
         overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed
@@ -557,6 +560,7 @@ class ModelConfig:
     overlap_limit: float = 0.0
     overlap_law_factor: float = 0.0
     law_rebound: bool = False
+    law_rebound_exact: bool = False
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     damping_target: str = "kind"
@@ -565,8 +569,8 @@ class ModelConfig:
     # (the SGN, a registered kind) reads every key or refuses a value it cannot use itself.
     _KEYS_BY_KIND = {
         "contact": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
-                    "overlap_law_factor", "law_rebound", "overlap_sweeps", "friction_sweeps",
-                    "damping_target"},
+                    "overlap_law_factor", "law_rebound", "law_rebound_exact", "overlap_sweeps",
+                    "friction_sweeps", "damping_target"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
                            "overlap_law_factor", "law_rebound", "overlap_sweeps",
                            "friction_sweeps"},
@@ -587,6 +591,9 @@ class ModelConfig:
             raise ConfigError("[model] law_rebound = true needs overlap_law_factor > 0 (the "
                               "law's scale, from which its contact time follows), got "
                               f"overlap_law_factor = {self.overlap_law_factor}")
+        if self.law_rebound_exact and not self.law_rebound:
+            raise ConfigError("[model] law_rebound_exact = true needs law_rebound = true (the "
+                              "rebound it makes exact)")
         if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
             raise ConfigError(f"[model] overlap_sweeps must be >= 0 and needs overlap_limit > 0 "
                               f"(m), got overlap_sweeps = {self.overlap_sweeps} and "

@@ -566,12 +566,15 @@ def test_the_per_contact_damping_target_splits_each_contacts_losses(rolling):
     assert kind_half == pytest.approx(0.5 * losses, rel=1e-4)
 
 
-def test_a_contact_config_refuses_an_unknown_damping_target():
+def test_a_contact_config_refuses_an_unknown_damping_target_and_an_exact_rebound_alone():
     from sgn_jax.config import ConfigError, ModelConfig
     from sgn_jax.surrogate.contact import ContactModelError
 
     with pytest.raises(ConfigError, match="damping_target"):
         ModelConfig(kind="contact", hidden=8, mlp_layers=2, damping_target="share")
+    with pytest.raises(ConfigError, match="law_rebound_exact"):
+        ModelConfig(kind="contact", hidden=8, mlp_layers=2, overlap_limit=5e-5,
+                    overlap_law_factor=1.5, law_rebound_exact=True)
     with pytest.raises(ContactModelError, match="damping_target"):
         ContactPhysics(damping_target="share")
 
@@ -869,3 +872,42 @@ def test_a_fresh_impact_ends_with_the_laws_rebound_once_its_contact_time_has_pas
     assert without[0, 1] < e * v - 0.05                   # the network alone: no such rebound
     assert with_rule[0, 1] >= e * v - 1e-6                # leaving the floor at e v (float32)
     np.testing.assert_allclose(with_rule[1:], without[1:], rtol=0, atol=1e-12)
+
+
+def test_the_exact_law_rebound_caps_a_network_that_pushes_harder():
+    """``rebound_exact`` (``[model] law_rebound_exact``): the same fresh impact as above, with a
+    network whose normal impulse is large everywhere, ends leaving the floor at e v exactly
+    (not faster, as the floor alone lets it); the contact that began within the step and the
+    resting one keep the network's impulse."""
+    v, e, ratio = 0.3, 0.74, 3.4
+    vel = np.zeros((5, 3))
+    vel[:2, 1] = -v
+    centres = np.array([[0.0, R - 1.8 * v * DT, 0.0], [0.03, R + 0.5 * v * DT, 0.0],
+                        [0.06, R - 1e-6, 0.0], [0.09, 0.05, 0.0], [0.12, 0.05, 0.0]])
+    pos = centres[None] + np.arange(-W, 1)[:, None, None] * DT * vel[None]
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
+    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
+
+    def end_velocity(exact):
+        phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
+                                 "overlap_law_factor": 1.5, "rebound_time_pp": ratio,
+                                 "rebound_time_pw": ratio, "restitution": e,
+                                 "rebound_exact": exact})
+        net = ContactNet(physics=phys, hidden=16, mlp_layers=2, spin=False)
+        params = net.init(jax.random.PRNGKey(0), graph)["params"]
+        last = max(k for k in params["pw_net"] if k.startswith("dense_"))
+        bias = params["pw_net"][last]["bias"]
+        params = {**params, "pw_net": {**params["pw_net"], last: {
+            **params["pw_net"][last], "bias": bias.at[0].set(8.0)}}}   # pushes hard
+        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+        return vel + np.asarray(terms["dv"][:5], np.float64)
+
+    floor_only, exact = end_velocity(False), end_velocity(True)
+    assert floor_only[0, 1] > e * v + 0.05                 # the network pushes past e v
+    assert exact[0, 1] == pytest.approx(e * v, abs=1e-5)   # the law's rebound, exactly
+    np.testing.assert_allclose(exact[1:], floor_only[1:], rtol=0, atol=1e-12)
+    from sgn_jax.surrogate.contact import ContactModelError
+
+    with pytest.raises(ContactModelError, match="rebound_exact"):
+        ContactPhysics(rebound_exact=True)

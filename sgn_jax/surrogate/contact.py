@@ -130,6 +130,9 @@ class ContactPhysics:
             end of the step is over in the DEM, its balls separating at e v: its normal impulse
             is at least the one that ends the step separating at e v (docs/contact.md, "One
             step", item 7).
+        rebound_exact: the law rebound as the impulse's ceiling too (``[model]
+            law_rebound_exact``): such a contact's normal impulse is exactly that floor, the
+            network's answer unused there (docs/contact.md, "One step", item 7).
         overlap_sweeps: 0 = off (``[model] overlap_sweeps``; needs ``overlap_limit`` > 0). The
             floor above is computed for each contact alone; in a chain (a ball struck while it
             rests on others, a bed compressed by an impact) the impulses of a ball's other
@@ -180,6 +183,7 @@ class ContactPhysics:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     damping_target: str = "kind"
+    rebound_exact: bool = False
 
     @property
     def inertia(self) -> float:
@@ -204,6 +208,8 @@ class ContactPhysics:
                                     "limit (overlap_law_factor > 0)")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
+        if self.rebound_exact and not self.rebound_time_pp > 0:
+            raise ContactModelError("rebound_exact needs the law rebound (rebound_time_pp/pw > 0)")
         if self.damping_target not in DAMPING_TARGETS:
             raise ContactModelError(f"damping_target must be one of {DAMPING_TARGETS}, got "
                                     f"{self.damping_target!r}")
@@ -304,7 +310,7 @@ class GateRule:
     margin ``gate_margin``. ``rebound_time`` (None: off; needs the law term) and
     ``restitution``: the law's ``v t_c(v) / peak(v)`` (its contact time over its peak,
     :func:`sgn_jax.dem.contact.head_on_contact_time`) and restitution, for the law rebound of
-    :func:`contact_rows`."""
+    :func:`contact_rows`; ``rebound_exact``: the rebound is also the impulse's ceiling."""
 
     limit_on: bool
     limit: Any
@@ -314,6 +320,7 @@ class GateRule:
     speed_ref: float = 1.0
     rebound_time: Any = None
     restitution: Any = None
+    rebound_exact: bool = False
 
 
 def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: jax.Array,
@@ -356,6 +363,7 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
 
     rule = gate_rule
     gap_end = gap[-1] + u[-1] * dt
+    ceiling = None
     if rule.limit_on:
         limit = rule.limit
         if rule.law_factor > 0:
@@ -393,9 +401,15 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
             over = fresh & (closing > 0) & (since_touch > t_contact)
             rebound = rule.restitution * closing - u[-1] - acc_term
             floor = jnp.where(over, jnp.maximum(floor, rebound), floor)
+            if rule.rebound_exact:
+                # ...and not faster: the contact's own impulse ends it at e v (or at what the
+                # overlap limit needs), whatever the network would add
+                ceiling = jnp.where(over, floor, jnp.inf)
     else:
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
+    if ceiling is None:
+        ceiling = jnp.full_like(gap_end, jnp.inf)
     reachable = jnp.minimum(gap[-1], gap_end) < rule.gate_margin
     gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
     extra = {}
@@ -407,6 +421,7 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
         extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
+        "ceiling": ceiling,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
@@ -484,7 +499,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
                            rebound_time=(jnp.where(is_pw, phys.rebound_time_pw,
                                                    phys.rebound_time_pp)
                                          if phys.rebound_time_pp > 0 else None),
-                           restitution=phys.restitution),
+                           restitution=phys.restitution,
+                           rebound_exact=phys.rebound_exact),
         spin=spin)
     return {**rows, "speed_c": slip_c, **extra}
 
@@ -688,7 +704,8 @@ class ContactNet(nn.Module):
         With ``physics.overlap_limit`` the normal impulse is at least ``geo["floor"]`` (the
         rigid limit; see :class:`ContactPhysics`)."""
         phys = self.physics
-        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"]) * geo["gate"]
+        du_n = jnp.minimum(jnp.maximum(self._learned_normal(geo, logits), geo["floor"]),
+                           geo["ceiling"]) * geo["gate"]
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia
@@ -1008,6 +1025,7 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
                           overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
                           friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
                           damping_target=str(getattr(cfg.model, "damping_target", "kind")),
+                          rebound_exact=bool(getattr(cfg.model, "law_rebound_exact", False)),
                           **peaks)
 
 
