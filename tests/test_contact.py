@@ -839,13 +839,10 @@ def test_the_law_scaled_limit_is_the_dem_laws_own_deepest_overlap():
         replace_section(cfg, "model", overlap_limit=0.0)
 
 
-def test_a_fresh_impact_ends_with_the_laws_rebound_once_its_contact_time_has_passed():
-    """``law_rebound`` (``rebound_time_pp/pw``): a ball that met the floor at 0.3 m/s 2.8 slots
-    before the end of the step, longer than the law's contact time there (t_c = ratio peak
-    v^0.8 / v = 225 us), ends the step leaving the floor at e v at least; one whose contact
-    began within the step (50 us before its end) and one resting on the floor keep the
-    network's impulse, as without the rule."""
-    v, e, ratio = 0.3, 0.74, 3.4
+def fresh_impact_scene(v):
+    """(vel (5, 3), graph): balls 0 and 1 falling onto the floor at v, ball 0 in contact since
+    1.8 slots (its gap open at the oldest slot: a fresh impact), ball 1 touching within this
+    step, ball 2 resting, balls 3 and 4 far from everything."""
     vel = np.zeros((5, 3))
     vel[:2, 1] = -v
     centres = np.array([[0.0, R - 1.8 * v * DT, 0.0],     # fresh: open at the oldest slot
@@ -855,7 +852,17 @@ def test_a_fresh_impact_ends_with_the_laws_rebound_once_its_contact_time_has_pas
     pos = centres[None] + np.arange(-W, 1)[:, None, None] * DT * vel[None]   # W + 1 positions
     window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
                     offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
-    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
+    return vel, build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))[0]
+
+
+def test_a_fresh_impact_ends_with_the_laws_rebound_once_its_contact_time_has_passed():
+    """``law_rebound`` (``rebound_time_pp/pw``): a ball that met the floor at 0.3 m/s 2.8 slots
+    before the end of the step, longer than the law's contact time there (t_c = ratio peak
+    v^0.8 / v = 225 us), ends the step leaving the floor at e v at least; one whose contact
+    began within the step (50 us before its end) and one resting on the floor keep the
+    network's impulse, as without the rule."""
+    v, e, ratio = 0.3, 0.74, 3.4
+    vel, graph = fresh_impact_scene(v)
 
     def end_velocity(rebound_time):
         phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
@@ -880,14 +887,7 @@ def test_the_exact_law_rebound_caps_a_network_that_pushes_harder():
     (not faster, as the floor alone lets it); the contact that began within the step and the
     resting one keep the network's impulse."""
     v, e, ratio = 0.3, 0.74, 3.4
-    vel = np.zeros((5, 3))
-    vel[:2, 1] = -v
-    centres = np.array([[0.0, R - 1.8 * v * DT, 0.0], [0.03, R + 0.5 * v * DT, 0.0],
-                        [0.06, R - 1e-6, 0.0], [0.09, 0.05, 0.0], [0.12, 0.05, 0.0]])
-    pos = centres[None] + np.arange(-W, 1)[:, None, None] * DT * vel[None]
-    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
-                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
-    graph, _ = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
+    vel, graph = fresh_impact_scene(v)
 
     def end_velocity(exact):
         phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
