@@ -408,8 +408,6 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
     else:
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
-    if ceiling is None:
-        ceiling = jnp.full_like(gap_end, jnp.inf)
     reachable = jnp.minimum(gap[-1], gap_end) < rule.gate_margin
     gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
     extra = {}
@@ -421,12 +419,14 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
         extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
-        "ceiling": ceiling,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
         "v_node": kin["vel"][-1], "u_n": u[-1], **extra,
+        # the exact law rebound's ceiling, only where it is on (the step's hot path is
+        # unchanged without it)
+        **({} if ceiling is None else {"ceiling": ceiling}),
     }
 
 
@@ -672,10 +672,10 @@ class ContactNet(nn.Module):
                             seg: Any) -> jax.Array:
         """(n_graph,) J, the paper's target from the step's dissipation: ``share_pp D_pp +
         share_pw D_pw`` (``damping_target = "kind"``) or the sum of
-        :func:`per_contact_damping` (``"contact"``). ``parts``: ``d_pp``, ``d_pw`` (n_graph,) and per contact row the
-        terms :meth:`_terms_and_contacts` has (``geo``, ``impulse``, ``angular``,
-        ``wbar_node``, ``edge_pp``, ``edge_pw``, ``edge_normal``); ``seg`` sums rows per
-        graph."""
+        :func:`per_contact_damping` (``"contact"``). ``parts``: ``d_pp``, ``d_pw``
+        (n_graph,) and per contact row the terms :meth:`_terms_and_contacts` has (``geo``,
+        ``impulse``, ``angular``, ``wbar_node``, ``edge_pp``, ``edge_pw``, ``edge_normal``);
+        ``seg`` sums rows per graph."""
         share = jax.nn.sigmoid(jax.lax.stop_gradient(self.share_logit))
         if self.physics.damping_target == "contact":
             return seg(per_contact_damping(parts, share, self.spin))
@@ -704,8 +704,10 @@ class ContactNet(nn.Module):
         With ``physics.overlap_limit`` the normal impulse is at least ``geo["floor"]`` (the
         rigid limit; see :class:`ContactPhysics`)."""
         phys = self.physics
-        du_n = jnp.minimum(jnp.maximum(self._learned_normal(geo, logits), geo["floor"]),
-                           geo["ceiling"]) * geo["gate"]
+        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"])
+        if "ceiling" in geo:   # the exact law rebound
+            du_n = jnp.minimum(du_n, geo["ceiling"])
+        du_n = du_n * geo["gate"]
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia

@@ -266,37 +266,37 @@ def velocity_change_scale(positions: np.ndarray, dt: float, floor: float = 1e-3)
     return float(max(np.sqrt(np.mean(np.sum(dv * dv, axis=-1))), floor))
 
 
-def dissipation_shares(trajectories: list[Any]) -> tuple[float, float]:
-    """The DEM's damping share of all contact losses, ball-ball and ball-wall, over the
-    trajectories: (normal + tangential damping) / (damping + slip + rolling), per kind."""
-    def total(t: Any, name: str) -> float:
-        # a record without the slip and rolling arrays (synthetic data) has no such losses
-        values = getattr(t, name, None)
+def _damping_share(trajectories: list[Any], damping_kinds: tuple[str, ...],
+                   other_kinds: tuple[str, ...]) -> tuple[float, float]:
+    """Per contact kind (ball-ball, ball-wall), the DEM's summed ``diss_<kind>_<d>`` losses of
+    ``damping_kinds`` over those plus ``other_kinds``, over the trajectories (1 where there
+    are no such losses). A record without the slip and rolling arrays (synthetic data) has no
+    such losses."""
+    def one(t: Any, kind: str, name: str) -> float:
+        values = getattr(t, f"diss_{kind}_{name}", None)
         return 0.0 if values is None else float(np.sum(values))
+
+    def total(kind: str, names: tuple[str, ...]) -> float:
+        return sum(sum(one(t, kind, name) for name in names) for t in trajectories)
 
     out = []
     for kind in ("pp", "pw"):
-        damping = sum(total(t, f"diss_{kind}_normal") + total(t, f"diss_{kind}_tangential")
-                      for t in trajectories)
-        losses = damping + sum(total(t, f"diss_{kind}_slip") + total(t, f"diss_{kind}_rolling")
-                               for t in trajectories)
+        damping = total(kind, damping_kinds)
+        losses = damping + total(kind, other_kinds)
         out.append(damping / losses if losses > 0 else 1.0)
     return out[0], out[1]
+
+
+def dissipation_shares(trajectories: list[Any]) -> tuple[float, float]:
+    """The DEM's damping share of all contact losses, ball-ball and ball-wall, over the
+    trajectories: (normal + tangential damping) / (damping + slip + rolling), per kind."""
+    return _damping_share(trajectories, ("normal", "tangential"), ("slip", "rolling"))
 
 
 def tangential_damping_shares(trajectories: list[Any]) -> tuple[float, float]:
     """The DEM's tangential damping share of its tangential losses (damping + Coulomb slip),
     ball-ball and ball-wall, over the trajectories (1 where a record has no slip arrays)."""
-    def total(t: Any, name: str) -> float:
-        values = getattr(t, name, None)
-        return 0.0 if values is None else float(np.sum(values))
-
-    out = []
-    for kind in ("pp", "pw"):
-        damping = sum(total(t, f"diss_{kind}_tangential") for t in trajectories)
-        losses = damping + sum(total(t, f"diss_{kind}_slip") for t in trajectories)
-        out.append(damping / losses if losses > 0 else 1.0)
-    return out[0], out[1]
+    return _damping_share(trajectories, ("tangential",), ("slip",))
 
 
 def share_logits(shares: tuple[float, float]) -> jax.Array:
