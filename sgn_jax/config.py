@@ -532,9 +532,12 @@ class ModelConfig:
             rebound: once the law's contact time t_c(v) at its closing speed v has passed, the
             step ends with the pair separating at e v at least (docs/contact.md, "One step",
             item 7).
-        law_rebound_exact: kind "contact" only (needs law_rebound): the law rebound is also
-            the ceiling of such a contact's normal impulse, so the step ends with the pair
-            separating at e v exactly (or as the overlap limit needs), not faster.
+        law_rebound_exact: kind "contact" only; "off", "wall" or "all" ("wall" and "all" need
+            law_rebound): the law rebound is also the ceiling of a fresh impact's normal
+            impulse, so the step ends with the pair separating at e v exactly (or as the
+            overlap limit needs), not faster: at every fresh impact ("all") or at ball-wall
+            ones ("wall"), where also a contact closed over the whole window (a ball resting
+            on the wall) separates no faster than e times the window's largest closing speed.
         overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed
@@ -560,7 +563,7 @@ class ModelConfig:
     overlap_limit: float = 0.0
     overlap_law_factor: float = 0.0
     law_rebound: bool = False
-    law_rebound_exact: bool = False
+    law_rebound_exact: str = "off"
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     damping_target: str = "kind"
@@ -591,9 +594,13 @@ class ModelConfig:
             raise ConfigError("[model] law_rebound = true needs overlap_law_factor > 0 (the "
                               "law's scale, from which its contact time follows), got "
                               f"overlap_law_factor = {self.overlap_law_factor}")
-        if self.law_rebound_exact and not self.law_rebound:
-            raise ConfigError("[model] law_rebound_exact = true needs law_rebound = true (the "
-                              "rebound it makes exact)")
+        if self.law_rebound_exact not in ("off", "wall", "all"):
+            raise ConfigError("[model] law_rebound_exact must be 'off', 'wall' (ball-wall "
+                              "impacts) or 'all' (every fresh impact), got "
+                              f"{self.law_rebound_exact!r}")
+        if self.law_rebound_exact != "off" and not self.law_rebound:
+            raise ConfigError(f"[model] law_rebound_exact = {self.law_rebound_exact!r} needs "
+                              "law_rebound = true (the rebound it makes exact)")
         if self.overlap_sweeps < 0 or (self.overlap_sweeps > 0 and self.overlap_limit <= 0):
             raise ConfigError(f"[model] overlap_sweeps must be >= 0 and needs overlap_limit > 0 "
                               f"(m), got overlap_sweeps = {self.overlap_sweeps} and "

@@ -574,7 +574,10 @@ def test_a_contact_config_refuses_an_unknown_damping_target_and_an_exact_rebound
         ModelConfig(kind="contact", hidden=8, mlp_layers=2, damping_target="share")
     with pytest.raises(ConfigError, match="law_rebound_exact"):
         ModelConfig(kind="contact", hidden=8, mlp_layers=2, overlap_limit=5e-5,
-                    overlap_law_factor=1.5, law_rebound_exact=True)
+                    overlap_law_factor=1.5, law_rebound_exact="wall")
+    with pytest.raises(ConfigError, match="law_rebound_exact"):
+        ModelConfig(kind="contact", hidden=8, mlp_layers=2, overlap_limit=5e-5,
+                    overlap_law_factor=1.5, law_rebound=True, law_rebound_exact="walls")
     with pytest.raises(ContactModelError, match="damping_target"):
         ContactPhysics(damping_target="share")
 
@@ -903,11 +906,55 @@ def test_the_exact_law_rebound_caps_a_network_that_pushes_harder():
         terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
         return vel + np.asarray(terms["dv"][:5], np.float64)
 
-    floor_only, exact = end_velocity(False), end_velocity(True)
+    floor_only, exact = end_velocity("off"), end_velocity("all")
     assert floor_only[0, 1] > e * v + 0.05                 # the network pushes past e v
     assert exact[0, 1] == pytest.approx(e * v, abs=1e-5)   # the law's rebound, exactly
     np.testing.assert_allclose(exact[1:], floor_only[1:], rtol=0, atol=1e-12)
+    # "wall": the same at these ball-wall contacts (ball-ball ones: the next test) but the
+    # resting ball's: closed over the whole window, it separates no faster than e times the
+    # window's largest closing speed (here none), where "all" lets the network push it off
+    wall = end_velocity("wall")
+    np.testing.assert_array_equal(wall[:2], exact[:2])
+    assert exact[2, 1] > 0.05 and wall[2, 1] < 1e-3
+    np.testing.assert_array_equal(wall[3:], exact[3:])
     from sgn_jax.surrogate.contact import ContactModelError
 
     with pytest.raises(ContactModelError, match="rebound_exact"):
+        ContactPhysics(rebound_exact="all")
+    with pytest.raises(ContactModelError, match="rebound_exact"):
         ContactPhysics(rebound_exact=True)
+
+
+def test_the_exact_law_rebound_on_walls_leaves_a_ball_ball_impact_to_the_network():
+    """``rebound_exact = "wall"`` caps ball-wall contacts only: a ball falling at v onto a ball
+    that rests on the floor (a fresh ball-ball impact past its contact time) gets the rebound's
+    ceiling with "all" and none with "wall"; the resting ball's floor contact (closed over the
+    window, not fresh) gets one with "wall" only."""
+    v, e, ratio = 0.3, 0.74, 3.4
+    vel = np.zeros((5, 3))
+    vel[0, 1] = -v
+    centres = np.array([[0.0, 3 * R - 1e-6 - 1.8 * v * DT, 0.0],   # falling onto ball 1
+                        [0.0, R - 1e-6, 0.0],                     # resting on the floor
+                        [0.05, 0.05, 0.0], [0.08, 0.05, 0.0], [0.11, 0.05, 0.0]])
+    pos = centres[None] + np.arange(-W, 1)[:, None, None] * DT * vel[None]
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0))
+    graph = build_graph(window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))[0]
+
+    def ceilings(exact):
+        phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
+                                 "overlap_law_factor": 1.5, "rebound_time_pp": ratio,
+                                 "rebound_time_pw": ratio, "restitution": e,
+                                 "rebound_exact": exact})
+        geo = edge_geometry(graph, phys, primary_only=True)
+        pair = np.asarray(geo["is_pp"] & (geo["gate"] > 0))
+        resting = np.asarray(geo["is_pw"] & (geo["gate"] > 0))
+        assert pair.sum() == 1 and resting.sum() == 1
+        ceiling = np.asarray(geo["ceiling"])
+        return ceiling[pair][0], ceiling[resting][0]
+
+    pair_all, resting_all = ceilings("all")
+    pair_wall, resting_wall = ceilings("wall")
+    assert np.isfinite(pair_all) and pair_all > 0       # the pair's rebound, capped
+    assert np.isinf(pair_wall)                          # left to the network
+    assert np.isinf(resting_all) and np.isfinite(resting_wall)

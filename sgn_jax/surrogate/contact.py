@@ -88,6 +88,12 @@ SINGLE_ROLLOUT_ACTING_PER_BALL = 1.5
 DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
 """The dissipation targets of :class:`ContactPhysics` ``damping_target``."""
 
+REBOUND_EXACT: tuple[str, ...] = ("off", "wall", "all")
+"""Where :class:`ContactPhysics` ``rebound_exact`` makes the law rebound the impulse's ceiling:
+nowhere; at ball-wall contacts (a fresh impact ends at e v, a resting contact separates no
+faster than e times the window's largest closing speed); at every fresh impact
+(docs/contact.md, "One step", item 7)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class ContactPhysics:
@@ -130,9 +136,12 @@ class ContactPhysics:
             end of the step is over in the DEM, its balls separating at e v: its normal impulse
             is at least the one that ends the step separating at e v (docs/contact.md, "One
             step", item 7).
-        rebound_exact: the law rebound as the impulse's ceiling too (``[model]
-            law_rebound_exact``): such a contact's normal impulse is exactly that floor, the
-            network's answer unused there (docs/contact.md, "One step", item 7).
+        rebound_exact: where the law rebound is the impulse's ceiling too (``[model]
+            law_rebound_exact``): "off"; "all": at every fresh impact past its contact time,
+            whose normal impulse is then exactly that floor, the network's answer unused;
+            "wall": the same at ball-wall impacts, and a ball-wall contact closed over the
+            whole window separates no faster than e times the largest closing speed the
+            window saw (docs/contact.md, "One step", item 7).
         overlap_sweeps: 0 = off (``[model] overlap_sweeps``; needs ``overlap_limit`` > 0). The
             floor above is computed for each contact alone; in a chain (a ball struck while it
             rests on others, a bed compressed by an impact) the impulses of a ball's other
@@ -183,7 +192,7 @@ class ContactPhysics:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     damping_target: str = "kind"
-    rebound_exact: bool = False
+    rebound_exact: str = "off"
 
     @property
     def inertia(self) -> float:
@@ -208,7 +217,10 @@ class ContactPhysics:
                                     "limit (overlap_law_factor > 0)")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
-        if self.rebound_exact and not self.rebound_time_pp > 0:
+        if self.rebound_exact not in REBOUND_EXACT:
+            raise ContactModelError(f"rebound_exact must be one of {REBOUND_EXACT}, got "
+                                    f"{self.rebound_exact!r}")
+        if self.rebound_exact != "off" and not self.rebound_time_pp > 0:
             raise ContactModelError("rebound_exact needs the law rebound (rebound_time_pp/pw > 0)")
         if self.damping_target not in DAMPING_TARGETS:
             raise ContactModelError(f"damping_target must be one of {DAMPING_TARGETS}, got "
@@ -310,7 +322,8 @@ class GateRule:
     margin ``gate_margin``. ``rebound_time`` (None: off; needs the law term) and
     ``restitution``: the law's ``v t_c(v) / peak(v)`` (its contact time over its peak,
     :func:`sgn_jax.dem.contact.head_on_contact_time`) and restitution, for the law rebound of
-    :func:`contact_rows`; ``rebound_exact``: the rebound is also the impulse's ceiling."""
+    :func:`contact_rows`; ``rebound_exact``: where the rebound is also the impulse's ceiling
+    (:data:`REBOUND_EXACT`)."""
 
     limit_on: bool
     limit: Any
@@ -320,7 +333,7 @@ class GateRule:
     speed_ref: float = 1.0
     rebound_time: Any = None
     restitution: Any = None
-    rebound_exact: bool = False
+    rebound_exact: str = "off"
 
 
 def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: jax.Array,
@@ -401,10 +414,22 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
             over = fresh & (closing > 0) & (since_touch > t_contact)
             rebound = rule.restitution * closing - u[-1] - acc_term
             floor = jnp.where(over, jnp.maximum(floor, rebound), floor)
-            if rule.rebound_exact:
+            if rule.rebound_exact == "all":
                 # ...and not faster: the contact's own impulse ends it at e v (or at what the
                 # overlap limit needs), whatever the network would add
                 ceiling = jnp.where(over, floor, jnp.inf)
+            elif rule.rebound_exact == "wall":
+                # The same at ball-wall impacts, and a ball-wall contact closed over the whole
+                # window (a ball resting or pressed on the wall) does not push its ball off
+                # faster than e times the largest closing speed the window saw: a passive
+                # contact gives back at most what the law's restitution leaves of the approach.
+                # (The ball-wall chatter of a slow bed, balls bouncing off the wall and
+                # returning, is otherwise the model's; docs/contact.md, item 7.)
+                closing_window = jnp.maximum(-jnp.min(u, axis=0), 0.0)
+                resting = jnp.maximum(floor, rule.restitution * closing_window - u[-1]
+                                      - acc_term)
+                ceiling = jnp.where(is_pw & over, floor,
+                                    jnp.where(is_pw & ~fresh, resting, jnp.inf))
     else:
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
@@ -1027,7 +1052,7 @@ def physics_from_config(cfg: Any) -> ContactPhysics:
                           overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
                           friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
                           damping_target=str(getattr(cfg.model, "damping_target", "kind")),
-                          rebound_exact=bool(getattr(cfg.model, "law_rebound_exact", False)),
+                          rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")),
                           **peaks)
 
 
