@@ -3,8 +3,9 @@
 The standard case (24 balls, 300 rpm), a settled bed after 0.05 s of motion (seed 0), advanced
 ``--steps`` DEM steps by the jitted scan with the ledger off (``collision_capacity = 0``) and
 on; the timings alternate, best of ``--repeats`` each, compile time apart. The same for the
-rollouts of the shipped models ``contact`` and ``contact_rebound`` (collisions off / on,
-``--rollout-steps`` steps of 2e-4 s; benchmarks/bench_surrogate_collisions.py).
+rollouts of the shipped contact models ``contact``, ``contact_rebound`` (2e-4 s steps) and
+``contact_collisions`` (1e-4 s), collisions off / on, ``--rollout-steps`` steps each
+(benchmarks/bench_surrogate_collisions.py).
 
     taskset -c 0 python benchmarks/bench_collisions.py [--steps 50000] [--markdown docs/benchmarks.md]
 
@@ -82,7 +83,7 @@ def main() -> None:
     rows = dem_rows(args.steps, args.repeats)
     from bench_surrogate_collisions import rollout_cost  # this folder is on sys.path
 
-    for name in ("contact", "contact_rebound"):
+    for name in ("contact", "contact_rebound", "contact_collisions"):
         r = rollout_cost(args.rollout_steps, args.repeats, checkpoint=name)
         rows.append({"what": f"`{name}` rollout, standard case", "steps": r["steps"],
                      "off_s": r["ms_per_step_off"] * 1e-3 * r["steps"],

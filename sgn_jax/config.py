@@ -537,7 +537,8 @@ class ModelConfig:
             impulse, so the step ends with the pair separating at e v exactly (or as the
             overlap limit needs), not faster: at every fresh impact ("all") or at ball-wall
             ones ("wall"), where also a contact closed over the whole window (a ball resting
-            on the wall) separates no faster than e times the window's largest closing speed.
+            on the wall) separates no faster than e times the largest closing speed the
+            ball's contacts saw in the window.
         overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed

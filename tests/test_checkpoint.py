@@ -213,7 +213,8 @@ def test_intact_checkpoint_is_verified_and_loads(setup, saved, tmp_path):
     assert verify_checkpoint_digest(step_dir) is True  # restoring wrote nothing into the step
 
 
-@pytest.mark.parametrize("name", ["contact", "contact_rebound", "emax_300rpm", "envelope"])
+@pytest.mark.parametrize("name", ["contact", "contact_rebound", "contact_collisions",
+                                  "emax_300rpm", "envelope"])
 def test_shipped_model_verifies(name):
     from sgn_jax.records.shipped_models import registry, shipped_model_dir
 
@@ -295,6 +296,25 @@ def test_damaged_shipped_model_says_reinstall(saved, tmp_path, monkeypatch):
     (ck / "1" / "meta" / "metadata").write_bytes(b"")
     with pytest.raises(CheckpointError, match="re-install the package"):
         restore_checkpoint(ck)
+
+
+def test_the_collision_model_is_the_contact_model_at_half_the_step_with_the_wall_rebound():
+    """``contact_collisions`` (docs/collisions.md): the default's network at half its step,
+    with the law rebound exact at the wall and the per-contact dissipation target; it loads
+    and its damping shares are the tangential ones (a probability each)."""
+    from sgn_jax.records.checkpoint import load_trained_model
+    from sgn_jax.records.shipped_models import resolve_checkpoint
+
+    default = load_trained_model(resolve_checkpoint(None))
+    model = load_trained_model(resolve_checkpoint("contact_collisions"))
+    m = model.config.model
+    assert (m.kind, m.law_rebound, m.law_rebound_exact, m.damping_target) == (
+        "contact", True, "wall", "contact")
+    assert float(model.config.dem.dt) == pytest.approx(0.5 * float(default.config.dem.dt))
+    assert (m.hidden, m.mlp_layers, m.spin) == (default.config.model.hidden,
+                                                default.config.model.mlp_layers, True)
+    shares = jax.nn.sigmoid(np.asarray(model.params["share_logit"]))
+    assert np.all((shares > 0.5) & (shares < 1.0))
 
 
 def test_the_rebound_model_is_the_contact_model_with_the_law_rebound():

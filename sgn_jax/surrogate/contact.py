@@ -91,8 +91,8 @@ DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
 REBOUND_EXACT: tuple[str, ...] = ("off", "wall", "all")
 """Where :class:`ContactPhysics` ``rebound_exact`` makes the law rebound the impulse's ceiling:
 nowhere; at ball-wall contacts (a fresh impact ends at e v, a resting contact separates no
-faster than e times the window's largest closing speed); at every fresh impact
-(docs/contact.md, "One step", item 7)."""
+faster than e times the largest closing speed the ball's contacts saw in the window); at
+every fresh impact (docs/contact.md, "One step", item 7)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +141,8 @@ class ContactPhysics:
             whose normal impulse is then exactly that floor, the network's answer unused;
             "wall": the same at ball-wall impacts, and a ball-wall contact closed over the
             whole window separates no faster than e times the largest closing speed the
-            window saw (docs/contact.md, "One step", item 7).
+            ball's contacts (this one, its ball-ball ones) saw in the window
+            (docs/contact.md, "One step", item 7).
         overlap_sweeps: 0 = off (``[model] overlap_sweeps``; needs ``overlap_limit`` > 0). The
             floor above is computed for each contact alone; in a chain (a ball struck while it
             rests on others, a bed compressed by an impact) the impulses of a ball's other
@@ -419,15 +420,22 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
                 # overlap limit needs), whatever the network would add
                 ceiling = jnp.where(over, floor, jnp.inf)
             elif rule.rebound_exact == "wall":
-                # The same at ball-wall impacts, and a ball-wall contact closed over the whole
+                # The same at ball-wall impacts; and a ball-wall contact closed over the whole
                 # window (a ball resting or pressed on the wall) does not push its ball off
-                # faster than e times the largest closing speed the window saw: a passive
-                # contact gives back at most what the law's restitution leaves of the approach.
-                # (The ball-wall chatter of a slow bed, balls bouncing off the wall and
-                # returning, is otherwise the model's; docs/contact.md, item 7.)
-                closing_window = jnp.maximum(-jnp.min(u, axis=0), 0.0)
-                resting = jnp.maximum(floor, rule.restitution * closing_window - u[-1]
-                                      - acc_term)
+                # faster than e times the largest closing speed the ball's contacts saw in the
+                # window (this one's, or any ball-ball contact's of the ball, through which an
+                # impact reaches a ball on the wall): a passive contact gives back at most what
+                # the restitution leaves of what came in. Otherwise the balls of a slow bed
+                # chatter on the wall, pushed off faster than they came (docs/contact.md,
+                # item 7).
+                closing_window = jnp.maximum(-jnp.min(u, axis=0), 0.0)          # (E,) m/s
+                n_node = graph.nodes["features"].shape[0]
+                pp_closing = jnp.where(is_pp, closing_window, 0.0)
+                ball_in = jnp.maximum(
+                    jax.ops.segment_max(pp_closing, receivers, num_segments=n_node),
+                    jax.ops.segment_max(pp_closing, senders, num_segments=n_node))
+                came_in = jnp.maximum(closing_window, jnp.maximum(ball_in, 0.0)[receivers])
+                resting = jnp.maximum(floor, rule.restitution * came_in - u[-1] - acc_term)
                 ceiling = jnp.where(is_pw & over, floor,
                                     jnp.where(is_pw & ~fresh, resting, jnp.inf))
     else:

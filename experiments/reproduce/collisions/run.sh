@@ -2,8 +2,9 @@
 # The collision ledgers and spectra (docs/collisions.md, "How well it does"): the DEM's records
 # of the six held-out envelope motions (24 packings each) with their collision tables, the
 # surrogate ledger's force floor fitted on three training runs, the collision statistics of the
-# shipped models contact_rebound and contact against the DEM's on the held-out motions, and the
-# DEM's statistics at dt and dt/2. Resumable (finished records and rollouts are kept). JOBS=1
+# shipped models contact_collisions, contact_rebound and contact against the DEM's on the
+# held-out motions (and on training motions with new packings), how contact_collisions is
+# made, and the DEM's statistics at dt and dt/2. Resumable (finished records and rollouts are kept). JOBS=1
 # for one core.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
@@ -40,14 +41,27 @@ for model in contact contact_rebound; do
 done
 
 # 3. The models' statistics against the DEM's, with the figures of each motion: the model for
-# collision statistics (contact_rebound), then the default (contact).
+# collision statistics (contact_collisions), then contact_rebound and the default (contact).
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
-    --model contact_rebound --data $D/envelope --out $OUT --name heldout_rebound --figures
+    --model contact_collisions --data $D/envelope --out $OUT --name heldout_collisions --figures
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
+    --model contact_rebound --data $D/envelope --out $OUT --name heldout_rebound
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
     --model contact --data $D/envelope --out $OUT --name heldout
-# ... and contact_rebound on the validation set of step 2b (training motions, new packings)
+# ... and the two collision models on the validation set of step 2b (training motions, new
+# packings)
+python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions_val.toml \
+    --model contact_collisions --data $D/validation --out $OUT --name validation_collisions
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions_val.toml \
     --model contact_rebound --data $D/validation --out $OUT --name validation_rebound
+# ... and on three violent training orbits, 15 new packings each (12 more DEM records each)
+python experiments/tools/generate_data.py --ensembles experiments/envelope/collisions_violent.toml \
+    --split eval --jobs "$JOBS" --out $D/validation
+for model in contact_collisions contact_rebound; do
+    python experiments/tools/evaluate_collisions.py \
+        --ensembles experiments/envelope/collisions_violent.toml --model $model \
+        --data $D/validation --out $OUT --name violent_${model#contact_}
+done
 
 # 3b. Why the top decades are high (a diagnostic): contact_rebound against the DEM's events with
 # a pair's re-contacts within 0.2, 0.4 and 0.6 ms merged (its events are the ones of step 3) ...
@@ -58,12 +72,31 @@ for gap in 2e-4 4e-4 6e-4; do
         --ensembles experiments/envelope/collisions24.toml --data $D/envelope \
         --out $OUT/merged_$gap --name heldout_rebound --dem-merge-gap $gap
 done
-# ... and the same recipe at half the step (not shipped), trained and evaluated.
-[ -d runs/contact_rebound_fine/rebound/checkpoints/best ] || sgn-jax train \
-    --config experiments/contact/rebound_fine_train.toml --data data --out runs/contact_rebound_fine
+# 3c. How contact_collisions is made: contact_rebound's recipe at half the step, trained; its
+# weights with the per-contact dissipation target; then with the law rebound exact at the wall
+# (the shipped model is such a run; a retraining differs by training noise). The trained
+# weights as they are (no exact rebound, the damping share per kind) and with the rule on every
+# fresh impact ("all") show what the rule does.
+R=runs/contact_rebound_fine
+[ -d $R/rebound/checkpoints/best ] || sgn-jax train \
+    --config experiments/contact/rebound_fine_train.toml --data data --out $R
+[ -d ${R}_ct ] || python experiments/contact/derive_contact_target.py \
+    --model $R/rebound/checkpoints/best --out ${R}_ct \
+    --config experiments/contact/rebound_fine_train.toml
+for exact in wall all; do
+    [ -d ${R}_$exact ] || python -c "from sgn_jax.pipelines.contact_replay import \
+derive_contact_model as d; d('${R}_ct', '${R}_$exact', law_rebound_exact='$exact')"
+done
 python experiments/tools/evaluate_collisions.py --ensembles experiments/envelope/collisions24.toml \
-    --model runs/contact_rebound_fine/rebound/checkpoints/best --data $D/envelope --out $OUT \
-    --name heldout_rebound_fine
+    --model $R/rebound/checkpoints/best --data $D/envelope --out $OUT --name heldout_rebound_fine
+python experiments/tools/evaluate_collisions.py \
+    --ensembles experiments/envelope/collisions_violent.toml --model $R/rebound/checkpoints/best \
+    --data $D/validation --out $OUT --name violent_rebound_fine
+for exact in wall all; do
+    python experiments/tools/evaluate_collisions.py \
+        --ensembles experiments/envelope/collisions24.toml --model ${R}_$exact \
+        --data $D/envelope --out $OUT --name heldout_fine_$exact
+done
 
 # 4. The DEM at half its step: four packings of heldout_c01.
 for seed in 4 5 6 7; do
