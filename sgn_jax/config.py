@@ -532,7 +532,7 @@ class ModelConfig:
             rebound: once the law's contact time t_c(v) at its closing speed v has passed, the
             step ends with the pair separating at e v at least (docs/contact.md, "One step",
             item 7).
-        law_rebound_exact: kind "contact" only; "off", "wall" or "all" ("wall" and "all" need
+        law_rebound_exact: contact kinds only; "off", "wall" or "all" ("wall" and "all" need
             law_rebound): the law rebound is also the ceiling of a fresh impact's normal
             impulse, so the step ends with the pair separating at e v exactly (or as the
             overlap limit needs), not faster: at every fresh impact ("all") or at ball-wall
@@ -576,8 +576,8 @@ class ModelConfig:
                     "overlap_law_factor", "law_rebound", "law_rebound_exact", "overlap_sweeps",
                     "friction_sweeps", "damping_target"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
-                           "overlap_law_factor", "law_rebound", "overlap_sweeps",
-                           "friction_sweeps"},
+                           "overlap_law_factor", "law_rebound", "law_rebound_exact",
+                           "overlap_sweeps", "friction_sweeps"},
     }
 
     def __post_init__(self) -> None:

@@ -413,3 +413,45 @@ def test_the_law_rebound_time_of_a_pair_depends_on_its_restitution_alone():
     elastic = make_contact_law(2.05e9, 0.235, 0.999, 0.3, 0.0, 0.005, 0.004)
     assert head_on_contact_time(elastic, 0.5) == pytest.approx(hertz_contact_time(elastic, 0.5),
                                                                rel=0.01)
+
+
+def test_the_exact_law_rebound_at_the_wall_caps_the_charge_kinds_resting_balls():
+    """``law_rebound_exact = "wall"`` in the charge kind (``ChargePhysics.rebound_exact``): the
+    mixture at rest, balls 0 and 1 pressed 1 um into the floor, ball 2 on them. Their floor
+    contacts (closed over the window, nothing coming in) get a ceiling of about gravity over
+    one step, each with its own restitution; the ball-ball contacts get none; without the
+    rule no ceiling at all. The config key reaches the physics; the rule without the law
+    rebound, and an unknown value, are refused."""
+    from sgn_jax.config import builtin_config_path, load_config, replace_section
+    from sgn_jax.surrogate.contact import ContactModelError
+    from sgn_jax.surrogate.contact_charge import physics_from_config
+
+    pos = np.broadcast_to(CENTRES - np.array([0.0, 1e-6, 0.0]), (W + 1, 5, 3))
+    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
+                    spins=jnp.zeros((5, 3)), charge=ball_charge(MIX, n_balls=5, classes=3))
+    graph, _ = build_graph(window, None, spec(5), floor_query((0.0, 1.0, 0.0)))
+
+    def geometry(exact):
+        net = net_with(law_rebound=True, rebound_exact=exact)
+        params = net.init(jax.random.PRNGKey(0), graph)["params"]
+        return net.apply({"params": params}, graph, method=ContactChargeNet._edge_geometry)
+
+    geo = geometry("wall")
+    acting = np.asarray(geo["gate"]) > 0
+    wall = acting & np.asarray(geo["is_pw"])
+    pair = acting & np.asarray(geo["is_pp"])
+    ceiling = np.asarray(geo["ceiling"])
+    assert wall.sum() == 2 and pair.sum() >= 2
+    assert np.all(ceiling[wall] <= 9.81 * DT + 1e-6)
+    assert np.all(np.isinf(ceiling[pair]))
+    assert "ceiling" not in geometry("off")
+
+    cfg = load_config(builtin_config_path("contact_charge_train"))
+    cfg = replace_section(cfg, "model", law_rebound=True, overlap_law_factor=1.5,
+                          law_rebound_exact="wall")
+    assert physics_from_config(cfg).rebound_exact == "wall"
+    with pytest.raises(ContactModelError, match="rebound_exact"):
+        dataclasses.replace(PHYS, rebound_exact="wall")
+    with pytest.raises(ContactModelError, match="rebound_exact"):
+        dataclasses.replace(PHYS, law_rebound=True, rebound_exact="walls")

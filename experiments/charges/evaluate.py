@@ -110,7 +110,10 @@ def main() -> None:
     if not args.model:
         ap.error("--model required (or --bars)")
     tools.enable_compilation_cache()
-    model = tools.load_trained_model(tools.resolve_checkpoint(args.model), which="latest")
+    checkpoint = tools.resolve_checkpoint(args.model)
+    # a training run's latest step (its stages' last); a derived model has only its best
+    which = "latest" if (Path(checkpoint) / "checkpoints" / "latest").exists() else "best"
+    model = tools.load_trained_model(checkpoint, which=which)
     model_dt = float(model.config.dem.dt)
     window = int(model.config.graph.window)
     refs = {}

@@ -199,8 +199,9 @@ def derive_contact_model(checkpoint: str, out: str, shares: Any = None,
     if os.path.exists(out):
         raise FileExistsError(f"{out} exists: choose a new directory")
     trained = load_trained_model(checkpoint)
-    if getattr(trained.config.model, "kind", "sgn") != "contact":
-        raise ValueError(f"{checkpoint} is not a contact model")
+    if getattr(trained.config.model, "kind", "sgn") not in ("contact", "contact_charge"):
+        raise ValueError(f"{checkpoint} is not a contact model (kind 'contact' or "
+                         "'contact_charge')")
     cfg = replace_section(trained.config, "model", **model_changes)
     params = trained.params
     if shares is not None:

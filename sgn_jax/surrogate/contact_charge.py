@@ -67,6 +67,7 @@ from sgn_jax.dem.charge import Charge
 from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.surrogate.contact import (
     DTYPE,
+    REBOUND_EXACT,
     ContactModelError,
     ContactNet,
     GateRule,
@@ -123,6 +124,9 @@ class ChargePhysics:
         law_rebound: fresh impacts end with each contact's own law's rebound, as the contact
             kind's ``rebound_time_pp/pw`` (the pair table's ``rebound_time`` column; needs
             ``overlap_law_factor``).
+        rebound_exact: "off", "wall" or "all": where the law rebound is also the normal
+            impulse's ceiling, as the contact kind's (``ContactPhysics.rebound_exact``, with
+            each contact's own restitution).
         overlap_sweeps, friction_sweeps: as the contact kind's.
     """
 
@@ -137,6 +141,7 @@ class ChargePhysics:
     law_rebound: bool = False
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
+    rebound_exact: str = "off"
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
@@ -151,6 +156,11 @@ class ChargePhysics:
             raise ContactModelError("overlap_sweeps must be >= 0 and needs overlap_limit > 0")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
+        if self.rebound_exact not in REBOUND_EXACT:
+            raise ContactModelError(f"rebound_exact must be one of {REBOUND_EXACT}, got "
+                                    f"{self.rebound_exact!r}")
+        if self.rebound_exact != "off" and not self.law_rebound:
+            raise ContactModelError("rebound_exact needs the law rebound (law_rebound)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -307,7 +317,8 @@ class ContactChargeNet(ContactNet):
                                phys.overlap_law_factor, scale_l, phys.gate_margin * lengths,
                                SPEED_REF,
                                rebound_time=mat["rebound_time"] if phys.law_rebound else None,
-                               restitution=mat["restitution"]),
+                               restitution=mat["restitution"],
+                               rebound_exact=phys.rebound_exact),
             spin=self.spin,
             constant_inputs=(jnp.log10(scale_v / SPEED_REF), mat["restitution"],
                              mat["friction"], ROLLING_INPUT * mat["rolling_friction"],
@@ -330,7 +341,10 @@ class ContactChargeNet(ContactNet):
     def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
         """As the contact kind's (:meth:`ContactNet._impulses`) with the contact's own cone
         mu_c du_n and slip factor k."""
-        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"]) * geo["gate"]
+        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"])
+        if "ceiling" in geo:   # the exact law rebound
+            du_n = jnp.minimum(du_n, geo["ceiling"])
+        du_n = du_n * geo["gate"]
         cone = geo["mu"] * du_n
         if self.spin:
             stick = (2.0 * jax.nn.sigmoid(logits[:, 1]) * geo["slip"]
@@ -442,7 +456,8 @@ def physics_from_config(cfg: Any) -> ChargePhysics:
                          overlap_law_factor=float(getattr(cfg.model, "overlap_law_factor", 0.0)),
                          law_rebound=bool(getattr(cfg.model, "law_rebound", False)),
                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
-                         friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)))
+                         friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
+                         rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")))
 
 
 def make_contact_charge_net(cfg: Any) -> ContactChargeNet:
