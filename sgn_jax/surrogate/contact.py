@@ -95,6 +95,16 @@ faster than e times the largest closing speed the ball's contacts saw in the win
 every fresh impact (docs/contact.md, "One step", item 7)."""
 
 
+def check_rebound_exact(rebound_exact: str, rebound_on: bool, rebound_name: str) -> None:
+    """Refuse a ``rebound_exact`` not in :data:`REBOUND_EXACT`, or one other than "off"
+    without the law rebound it makes exact (``rebound_name`` says how a kind turns it on)."""
+    if rebound_exact not in REBOUND_EXACT:
+        raise ContactModelError(f"rebound_exact must be one of {REBOUND_EXACT}, got "
+                                f"{rebound_exact!r}")
+    if rebound_exact != "off" and not rebound_on:
+        raise ContactModelError(f"rebound_exact needs {rebound_name}")
+
+
 @dataclasses.dataclass(frozen=True)
 class ContactPhysics:
     """The known physics of the contact model (static, hashable).
@@ -218,11 +228,8 @@ class ContactPhysics:
                                     "limit (overlap_law_factor > 0)")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
-        if self.rebound_exact not in REBOUND_EXACT:
-            raise ContactModelError(f"rebound_exact must be one of {REBOUND_EXACT}, got "
-                                    f"{self.rebound_exact!r}")
-        if self.rebound_exact != "off" and not self.rebound_time_pp > 0:
-            raise ContactModelError("rebound_exact needs the law rebound (rebound_time_pp/pw > 0)")
+        check_rebound_exact(self.rebound_exact, self.rebound_time_pp > 0,
+                            "the law rebound (rebound_time_pp/pw > 0)")
         if self.damping_target not in DAMPING_TARGETS:
             raise ContactModelError(f"damping_target must be one of {DAMPING_TARGETS}, got "
                                     f"{self.damping_target!r}")
@@ -714,6 +721,15 @@ class ContactNet(nn.Module):
             return seg(per_contact_damping(parts, share, self.spin))
         return share[0] * parts["d_pp"] + share[1] * parts["d_pw"]
 
+    def _normal_impulse(self, geo: dict[str, jax.Array], logits: jax.Array) -> jax.Array:
+        """(E,) m/s, each contact's du_n: the learned one, at least the floor (the rigid
+        limit, the law rebound), at most the exact law rebound's ceiling where it is on, 0
+        where the gate is shut."""
+        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"])
+        if "ceiling" in geo:   # the exact law rebound
+            du_n = jnp.minimum(du_n, geo["ceiling"])
+        return du_n * geo["gate"]
+
     def _reduced_mass(self, geo: dict[str, jax.Array]) -> jax.Array:
         """(E,) kg: m* of each contact, m / 2 for a pair of equal balls, m against a wall."""
         mass = self.physics.ball_mass
@@ -737,10 +753,7 @@ class ContactNet(nn.Module):
         With ``physics.overlap_limit`` the normal impulse is at least ``geo["floor"]`` (the
         rigid limit; see :class:`ContactPhysics`)."""
         phys = self.physics
-        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"])
-        if "ceiling" in geo:   # the exact law rebound
-            du_n = jnp.minimum(du_n, geo["ceiling"])
-        du_n = du_n * geo["gate"]
+        du_n = self._normal_impulse(geo, logits)
         if self.spin:
             cone = phys.friction * du_n
             k = 1.0 + phys.ball_mass * geo["arm"] ** 2 / phys.inertia

@@ -67,13 +67,13 @@ from sgn_jax.dem.charge import Charge
 from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.surrogate.contact import (
     DTYPE,
-    REBOUND_EXACT,
     ContactModelError,
     ContactNet,
     GateRule,
     InputScales,
     _larger_ball_count,
     _safe_norm,
+    check_rebound_exact,
     contact_rows,
     edge_kinematics,
     per_contact_damping,
@@ -156,11 +156,7 @@ class ChargePhysics:
             raise ContactModelError("overlap_sweeps must be >= 0 and needs overlap_limit > 0")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
-        if self.rebound_exact not in REBOUND_EXACT:
-            raise ContactModelError(f"rebound_exact must be one of {REBOUND_EXACT}, got "
-                                    f"{self.rebound_exact!r}")
-        if self.rebound_exact != "off" and not self.law_rebound:
-            raise ContactModelError("rebound_exact needs the law rebound (law_rebound)")
+        check_rebound_exact(self.rebound_exact, self.law_rebound, "the law rebound (law_rebound)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -341,10 +337,7 @@ class ContactChargeNet(ContactNet):
     def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
         """As the contact kind's (:meth:`ContactNet._impulses`) with the contact's own cone
         mu_c du_n and slip factor k."""
-        du_n = jnp.maximum(self._learned_normal(geo, logits), geo["floor"])
-        if "ceiling" in geo:   # the exact law rebound
-            du_n = jnp.minimum(du_n, geo["ceiling"])
-        du_n = du_n * geo["gate"]
+        du_n = self._normal_impulse(geo, logits)
         cone = geo["mu"] * du_n
         if self.spin:
             stick = (2.0 * jax.nn.sigmoid(logits[:, 1]) * geo["slip"]
