@@ -74,6 +74,7 @@ from sgn_jax.pipelines.features import windows_from_trajectory
 from sgn_jax.pipelines.rollout_eval import (
     mean_se,
     motion_misses,
+    reference_span,
     rollout_against_dem,
     summarize_runs,
 )
@@ -196,6 +197,7 @@ __all__ = [
     "align",
     "contact_census",
     "rollout_against_dem",
+    "reference_span",
     "summarize_runs",
     "motion_misses",
     "mean_se",

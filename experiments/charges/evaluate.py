@@ -17,7 +17,8 @@ the model's ledger. Resumable (runs already in OUT/NAME.json are kept).
 
 With ``--dem-reference JSON`` (repeatable: earlier evaluations, e.g. of another model on the same
 records) a record whose run (``<charge>_seed_<K>``) is in one of them takes the DEM's numbers
-from that row and rolls out for that row's ``steps``: the record need only hold its first window,
+from that row and rolls out over that row's interval (its ``steps`` at its ``dt_s``; a row
+without ``dt_s`` is refused): the record need only hold its first window,
 as a record trimmed by experiments/tools/trim_records.py does (a later file's row wins).
 
 The bars (docs/contact_charge.md): at least 5 of the 6 charges within max(10 %, 2 SE) of the
@@ -139,7 +140,10 @@ def main() -> None:
                 traj = sj.load_trajectory(path).at_step(model_dt)
                 ref = refs.get(key)
                 if ref is not None:   # the DEM's side and the interval from the reference
-                    duration = int(ref["steps"]) * model_dt
+                    try:
+                        duration = tools.reference_span(ref, model_dt, f"--dem-reference {key}")
+                    except ValueError as exc:
+                        raise SystemExit(str(exc)) from None
                 else:
                     duration = (len(traj.t) - 2 - window) * model_dt
                     duration = round(duration / model_dt / 10) * 10 * model_dt

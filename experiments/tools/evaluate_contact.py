@@ -38,8 +38,10 @@ same ensembles (e.g. experiments/reproduce/contact_heldout/expected/heldout.json
 every packing. With it, ``--data`` needs only each record's first window: the first
 milliseconds of the DEM run (``generate_data.py --prefix 0.002``), whose samples are
 bit-identical to the first samples of the full run (the same settled packing, the same steps).
-The model then rolls out for the reference run's number of steps, the DEM's statistics come
-from the reference, and the JSON records which reference it used. The full DEM record of 1.5-10
+The model then rolls out over the reference run's interval (its ``steps`` at its own step
+``dt_s``: a model at half the step rolls out twice the steps; ``reference_span``), the DEM's
+statistics come from the reference, and the JSON records which reference it used. A reference
+row without ``dt_s`` is refused. The full DEM record of 1.5-10
 s per packing costs 500-5000x its prefix (docs/contact.md, "Evaluating a candidate").
 """
 
@@ -202,7 +204,11 @@ def main() -> None:
                 if len(traj.t) < window + 1:
                     raise SystemExit(f"{path}: {len(traj.t)} samples at {model_dt} s, fewer "
                                      f"than the first window's {window + 1}")
-                duration = int(dem_ref["steps"]) * float(cfg.dem.dt)
+                try:   # the reference's interval, whatever step its model had
+                    duration = tools.reference_span(dem_ref, float(cfg.dem.dt),
+                                                    f"--dem-reference {args.dem_reference}, {key}")
+                except ValueError as exc:
+                    raise SystemExit(str(exc)) from None
             else:
                 duration = args.duration or (len(traj.t) - 2 - window) * float(cfg.dem.dt)
             duration = round(duration / float(cfg.dem.dt)) * float(cfg.dem.dt)

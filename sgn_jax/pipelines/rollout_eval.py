@@ -51,7 +51,9 @@ def rollout_against_dem(model: Any, cfg: Any, traj: Any, duration: float, window
     # The DEM over the same interval (samples start .. start + n_steps).
     sl = slice(start, start + n_steps + 1)
     span = n_steps * dt
-    row = {"seed": int(traj.meta.get("seed", -1)), "steps": n_steps, "wall_s": wall,
+    # dt_s: the step the steps count, so that a later model of another step compares over the
+    # same interval when it takes this row as its DEM reference (reference_span)
+    row = {"seed": int(traj.meta.get("seed", -1)), "steps": n_steps, "dt_s": dt, "wall_s": wall,
            "finite": finite,
            "model_power_W": float(np.sum(a["dE"])) / span,
            "outside_ball_steps": int(np.sum(a["n_outside"])),
@@ -99,6 +101,26 @@ def rollout_against_dem(model: Any, cfg: Any, traj: Any, duration: float, window
             census_d = contact_census(dem_pos, dem_off, jar, radius)
             row.update({f"dem_{k}": v for k, v in census_d.items()})
     return row
+
+
+def reference_span(ref: dict[str, Any], model_dt: float, source: str = "the reference") -> float:
+    """The interval (s) that an earlier evaluation's row (``ref``, a row of
+    :func:`rollout_against_dem`) compared over, ``steps`` at that row's own step ``dt_s``, as a
+    whole number of steps ``model_dt`` (s) of the model that reuses its DEM numbers.
+
+    A row's ``steps`` count ITS model's steps: a model at half the step that rolled out
+    ``steps`` of its own would cover half the DEM's interval. ValueError for a row without
+    ``dt_s`` (written before rows recorded it: add the step of the model that made it) and for
+    an interval that is not a whole number of ``model_dt``."""
+    if "dt_s" not in ref:
+        raise ValueError(f"{source}: the row has no dt_s, the step its {ref.get('steps')} steps "
+                         "count; add dt_s (the step of the model that made the row) to its rows")
+    span = int(ref["steps"]) * float(ref["dt_s"])
+    n = round(span / model_dt)
+    if not (n > 0 and math.isclose(n * model_dt, span, rel_tol=1e-9)):
+        raise ValueError(f"{source}: its interval, {ref['steps']} steps of {ref['dt_s']} s, is "
+                         f"not a whole number of the model's {model_dt} s steps")
+    return n * model_dt
 
 
 def mean_se(values: Any) -> tuple[float, float]:
