@@ -12,7 +12,11 @@ Two tables (compile time apart, best of ``--repeats``):
    surrogate's time per step and per ball-step, from a 0.03 s DEM run of each count.
 
     taskset -c 0 python benchmarks/bench_charge_ratio.py --model runs/contact_charge/unroll24 \
-        [--markdown docs/benchmarks.md]
+        [--markdown docs/benchmarks.md] [--full-rows]
+
+``--full-rows``: each surrogate rollout also with every step on the whole graph (the
+single-rollout form's compaction to the rows that may act off, docs/contact.md), and the
+speed-up of the compaction, in the same run.
 
 Writes JSON to --out; prints markdown tables (or replaces them in --markdown).
 """
@@ -36,6 +40,7 @@ from sgn_jax.dem.engine import make_advance
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.io_utils import git_commit, machine_info, write_json
+from sgn_jax.surrogate import contact
 
 MARKER_CHARGES, MARKER_COUNTS = "charge-ratio", "charge-surrogate-scaling"
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,16 +65,34 @@ def dem_seconds_per_second(cfg, steps: int, repeats: int, warm: float) -> dict:
             "dem_s_per_s": best / steps / setup.dt_dem}
 
 
-def surrogate_seconds_per_second(model, record, cfg, duration: float, repeats: int) -> dict:
+def surrogate_seconds_per_second(model, record, cfg, duration: float, repeats: int,
+                                 full_rows: bool = False) -> dict:
     """The surrogate's rollout from ``record``: seconds per simulated second, run time only
-    (best of ``repeats``; each call's compile is apart, ``run_rollout``'s own timing)."""
+    (best of ``repeats``; each call's compile is apart, ``run_rollout``'s own timing). With
+    ``full_rows`` also the same rollout with every step on the whole graph
+    (``SINGLE_ROLLOUT_COMPACT_PER_BALL = 0``, docs/contact.md): ``model_s_per_s_full_rows``
+    and ``compact_speedup``."""
     dt = float(model.config.dem.dt)
-    best = float("inf")
-    for _ in range(repeats):
-        out = sj.run_rollout(model, record, None, duration, None, cfg, save_every=10,
-                             progress=False)
-        best = min(best, 1e-3 * out["ms_per_step"])
-    return {"model_dt_s": dt, "model_ms_per_step": 1e3 * best, "model_s_per_s": best / dt}
+
+    def best_time() -> float:
+        best = float("inf")
+        for _ in range(repeats):
+            out = sj.run_rollout(model, record, None, duration, None, cfg, save_every=10,
+                                 progress=False)
+            best = min(best, 1e-3 * out["ms_per_step"])
+        return best
+
+    best = best_time()
+    row = {"model_dt_s": dt, "model_ms_per_step": 1e3 * best, "model_s_per_s": best / dt}
+    if full_rows:
+        compact = contact.SINGLE_ROLLOUT_COMPACT_PER_BALL
+        contact.SINGLE_ROLLOUT_COMPACT_PER_BALL = 0.0
+        try:
+            full = best_time()
+        finally:
+            contact.SINGLE_ROLLOUT_COMPACT_PER_BALL = compact
+        row.update(model_s_per_s_full_rows=full / dt, compact_speedup=full / best)
+    return row
 
 
 def main() -> None:
@@ -84,6 +107,8 @@ def main() -> None:
     parser.add_argument("--warm", type=float, default=0.02)
     parser.add_argument("--out", default="benchmarks/results/bench_charge_ratio.json")
     parser.add_argument("--markdown", default=None)
+    parser.add_argument("--full-rows", action="store_true",
+                        help="also time each rollout with every step on the whole graph")
     args = parser.parse_args()
     model = load_trained_model(args.model, which="latest")
     model_dt = float(model.config.dem.dt)
@@ -96,7 +121,7 @@ def main() -> None:
                **dem_seconds_per_second(cfg, args.dem_steps, args.repeats, args.warm),
                **surrogate_seconds_per_second(model, record,
                                               replace_section(cfg, "dem", dt=model_dt),
-                                              args.duration, args.repeats)}
+                                              args.duration, args.repeats, args.full_rows)}
         row["ratio"] = row["dem_s_per_s"] / row["model_s_per_s"]
         charges.append(row)
         print(json.dumps(row), flush=True)
@@ -109,7 +134,7 @@ def main() -> None:
             record = sj.load_trajectory(Path(tmp) / "r.npz")
             row = {"balls": count, **surrogate_seconds_per_second(
                 model, record, replace_section(cfg, "dem", dt=model_dt), args.duration,
-                args.repeats)}
+                args.repeats, args.full_rows)}
         row["model_us_per_ball_step"] = 1e3 * row["model_ms_per_step"] / count
         counts.append(row)
         print(json.dumps(row), flush=True)
@@ -120,16 +145,26 @@ def main() -> None:
     write_json(args.out, result)
     head = (f"Commit {result['commit']}, jax {machine['jax']}, affinity {machine['affinity']}, "
             f"model `{args.model}` (`{args.out}`):")
+    full_head = " surrogate on the whole graph, s / simulated s | speed-up |" if args.full_rows else ""
+    full_rule = "---|---|" if args.full_rows else ""
+
+    def full_cells(r: dict) -> str:
+        if not args.full_rows:
+            return ""
+        return f" {r['model_s_per_s_full_rows']:.2f} | {r['compact_speedup']:.2f}x |"
+
     lines = [head, "", "| charge | balls | DEM dt (s) | DEM s / simulated s | surrogate s / "
-             "simulated s | ratio |", "|---|---|---|---|---|---|"]
+             "simulated s | ratio |" + full_head, "|---|---|---|---|---|---|" + full_rule]
     for r in charges:
         lines.append(f"| {r['label']} | {r['balls']} | {r['dt_dem_s']:.3g} | "
-                     f"{r['dem_s_per_s']:.1f} | {r['model_s_per_s']:.2f} | {r['ratio']:.0f}x |")
+                     f"{r['dem_s_per_s']:.1f} | {r['model_s_per_s']:.2f} | {r['ratio']:.1f}x |"
+                     + full_cells(r))
     table_charges = "\n".join(lines)
-    lines = [head, "", "| balls (6 mm) | surrogate ms / step | us / ball-step |", "|---|---|---|"]
+    lines = [head, "", "| balls (6 mm) | surrogate ms / step | us / ball-step |" + full_head,
+             "|---|---|---|" + full_rule]
     for r in counts:
         lines.append(f"| {r['balls']} | {r['model_ms_per_step']:.3f} | "
-                     f"{r['model_us_per_ball_step']:.2f} |")
+                     f"{r['model_us_per_ball_step']:.2f} |" + full_cells(r))
     table_counts = "\n".join(lines)
     print(table_charges + "\n\n" + table_counts)
     if args.markdown:

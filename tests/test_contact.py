@@ -55,8 +55,9 @@ def scene(rng, rotation=None):
                   frequency_hz=jnp.asarray(5.0)), rot
 
 
-def random_params(net, graph, seed=0):
-    params = net.init(jax.random.PRNGKey(seed), graph)["params"]
+def random_params(net, graph, seed=0, jit=False):
+    init = jax.jit(net.init) if jit else net.init   # jit: one program instead of eager ops
+    params = init(jax.random.PRNGKey(seed), graph)["params"]
     key = jax.random.PRNGKey(seed + 1)
 
     def perturb(path, leaf):
@@ -393,6 +394,53 @@ def test_each_kind_on_its_own_rows_gives_what_both_on_every_row_give(patches):
                                    rtol=1e-5, atol=1e-9)
         np.testing.assert_allclose(np.asarray(own["dv"]), np.asarray(both["dv"]),
                                    rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.slow   # the charge kind's twin (tests/test_contact_charge.py) runs by default
+def test_a_rollout_step_on_the_rows_that_may_act_gives_what_the_whole_graph_gives():
+    """``compact_per_ball`` (the single-rollout form, ``ContactNet.rollout_terms``): the step
+    on the graph of the edge pairs that may act (``_gate_candidates``, a superset of the gate,
+    ``compact_edge_pairs``) gives the whole graph's accelerations, target and ledger, on the
+    compacted graph and through the step's choice in a block that holds the candidates;
+    with an overlap and a friction sweep, spin and both contact kinds acting."""
+    from sgn_jax.surrogate.graph import compact_edge_pairs, with_spins
+
+    rng = np.random.default_rng(3)
+    centres = np.array([[0.0, 0.00499, 0.0], [0.0099, 0.00499, 0.0], [0.00495, 0.01347, 0.0],
+                        [0.03, 0.00499, 0.0], [0.02, 0.03, 0.0]])
+    vel = rng.normal(0.0, 0.3, (1, 5, 3)) + rng.normal(0.0, 0.02, (W + 1, 5, 3))
+    pos = centres[None] + np.cumsum(vel * DT, axis=0) - (vel * DT).sum(0)[None]
+    window = with_spins(Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
+                               offset_velocities=jnp.asarray(rng.normal(0.0, 0.1, (W, 3))),
+                               frequency_hz=jnp.asarray(5.0)))
+    window = window.replace(spins=jnp.asarray(rng.normal(0.0, 50.0, (5, 3))))
+    graph, _ = jax.jit(build_graph, static_argnums=(1, 2, 3))(
+        window, None, GRAPH_SPEC, floor_query((0.0, 1.0, 0.0)))
+    phys = dataclasses.replace(PHYS, overlap_limit=5e-5, overlap_sweeps=1, friction_sweeps=1)
+    net = ContactNet(physics=phys, hidden=16, mlp_layers=2, spin=True)
+    params = random_params(net, graph, seed=5, jit=True)
+
+    def run(form, method, g=graph):   # jitted: one program each instead of eager op by op
+        return jax.jit(lambda p, g: form.apply({"params": p}, g, method=method))(params, g)
+
+    keep = np.asarray(run(net, ContactNet._gate_candidates))
+    geo = run(net, ContactNet._edge_geometry)
+    acting = np.asarray(geo["gate"]) > 0
+    assert np.asarray(geo["is_pp"])[acting].any() and np.asarray(geo["is_pw"])[acting].any()
+    assert np.all(keep[acting]) and keep.sum() < keep.size   # a superset, not every row
+    whole = run(net, ContactNet.rollout_terms)
+    rows = int(keep.sum())
+    compacted = compact_edge_pairs(graph, jnp.asarray(keep), rows)
+    assert compacted.senders.shape == (2 * rows,)
+    form = net.clone(compact_per_ball=(rows - 0.5) / (2 * 5))   # a block of ceil(2 f N) rows
+    outputs = [run(net, ContactNet.rollout_terms, compacted),
+               run(form, ContactNet.rollout_terms)]
+    for out in outputs:
+        for got, want in zip(out, whole, strict=True):
+            want = np.asarray(want)
+            np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5,
+                                       atol=1e-6 * np.max(np.abs(want)))
+    assert np.max(np.abs(np.asarray(whole[0])[:5])) > 1.0   # the contacts act
 
 
 # --------------------------------------------------------------------------------------------

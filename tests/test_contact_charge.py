@@ -80,8 +80,9 @@ def scene(rng, rotation=None, n_total=5, lift=0.0):
                   charge=ball_charge(MIX, n_balls=n_total, classes=3))
 
 
-def random_params(net, graph, seed=0):
-    params = net.init(jax.random.PRNGKey(seed), graph)["params"]
+def random_params(net, graph, seed=0, jit=False):
+    init = jax.jit(net.init) if jit else net.init   # jit: one program instead of eager ops
+    params = init(jax.random.PRNGKey(seed), graph)["params"]
     key = jax.random.PRNGKey(seed + 1)
 
     def perturb(path, leaf):
@@ -455,3 +456,38 @@ def test_the_exact_law_rebound_at_the_wall_caps_the_charge_kinds_resting_balls()
         dataclasses.replace(PHYS, rebound_exact="wall")
     with pytest.raises(ContactModelError, match="rebound_exact"):
         dataclasses.replace(PHYS, law_rebound=True, rebound_exact="walls")
+
+
+def test_a_rollout_step_on_the_rows_that_may_act_gives_what_the_whole_graph_gives():
+    """The single-rollout step on the rows that may act (``compact_per_ball``,
+    ``ContactNet.rollout_terms``) with the charge kind's own gate margin, L / L_REF per
+    contact (``_reach_and_margin``): its candidates hold every acting row of a padded mixture,
+    and the step on them gives the whole graph's accelerations, target and ledger (on the
+    compacted graph and through the step's choice)."""
+    from sgn_jax.surrogate.graph import compact_edge_pairs
+
+    window = scene(np.random.default_rng(6), n_total=7)
+    graph, _ = jax.jit(build_graph, static_argnums=(1, 2, 3))(
+        window, None, spec(7), floor_query((0.0, 1.0, 0.0)))
+    net = net_with(overlap_sweeps=1, friction_sweeps=1)
+    params = random_params(net, graph, jit=True)
+
+    def run(form, method, g=graph):   # jitted: one program each instead of eager op by op
+        return jax.jit(lambda p, g: form.apply({"params": p}, g, method=method))(params, g)
+
+    keep = np.asarray(run(net, ContactChargeNet._gate_candidates))
+    geo = run(net, ContactChargeNet._edge_geometry)
+    acting = np.asarray(geo["gate"]) > 0
+    assert np.asarray(geo["is_pp"])[acting].sum() >= 3 and np.asarray(geo["is_pw"])[acting].any()
+    assert np.all(keep[acting]) and keep.sum() < keep.size   # a superset, not every row
+    whole = run(net, ContactChargeNet.rollout_terms)
+    rows = int(keep.sum())
+    form = net.clone(compact_per_ball=(rows - 0.5) / (2 * 7))   # a block of ceil(2 f N) rows
+    outputs = [run(net, ContactChargeNet.rollout_terms, compact_edge_pairs(graph, keep, rows)),
+               run(form, ContactChargeNet.rollout_terms)]
+    for out in outputs:
+        for got, want in zip(out, whole, strict=True):
+            want = np.asarray(want)
+            np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5,
+                                       atol=1e-6 * np.max(np.abs(want)))
+    assert np.all(np.asarray(whole[0])[5:7] == 0.0)   # the absent balls stay

@@ -64,7 +64,7 @@ import jraph
 from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.surrogate.collisions import contact_grid
-from sgn_jax.surrogate.graph import SLOT_DIM
+from sgn_jax.surrogate.graph import SLOT_DIM, compact_edge_pairs
 from sgn_jax.surrogate.model import register_model
 
 DTYPE = jnp.float32
@@ -83,6 +83,10 @@ TANGENT_EPS = 1.0e-4          # m/s: t = v_t / sqrt(|v_t|^2 + eps^2), smooth at 
 # A single rollout runs each MLP on a block of ceil(1.5 N) acting contacts per kind (see
 # ContactNet.for_single_rollout; the standard case has at most 1.4 N).
 SINGLE_ROLLOUT_ACTING_PER_BALL = 1.5
+# ...and each step on a block of ceil(2 x 1.5 N) rows that may act, both kinds together
+# (ContactNet.rollout_terms; 0 = the whole graph, what benchmarks/bench_charge_ratio.py
+# --full-rows times beside it)
+SINGLE_ROLLOUT_COMPACT_PER_BALL = 1.5
 
 
 DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
@@ -306,6 +310,26 @@ def edge_kinematics(graph: jraph.GraphsTuple, window: int, dt: float, pp_reach: 
     return {"senders": senders, "receivers": receivers, "is_pp": is_pp, "is_pw": is_pw,
             "vel": vel, "jar_vel": jar_vel, "v_rel": v_rel, "normal": normal, "u": u,
             "gap": gap, "v_t": v_t, "speed_t": speed_t}
+
+
+def newest_gap_rate(graph: jraph.GraphsTuple, window: int, pp_reach: Any, pw_reach: Any
+                    ) -> tuple[jax.Array, jax.Array]:
+    """``(gap, u)`` (E / 2,) m and m/s of every primary row at the newest slot: what
+    :func:`edge_kinematics` gives as ``gap[-1]`` and ``u[-1]`` (the same formulas), for the
+    rows' gate without their history (:meth:`ContactNet._gate_candidates`). ``pp_reach``,
+    ``pw_reach`` as :func:`edge_kinematics`'s, per primary row or scalars."""
+    feats = jnp.asarray(graph.nodes["features"], DTYPE)
+    senders, receivers = graph.senders[0::2], graph.receivers[0::2]
+    is_pw = graph.edges["pw"][0::2] & graph.nodes["particle"][receivers]
+    vel = _slot(feats, window - 1, slice(0, 3))
+    jar_vel = _slot(feats, window - 1, slice(3, 6))
+    v_rel = jnp.where(is_pw[:, None], jar_vel[senders], vel[senders]) - vel[receivers]
+    r_new = jnp.asarray(graph.edges["features"][0::2, :3], DTYPE)
+    dist = jnp.sqrt(jnp.sum(r_new * r_new, axis=-1) + 1e-20)
+    phi = -jnp.sqrt(jnp.sum(r_new * r_new, axis=-1) + 1e-30)
+    normal = jnp.where(is_pw[:, None], r_new / phi[:, None], r_new / dist[:, None])
+    gap = jnp.where(is_pw, -phi - pw_reach, dist - pp_reach)
+    return gap, jnp.sum(v_rel * normal, axis=-1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -603,6 +627,8 @@ class ContactNet(nn.Module):
     ``rows_by_kind`` and ``acting_per_ball`` change where the MLPs run, not what they give
     (:meth:`for_single_rollout` sets both; :meth:`_per_kind`): each MLP on its own kind's rows,
     and only on its kind's acting contacts, a block of ceil(acting_per_ball N) rows (0 = off).
+    ``compact_per_ball`` changes which rows a rollout step computes at all, not what it gives
+    (:meth:`rollout_terms`; 0 = off).
     """
 
     physics: ContactPhysics = ContactPhysics()
@@ -611,6 +637,7 @@ class ContactNet(nn.Module):
     rows_by_kind: bool = False
     spin: bool = False
     acting_per_ball: float = 0.0
+    compact_per_ball: float = 0.0
     takes_raw_graph = True
 
     def for_single_rollout(self) -> ContactNet:
@@ -626,8 +653,17 @@ class ContactNet(nn.Module):
         ceil(1.5 N) rows per kind, the others are gated off; a step with more runs on all the
         kind's rows): the standard case at 300-900 rpm has 12-21 acting ball-ball and 21-26
         ball-wall contacts on average, at most 33 (N = 24: blocks of 36 rows against 96 of
-        each kind). The numbers are the same to float32 rounding."""
-        return self.clone(rows_by_kind=True, acting_per_ball=SINGLE_ROLLOUT_ACTING_PER_BALL)
+        each kind). The numbers are the same to float32 rounding.
+
+        And a rollout step computes only the rows that may act (``compact_per_ball``,
+        :meth:`rollout_terms`): the graph's candidate edges within the skins are 8 N contact
+        rows with 4 wall patches, of which 1-3 N act; the geometry, the impulses, the sweeps
+        and the ledger of the others are exact zeros. Not with the exact law rebound at the
+        wall, whose resting ceiling reads every ball-ball row's closing speed."""
+        compact = (SINGLE_ROLLOUT_COMPACT_PER_BALL
+                   if getattr(self.physics, "rebound_exact", "off") != "wall" else 0.0)
+        return self.clone(rows_by_kind=True, acting_per_ball=SINGLE_ROLLOUT_ACTING_PER_BALL,
+                          compact_per_ball=compact)
 
     # Pair-capacity tiers (make_rollout's pp_capacity_tiers) switch between graphs of several
     # capacities every step: they speed up the SGN's single rollout, not this model's.
@@ -980,10 +1016,57 @@ class ContactNet(nn.Module):
     def rollout_terms(self, graph: jraph.GraphsTuple):
         """``(accel (n_node, 3), dE_target (n_graph,), ledger (n_graph, 3))`` with ledger
         ``(diss_pp, diss_pw, work_wall)`` J (what :func:`sgn_jax.surrogate.rollout.model_predictor`
-        uses, so a rollout records the model's own energy ledger)."""
+        uses, so a rollout records the model's own energy ledger).
+
+        With ``compact_per_ball`` f > 0 (one graph, not vmapped: ``nn.cond`` runs one branch)
+        the step runs on the graph of the edge pairs that may act
+        (:meth:`_gate_candidates`, :func:`sgn_jax.surrogate.graph.compact_edge_pairs`, a
+        block of ceil(2 f N) rows), or on the whole graph in a step with more. A row that
+        does not act gives exact zeros (impulse, torques, sweeps, energies), so both give the
+        same numbers to float32 rounding (the sums' order)."""
+        n_balls = graph.nodes["features"].shape[0] - 2
+        rows = graph.senders.shape[0] // 2
+        block = math.ceil(2.0 * self.compact_per_ball * n_balls)
+        if self.compact_per_ball <= 0 or block >= rows or graph.n_node.shape[0] != 2:
+            return self._rollout_outputs(graph)
+        keep = self._gate_candidates(graph)
+        return nn.cond(
+            jnp.sum(keep) <= block,
+            lambda mdl, g: mdl._rollout_outputs(compact_edge_pairs(g, keep, block)),
+            lambda mdl, g: mdl._rollout_outputs(g), self, graph)
+
+    def _rollout_outputs(self, graph: jraph.GraphsTuple):
         terms = self.step_terms(graph)
         ledger = jnp.stack([terms["diss_pp"], terms["diss_pw"], terms["work_wall"]], axis=-1)
         return self._accelerations(terms), terms["dE_target"], ledger
+
+    # A candidate row's margin over the gate's: the gate's own gap and rate come from the
+    # longer computation of the geometry, whose rounding may differ in the last bits
+    CANDIDATE_MARGIN_FACTOR = 1.5
+    CANDIDATE_MARGIN_SLACK_M = 1.0e-7
+
+    def _gate_candidates(self, graph: jraph.GraphsTuple) -> jax.Array:
+        """(E / 2,) bool per primary row: True wherever the gate of :meth:`_edge_geometry`
+        may be on (a real edge into a ball whose gap now or at the end of a ballistic step
+        is below the kind's gate margin, here with a margin 1.5 times as wide), from the
+        newest slot alone (:func:`newest_gap_rate`). A superset of the gate."""
+        receivers, senders = graph.receivers[0::2], graph.senders[0::2]
+        recv_ball = graph.nodes["particle"][receivers]
+        is_pp = graph.edges["pp"][0::2] & recv_ball
+        is_pw = graph.edges["pw"][0::2] & recv_ball
+        pp_reach, pw_reach, margin = self._reach_and_margin(graph, receivers, senders, is_pp)
+        gap, u = newest_gap_rate(graph, self.physics.window, pp_reach, pw_reach)
+        reach_gap = jnp.minimum(gap, gap + u * self.physics.dt)
+        return (is_pp | is_pw) & (reach_gap < self.CANDIDATE_MARGIN_FACTOR * margin
+                                  + self.CANDIDATE_MARGIN_SLACK_M)
+
+    def _reach_and_margin(self, graph: jraph.GraphsTuple, receivers: jax.Array,
+                          senders: jax.Array, is_pp: jax.Array) -> tuple[Any, Any, Any]:
+        """``(pp_reach, pw_reach, gate_margin)`` m of the primary rows, as
+        :meth:`_edge_geometry` uses them (scalars for this kind: one ball radius)."""
+        del graph, receivers, senders, is_pp
+        radius = self.physics.ball_radius
+        return 2.0 * radius, radius, self.physics.gate_margin
 
     def collision_terms(self, graph: jraph.GraphsTuple):
         """``(accel, dE_target, ledger, grid)``: :meth:`rollout_terms` and the step's contacts

@@ -258,18 +258,8 @@ class ContactChargeNet(ContactNet):
         kin = edge_kinematics(graph, w, dt, r_r + r_s, r_r, primary_only=True)
         is_pp = kin["is_pp"]
         normal, gap, v_t, speed_t = kin["normal"], kin["gap"], kin["v_t"], kin["speed_t"]
-        mat = _pair_columns(jnp.asarray(graph.edges["pair"][0::2], DTYPE))
-
-        # Effective radius and mass; padding rows (no contact) get the receiver's (finite).
-        m_r, m_s = m_node[receivers], m_node[senders]
-        safe_r = jnp.where(is_pp, r_r + r_s, 1.0)
-        safe_m = jnp.where(is_pp, m_r + m_s, 1.0)
-        r_r_ok = jnp.where(r_r > 0, r_r, L_REF)
-        r_star = jnp.where(is_pp, r_r * r_s / safe_r, r_r_ok)
-        m_star = jnp.where(is_pp, m_r * m_s / safe_m, m_r)
-        young = jnp.where(mat["young_eff"] > 0, mat["young_eff"], 1.0)
-        scale_l = mat["peak_coef"] * (m_star / (young * jnp.sqrt(r_star))) ** 0.4
-        scale_l = jnp.where(scale_l > 0, scale_l, L_REF)
+        mat, m_r, m_s, safe_m, m_star, scale_l = self._contact_scale(graph, receivers, senders,
+                                                                     is_pp)
         scale_v = scale_l / dt
         size_ratio = jnp.where(is_pp, jnp.minimum(r_r, r_s) / jnp.maximum(
             jnp.maximum(r_r, r_s), 1e-30), 0.0)
@@ -324,6 +314,34 @@ class ContactChargeNet(ContactNet):
             "m_node": m_node, "m_star": m_star, "scale_l": scale_l, "scale_v": scale_v,
             "mu": mat["friction"], "mu_r": mat["rolling_friction"], "k": k, **extra,
         }
+
+    def _contact_scale(self, graph: jraph.GraphsTuple, receivers: jax.Array,
+                       senders: jax.Array, is_pp: jax.Array):
+        """Per primary row: ``(mat, m_r, m_s, safe_m, m_star, scale_l)``, the pair-table
+        columns, the two masses (kg), their sum (1 where no pair), m* and L (m); padding rows
+        (no contact) get the receiver's R* and m* and finite values."""
+        r_node = jnp.asarray(graph.nodes["radius"], DTYPE)
+        m_node = jnp.asarray(graph.nodes["mass"], DTYPE)
+        r_r, r_s = r_node[receivers], r_node[senders]
+        mat = _pair_columns(jnp.asarray(graph.edges["pair"][0::2], DTYPE))
+        m_r, m_s = m_node[receivers], m_node[senders]
+        safe_r = jnp.where(is_pp, r_r + r_s, 1.0)
+        safe_m = jnp.where(is_pp, m_r + m_s, 1.0)
+        r_r_ok = jnp.where(r_r > 0, r_r, L_REF)
+        r_star = jnp.where(is_pp, r_r * r_s / safe_r, r_r_ok)
+        m_star = jnp.where(is_pp, m_r * m_s / safe_m, m_r)
+        young = jnp.where(mat["young_eff"] > 0, mat["young_eff"], 1.0)
+        scale_l = mat["peak_coef"] * (m_star / (young * jnp.sqrt(r_star))) ** 0.4
+        return mat, m_r, m_s, safe_m, m_star, jnp.where(scale_l > 0, scale_l, L_REF)
+
+    def _reach_and_margin(self, graph: jraph.GraphsTuple, receivers: jax.Array,
+                          senders: jax.Array, is_pp: jax.Array):
+        """Per primary row: r_r + r_s, r_r and the gate margin ``gate_margin L / L_REF`` (m),
+        as :meth:`_edge_geometry` uses them."""
+        r_node = jnp.asarray(graph.nodes["radius"], DTYPE)
+        r_r = r_node[receivers]
+        scale_l = self._contact_scale(graph, receivers, senders, is_pp)[-1]
+        return r_r + r_node[senders], r_r, self.physics.gate_margin * scale_l / L_REF
 
     # ---- impulses
 

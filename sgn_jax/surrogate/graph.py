@@ -469,6 +469,40 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     return graph, counts
 
 
+def compact_edge_pairs(graph: jraph.GraphsTuple, keep: jax.Array, capacity: int
+                       ) -> jraph.GraphsTuple:
+    """The graph of :func:`build_graph` (one graph and its padding graph, no batch axis) with
+    only the edge pairs whose primary row is kept, in their order, padded to ``capacity`` pairs.
+
+    Args:
+        keep: (E / 2,) bool, per edge pair (slot 2r and its reverse 2r + 1, the layout of
+            :func:`build_graph`: ball-ball pairs first, then ball-wall ones, then padding).
+        capacity: C, the pairs the result holds; pairs past the C-th kept one are DROPPED (the
+            caller checks ``sum(keep) <= C`` and does not use the result otherwise).
+
+    Returns the graph with 2C edge slots: the kept pairs at ``[0, 2 kept)`` (their kinds'
+    order kept: ball-ball before ball-wall), then padding (sender and receiver the padding
+    node, no kind, zero features and pair row). Nodes unchanged; every edge counts to graph 0
+    (``n_edge = [2C, 0]``), which is right for a model whose padding edges give exactly zero
+    (the contact kinds: an edge acts only through its gated impulse).
+    """
+    rows = keep.shape[0]
+    (index,) = jnp.nonzero(keep, size=capacity, fill_value=rows)
+    valid = jnp.repeat(index < rows, 2)                              # (2C,)
+    slots = jnp.where(valid, jnp.stack([2 * index, 2 * index + 1], axis=-1).reshape(-1), 0)
+    pad = graph.nodes["features"].shape[0] - 1
+
+    def take(values: jax.Array) -> jax.Array:
+        mask = valid.reshape((-1,) + (1,) * (values.ndim - 1))
+        return jnp.where(mask, values[slots], jnp.zeros((), values.dtype))
+
+    return graph._replace(
+        senders=jnp.where(valid, graph.senders[slots], pad),
+        receivers=jnp.where(valid, graph.receivers[slots], pad),
+        edges={name: take(values) for name, values in graph.edges.items()},
+        n_edge=jnp.asarray([2 * capacity, 0], graph.n_edge.dtype))
+
+
 def make_graph_builder(sdf_query: SDFQuery | None, spec: GraphSpec):
     """A jitted ``build(windows, sdf) -> (graphs, counts)`` vmapped over a batch of windows."""
 
