@@ -214,7 +214,7 @@ def test_intact_checkpoint_is_verified_and_loads(setup, saved, tmp_path):
 
 
 @pytest.mark.parametrize("name", ["contact", "contact_rebound", "contact_collisions",
-                                  "emax_300rpm", "envelope"])
+                                  "contact_charge", "emax_300rpm", "envelope"])
 def test_shipped_model_verifies(name):
     from sgn_jax.records.shipped_models import registry, shipped_model_dir
 
@@ -315,6 +315,24 @@ def test_the_collision_model_is_the_contact_model_at_half_the_step_with_the_wall
                                                 default.config.model.mlp_layers, True)
     shares = jax.nn.sigmoid(np.asarray(model.params["share_logit"]))
     assert np.all((shares > 0.5) & (shares < 1.0))
+
+
+def test_the_charge_model_reads_the_charge_at_half_the_step_and_states_its_envelope():
+    """``contact_charge`` (docs/contact_charge.md): the charge-conditioned kind at 1e-4 s with
+    spin, the sweeps and the law rebound; its checkpoint states the charge envelope it covers
+    (diameters 6-15 mm, densities 2,600-7,800 kg/m^3, restitution 0.3-0.8) and the motions."""
+    from sgn_jax.records.checkpoint import load_trained_model
+    from sgn_jax.records.shipped_models import resolve_checkpoint
+
+    model = load_trained_model(resolve_checkpoint("contact_charge"))
+    m = model.config.model
+    assert (m.kind, m.spin, m.law_rebound) == ("contact_charge", True, True)
+    assert m.overlap_sweeps > 0 and m.friction_sweeps > 0
+    assert float(model.config.dem.dt) == pytest.approx(1e-4)
+    charge = model.meta["envelope"]["charge"]
+    assert charge["diameter"] == [0.006, 0.015] and charge["density"] == [2600.0, 7800.0]
+    assert charge["restitution"] == [0.3, 0.8] and charge["fill"] == [0.05, 0.2]
+    assert model.meta["envelope"]["circle_rpm"] == [150.0, 500.0]   # the motion envelope too
 
 
 def test_the_rebound_model_is_the_contact_model_with_the_law_rebound():

@@ -255,7 +255,8 @@ def test_missing_shipped_model_is_a_clear_error(tiny, tmp_path, monkeypatch, cap
     # The registry's default (the contact model) is loaded when it is shipped; then the others
     # in the registry's order; each is found by name.
     assert shipped_models.registry().names == ("contact", "contact_rebound",
-                                                "contact_collisions", "emax_300rpm", "envelope")
+                                                "contact_collisions", "contact_charge",
+                                                "emax_300rpm", "envelope")
     (models / "envelope").symlink_to(tiny["run"] / "checkpoints" / "best")
     assert shipped_models.resolve_checkpoint(None) == models / "emax_300rpm" / "best"
     (models / "contact").symlink_to(tiny["run"] / "checkpoints" / "best")

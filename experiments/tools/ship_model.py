@@ -100,8 +100,10 @@ def main(argv: list[str] | None = None) -> int:
     info = json.loads(info_path.read_text()) if info_path.is_file() else None
     if args.data:
         files = [Path(f) for f in args.data.split(",") if f]
-    elif info is not None and info.get("train_files"):
-        files = [Path(f) for f in info["train_files"]]
+    elif info is not None and (info.get("train_files") or info.get("records")):
+        # a contact run lists "train_files", a charge run (contact_charge_train_run) "records",
+        # a file listed twice (weighted) once
+        files = [Path(f) for f in dict.fromkeys(info.get("train_files") or info["records"])]
     else:
         print("ship_model: --data is required (the run does not list its training files)",
               file=sys.stderr)
