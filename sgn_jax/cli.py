@@ -383,7 +383,7 @@ def _add_sensitivity(sub: argparse._SubParsersAction) -> None:
         "ensemble-mean dissipation power over (BURN_IN, DURATION] and its gradient with respect "
         "to each --param (default: the ensemble central difference with common packings, "
         "step --step or 10 % of the value; docs/design.md). A charge parameter (balls.*: a "
-        "surrogate that reads the charge, e.g. --checkpoint runs/contact_charge/MODEL) is the "
+        "surrogate that reads the charge, e.g. --checkpoint contact_charge) is the "
         "central difference of surrogate ensembles at theta -+ h, each side with DEM packings "
         "of its own charge from the same seeds. --dem adds the DEM's ensemble central "
         "difference of each parameter at the same two points. Writes "
@@ -519,9 +519,10 @@ def _add_charge_sweep(sub: argparse._SubParsersAction) -> None:
                    help="seconds of motion per packing (default 1.5)")
     p.add_argument("--burn-in", type=float, default=0.5,
                    help="seconds before the power is averaged (default 0.5)")
-    p.add_argument("--surrogate", default=None, metavar="DIR",
-                   help="training run or checkpoint directory of a model that reads the charge "
-                   "(model kind contact_charge): its power at every point beside the DEM's")
+    p.add_argument("--surrogate", default=None, metavar="MODEL",
+                   help="a model that reads the charge (model kind contact_charge): the shipped "
+                   "contact_charge, or a training run or checkpoint directory; its power at "
+                   "every point beside the DEM's")
     p.add_argument("--no-dem", action="store_true",
                    help="with --surrogate: the surrogate's ensembles only (the DEM settles the "
                    "packings, nothing more)")

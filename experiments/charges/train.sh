@@ -19,19 +19,25 @@ stage() {   # stage NAME ARGS...: skip a finished stage, resume an interrupted o
     [ -d "$OUT/$name/checkpoints/latest" ] && resume="--resume"
     ${TRAINER:-$TRAIN} --out "$OUT/$name" $resume "$@"
 }
-# 1. one-step-ahead behaviour on the charges: short unrolls, a high learning rate (~26 min)
+# 1. one-step-ahead behaviour on the charges: short unrolls, a high learning rate (~23 min)
 stage unroll6 --steps 4000 --batch-size 8 --unroll 6
 # 2. long unrolls fed with the model's own predictions, the charges (twice) and the standard
-#    charge's training motions (~8 min)
+#    charge's training motions (~14 min)
 stage unroll24 --records $CHARGES data/envelope/train_*.npz \
     --init-from "$OUT/unroll6/checkpoints/latest" --unroll 24 --pushforward \
     --lr-init 3e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
-# 3. the contact-state term: the model's balls touch where the DEM's do (~8 min)
+# 3. the contact-state term: the model's balls touch where the DEM's do (~15 min)
 stage touch --records $CHARGES data/envelope/train_*.npz \
     --init-from "$OUT/unroll24/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
     --lr-init 2e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
-# 4. the law rebound on (experiments/charges/rebound_train.toml), the same settings (~8 min)
+# 4. the law rebound on (experiments/charges/rebound_train.toml), the same settings (~15 min)
 TRAINER="$DRIVER --config experiments/charges/rebound_train.toml" \
 stage rebound --records $CHARGES data/envelope/train_*.npz \
     --init-from "$OUT/touch/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
     --lr-init 2e-4 --lr-final 1e-5 --steps 900 --batch-size 8 --checkpoint-every 100
+# 5. the shipped model (contact_charge): the same at half the step, 1e-4 s
+#    (experiments/charges/rebound_fine_train.toml, 600 steps, ~11 min)
+TRAINER="$DRIVER --config experiments/charges/rebound_fine_train.toml" \
+stage fine --records $CHARGES data/envelope/train_*.npz \
+    --init-from "$OUT/rebound/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
+    --lr-init 2e-4 --lr-final 1e-5 --steps 600 --batch-size 8 --checkpoint-every 100
