@@ -24,6 +24,7 @@ Writes JSON to --out; prints markdown tables (or replaces them in --markdown).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import tempfile
@@ -40,7 +41,6 @@ from sgn_jax.dem.engine import make_advance
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.io_utils import git_commit, machine_info, write_json
-from sgn_jax.surrogate import contact
 
 MARKER_CHARGES, MARKER_COUNTS = "charge-ratio", "charge-surrogate-scaling"
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,28 +69,24 @@ def surrogate_seconds_per_second(model, record, cfg, duration: float, repeats: i
                                  full_rows: bool = False) -> dict:
     """The surrogate's rollout from ``record``: seconds per simulated second, run time only
     (best of ``repeats``; each call's compile is apart, ``run_rollout``'s own timing). With
-    ``full_rows`` also the same rollout with every step on the whole graph
-    (``SINGLE_ROLLOUT_COMPACT_PER_BALL = 0``, docs/contact.md): ``model_s_per_s_full_rows``
-    and ``compact_speedup``."""
+    ``full_rows`` also the same rollout with every step on the whole graph (the model's
+    single-rollout form with ``compact_per_ball = 0``, docs/contact.md):
+    ``model_s_per_s_full_rows`` and ``compact_speedup``."""
     dt = float(model.config.dem.dt)
 
-    def best_time() -> float:
+    def best_time(trained) -> float:
         best = float("inf")
         for _ in range(repeats):
-            out = sj.run_rollout(model, record, None, duration, None, cfg, save_every=10,
+            out = sj.run_rollout(trained, record, None, duration, None, cfg, save_every=10,
                                  progress=False)
             best = min(best, 1e-3 * out["ms_per_step"])
         return best
 
-    best = best_time()
+    best = best_time(model)
     row = {"model_dt_s": dt, "model_ms_per_step": 1e3 * best, "model_s_per_s": best / dt}
     if full_rows:
-        compact = contact.SINGLE_ROLLOUT_COMPACT_PER_BALL
-        contact.SINGLE_ROLLOUT_COMPACT_PER_BALL = 0.0
-        try:
-            full = best_time()
-        finally:
-            contact.SINGLE_ROLLOUT_COMPACT_PER_BALL = compact
+        whole = model.model.for_single_rollout().clone(compact_per_ball=0.0)
+        full = best_time(dataclasses.replace(model, model=whole))
         row.update(model_s_per_s_full_rows=full / dt, compact_speedup=full / best)
     return row
 

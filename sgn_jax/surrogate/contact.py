@@ -84,8 +84,7 @@ TANGENT_EPS = 1.0e-4          # m/s: t = v_t / sqrt(|v_t|^2 + eps^2), smooth at 
 # ContactNet.for_single_rollout; the standard case has at most 1.4 N).
 SINGLE_ROLLOUT_ACTING_PER_BALL = 1.5
 # ...and each step on a block of ceil(2 x 1.5 N) rows that may act, both kinds together
-# (ContactNet.rollout_terms; 0 = the whole graph, what benchmarks/bench_charge_ratio.py
-# --full-rows times beside it)
+# (ContactNet.rollout_terms)
 SINGLE_ROLLOUT_COMPACT_PER_BALL = 1.5
 
 
@@ -659,7 +658,13 @@ class ContactNet(nn.Module):
         :meth:`rollout_terms`): the graph's candidate edges within the skins are 8 N contact
         rows with 4 wall patches, of which 1-3 N act; the geometry, the impulses, the sweeps
         and the ledger of the others are exact zeros. Not with the exact law rebound at the
-        wall, whose resting ceiling reads every ball-ball row's closing speed."""
+        wall, whose resting ceiling reads every ball-ball row's closing speed.
+
+        A model already in this form (``rows_by_kind``) is returned as it is, so that a caller
+        may hand the drivers a form of its own (e.g. ``compact_per_ball=0``: every step on the
+        whole graph, what ``benchmarks/bench_charge_ratio.py --full-rows`` times)."""
+        if self.rows_by_kind:
+            return self
         compact = (SINGLE_ROLLOUT_COMPACT_PER_BALL
                    if getattr(self.physics, "rebound_exact", "off") != "wall" else 0.0)
         return self.clone(rows_by_kind=True, acting_per_ball=SINGLE_ROLLOUT_ACTING_PER_BALL,
