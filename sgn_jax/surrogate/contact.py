@@ -568,15 +568,30 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     return {**rows, "speed_c": slip_c, **extra}
 
 
+def at_both_ends(node_values: jax.Array, receivers: jax.Array, senders: jax.Array
+                 ) -> tuple[jax.Array, jax.Array]:
+    """``(node_values[receivers], node_values[senders])``, each (E, ...), by one gather: a step
+    of a small charge costs per XLA operation, not per row (docs/contact.md)."""
+    both = node_values[jnp.concatenate([receivers, senders])]
+    return both[:receivers.shape[0]], both[receivers.shape[0]:]
+
+
+def sum_at_both_ends(on_receiver: jax.Array, on_sender: jax.Array, receivers: jax.Array,
+                     senders: jax.Array, n_node: int) -> jax.Array:
+    """(n_node, ...) the per-edge values ``on_receiver`` summed at each edge's receiver plus
+    ``on_sender`` at its sender, by one scatter-add (one XLA operation instead of two)."""
+    return jax.ops.segment_sum(jnp.concatenate([on_receiver, on_sender]),
+                               jnp.concatenate([receivers, senders]), num_segments=n_node)
+
+
 def _larger_ball_count(flags: jax.Array, receivers: jax.Array, senders: jax.Array,
                        is_pp: jax.Array, n_node: int) -> jax.Array:
     """(E,) the larger number of flagged contacts (``flags`` (E,) 0/1) of each edge's two balls
     (its receiver's alone for a wall edge), at least 1: the relaxation of a Jacobi sweep, whose
     per-contact corrections on a ball with several contacts add up."""
-    per_node = (jax.ops.segment_sum(flags, receivers, num_segments=n_node)
-                + jax.ops.segment_sum(flags * is_pp, senders, num_segments=n_node))
-    return jnp.maximum(jnp.maximum(per_node[receivers], jnp.where(is_pp, per_node[senders], 0.0)),
-                       1.0)
+    per_node = sum_at_both_ends(flags, flags * is_pp, receivers, senders, n_node)
+    at_recv, at_send = at_both_ends(per_node, receivers, senders)
+    return jnp.maximum(jnp.maximum(at_recv, jnp.where(is_pp, at_send, 0.0)), 1.0)
 
 
 def _safe_norm(v: jax.Array) -> jax.Array:
@@ -832,8 +847,7 @@ class ContactNet(nn.Module):
     def _spin_change(self, geo: dict[str, jax.Array], a_recv: jax.Array, a_send: jax.Array,
                      n_node: int, is_particle: jax.Array) -> jax.Array:
         """(n_node, 3) rad/s: the angular impulses summed per ball over I; 0 for the wall."""
-        total = (jax.ops.segment_sum(a_recv, geo["receivers"], num_segments=n_node)
-                 + jax.ops.segment_sum(a_send, geo["senders"], num_segments=n_node))
+        total = sum_at_both_ends(a_recv, a_send, geo["receivers"], geo["senders"], n_node)
         return jnp.where(is_particle[:, None], total / self.physics.inertia, 0.0)
 
     def _velocity_change(self, geo: dict[str, jax.Array], impulse: jax.Array, n_node: int,
@@ -849,9 +863,8 @@ class ContactNet(nn.Module):
                                  n_node: int, is_particle: jax.Array) -> jax.Array:
         """(n_node, 3) m/s: the impulses alone (a pair's sender gets the opposite one)."""
         receivers, senders = geo["receivers"], geo["senders"]
-        total = (jax.ops.segment_sum(impulse, receivers, num_segments=n_node)
-                 - jax.ops.segment_sum(impulse * geo["is_pp"][:, None], senders,
-                                       num_segments=n_node))
+        total = sum_at_both_ends(impulse, -impulse * geo["is_pp"][:, None], receivers, senders,
+                                 n_node)
         return jnp.where(is_particle[:, None], total / self.physics.ball_mass, 0.0)
 
     def _project_overlaps(self, geo: dict[str, jax.Array], impulse: jax.Array, du_n: jax.Array,
@@ -875,8 +888,9 @@ class ContactNet(nn.Module):
         wall_end = geo["u_wall"] + geo["jar_dv"]
         for _ in range(phys.overlap_sweeps):
             v_end = geo["v_node"] + dv
-            partner = jnp.where(geo["is_pw"][:, None], wall_end, v_end[senders])
-            u_end = jnp.einsum("ec,ec->e", partner - v_end[receivers], normal)
+            v_recv, v_send = at_both_ends(v_end, receivers, senders)
+            partner = jnp.where(geo["is_pw"][:, None], wall_end, v_send)
+            u_end = jnp.einsum("ec,ec->e", partner - v_recv, normal)
             gap_end = geo["gap"] + u_end * phys.dt
             need = jnp.maximum(-(gap_end + geo["limit"]) / phys.dt, 0.0) * gate
             violated = (need > 0).astype(need.dtype)
@@ -918,7 +932,7 @@ class ContactNet(nn.Module):
             # one gather per end of the contacts and one scatter-add per end per sweep: the
             # balls' velocities and spins side by side, (n_node, 6)
             state = jnp.concatenate([geo["v_node"] + dv, geo["w_node"] + dw], axis=-1)
-            at_recv, at_send = state[receivers], state[senders]
+            at_recv, at_send = at_both_ends(state, receivers, senders)
             partner = jnp.where(geo["is_pw"][:, None], wall_end, at_send[:, :3])
             v_rel = partner - at_recv[:, :3]
             v_t = v_rel - jnp.einsum("ec,ec->e", v_rel, normal)[:, None] * normal
@@ -932,11 +946,10 @@ class ContactNet(nn.Module):
             torque = arm[:, None] * jnp.cross(normal, extra)
             a_recv, a_send = a_recv + torque, a_send + torque
             # the receiver gets (J, torque), a pair's sender (-J, torque); the wall node none
-            on_recv = jax.ops.segment_sum(jnp.concatenate([extra, torque], axis=-1), receivers,
-                                          num_segments=n_node)
-            on_send = jax.ops.segment_sum(jnp.concatenate([-extra * is_pp, torque], axis=-1),
-                                          senders, num_segments=n_node)
-            change = jnp.where(is_particle[:, None], (on_recv + on_send) / mass_inertia, 0.0)
+            on_balls = sum_at_both_ends(jnp.concatenate([extra, torque], axis=-1),
+                                        jnp.concatenate([-extra * is_pp, torque], axis=-1),
+                                        receivers, senders, n_node)
+            change = jnp.where(is_particle[:, None], on_balls / mass_inertia, 0.0)
             dv, dw = dv + change[:, :3], dw + change[:, 3:]
         return impulse, _safe_norm(tangential) / m_star, dv, dw, (a_recv, a_send)
 

@@ -73,10 +73,12 @@ from sgn_jax.surrogate.contact import (
     InputScales,
     _larger_ball_count,
     _safe_norm,
+    at_both_ends,
     check_rebound_exact,
     contact_rows,
     edge_kinematics,
     per_contact_damping,
+    sum_at_both_ends,
 )
 from sgn_jax.surrogate.graph import BallCharge
 from sgn_jax.surrogate.model import register_model
@@ -390,17 +392,15 @@ class ContactChargeNet(ContactNet):
 
     def _spin_change(self, geo: dict[str, jax.Array], a_recv: jax.Array, a_send: jax.Array,
                      n_node: int, is_particle: jax.Array) -> jax.Array:
-        total = (jax.ops.segment_sum(a_recv, geo["receivers"], num_segments=n_node)
-                 + jax.ops.segment_sum(a_send, geo["senders"], num_segments=n_node))
+        total = sum_at_both_ends(a_recv, a_send, geo["receivers"], geo["senders"], n_node)
         inertia = jnp.where(is_particle, geo["i_node"], 1.0)
         return jnp.where(is_particle[:, None], total / inertia[:, None], 0.0)
 
     def _impulse_velocity_change(self, geo: dict[str, jax.Array], impulse: jax.Array,
                                  n_node: int, is_particle: jax.Array) -> jax.Array:
         receivers, senders = geo["receivers"], geo["senders"]
-        total = (jax.ops.segment_sum(impulse, receivers, num_segments=n_node)
-                 - jax.ops.segment_sum(impulse * geo["is_pp"][:, None], senders,
-                                       num_segments=n_node))
+        total = sum_at_both_ends(impulse, -impulse * geo["is_pp"][:, None], receivers, senders,
+                                 n_node)
         mass = jnp.where(is_particle, geo["m_node"], 1.0)
         return jnp.where(is_particle[:, None], total / mass[:, None], 0.0)
 
@@ -424,7 +424,7 @@ class ContactChargeNet(ContactNet):
                                         jnp.repeat(inertia[:, None], 3, axis=1)], axis=1)
         for _ in range(self.physics.friction_sweeps):
             state = jnp.concatenate([geo["v_node"] + dv, geo["w_node"] + dw], axis=-1)
-            at_recv, at_send = state[receivers], state[senders]
+            at_recv, at_send = at_both_ends(state, receivers, senders)
             partner = jnp.where(geo["is_pw"][:, None], wall_end, at_send[:, :3])
             v_rel = partner - at_recv[:, :3]
             v_t = v_rel - jnp.einsum("ec,ec->e", v_rel, normal)[:, None] * normal
@@ -439,11 +439,10 @@ class ContactChargeNet(ContactNet):
             n_x_extra = jnp.cross(normal, extra)
             t_recv, t_send = arm[:, None] * n_x_extra, arm_s[:, None] * n_x_extra * is_pp
             a_recv, a_send = a_recv + t_recv, a_send + t_send
-            on_recv = jax.ops.segment_sum(jnp.concatenate([extra, t_recv], axis=-1), receivers,
-                                          num_segments=n_node)
-            on_send = jax.ops.segment_sum(jnp.concatenate([-extra * is_pp, t_send], axis=-1),
-                                          senders, num_segments=n_node)
-            change = jnp.where(is_particle[:, None], (on_recv + on_send) / mass_inertia, 0.0)
+            on_balls = sum_at_both_ends(jnp.concatenate([extra, t_recv], axis=-1),
+                                        jnp.concatenate([-extra * is_pp, t_send], axis=-1),
+                                        receivers, senders, n_node)
+            change = jnp.where(is_particle[:, None], on_balls / mass_inertia, 0.0)
             dv, dw = dv + change[:, :3], dw + change[:, 3:]
         return impulse, _safe_norm(tangential) / m_star, dv, dw, (a_recv, a_send)
 
