@@ -395,11 +395,6 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     # out-of-range slot and are dropped by the scatter (and counted in pp_dropped).
     slot = jnp.where(pair_ok & (pair_rank < cap_pairs), 2 * pair_rank, spec.edge_capacity)
     e_cap = spec.edge_capacity
-    senders = jnp.full((e_cap,), pad, jnp.int32)
-    receivers = jnp.full((e_cap,), pad, jnp.int32)
-    efeat = jnp.zeros((e_cap, spec.edge_dim), jnp.float64)
-    senders = senders.at[slot].set(pj, mode="drop").at[slot + 1].set(pi, mode="drop")
-    receivers = receivers.at[slot].set(pi, mode="drop").at[slot + 1].set(pj, mode="drop")
     pp_feat_j, pp_feat_i = rij, -rij
     if spec.contact_features:
         # sqrt of the squared distance + tiny: differentiable also at coincident centres
@@ -407,7 +402,6 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
         contact = _contact_columns(dist - (2.0 * spec.ball_radius if charge is None else reach))
         pp_feat_j = jnp.concatenate([rij, contact], axis=-1)
         pp_feat_i = jnp.concatenate([-rij, contact], axis=-1)
-    efeat = efeat.at[slot].set(pp_feat_j, mode="drop").at[slot + 1].set(pp_feat_i, mode="drop")
 
     # Ball-wall: wall -> b and b -> wall, both with phi_b n_b, placed after the kept pp edges
     # (with wall_patches: one such pair per ball and patch, ball-major).
@@ -427,9 +421,16 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     if spec.contact_features:
         r_b = spec.ball_radius if charge is None else radius[balls]
         pw_feat = jnp.concatenate([pw_feat, _contact_columns(-phi_now - r_b)], axis=-1)
-    senders = senders.at[bslot].set(wall, mode="drop").at[bslot + 1].set(balls, mode="drop")
-    receivers = receivers.at[bslot].set(balls, mode="drop").at[bslot + 1].set(wall, mode="drop")
-    efeat = efeat.at[bslot].set(pw_feat, mode="drop").at[bslot + 1].set(pw_feat, mode="drop")
+    # Every edge of both kinds in one scatter per array (a small charge's step costs per
+    # operation): the kept slots are distinct, the others out of range and dropped.
+    slots = jnp.concatenate([slot, slot + 1, bslot, bslot + 1])
+    walls = jnp.full_like(balls, wall)
+    ends = jnp.stack([jnp.concatenate([pj, pi, walls, balls]),       # senders
+                      jnp.concatenate([pi, pj, balls, walls])], -1)  # receivers
+    ends = jnp.full((e_cap, 2), pad, jnp.int32).at[slots].set(ends, mode="drop")
+    senders, receivers = ends[:, 0], ends[:, 1]
+    efeat = jnp.zeros((e_cap, spec.edge_dim), jnp.float64).at[slots].set(
+        jnp.concatenate([pp_feat_j, pp_feat_i, pw_feat, pw_feat]), mode="drop")
 
     n_real = n_pp_kept + 2 * n_walled
     edge_ids = jnp.arange(e_cap)
