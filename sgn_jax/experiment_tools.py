@@ -72,6 +72,7 @@ from sgn_jax.pipelines.experiments import (
 )
 from sgn_jax.pipelines.features import windows_from_trajectory
 from sgn_jax.pipelines.rollout_eval import (
+    DAMPING,
     mean_se,
     motion_misses,
     reference_span,
@@ -197,6 +198,7 @@ __all__ = [
     "align",
     "contact_census",
     "rollout_against_dem",
+    "DAMPING",
     "reference_span",
     "summarize_runs",
     "motion_misses",

@@ -23,9 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.analysis.metrics import contact_census, jar_frame_speed
-from sgn_jax.pipelines.rollout_eval import DAMPING
-from sgn_jax.records.io_utils import write_json
+from sgn_jax.experiment_tools import DAMPING, contact_census, jar_frame_speed, write_json
 
 
 def block_rows(t: np.ndarray, pos: np.ndarray, off: np.ndarray, power_per_step: np.ndarray,
