@@ -929,7 +929,7 @@ class ContactNet(nn.Module):
         is_pp = geo["is_pp"][:, None]
         mass_inertia = jnp.asarray([phys.ball_mass] * 3 + [phys.inertia] * 3, DTYPE)
         for _ in range(phys.friction_sweeps):
-            # one gather per end of the contacts and one scatter-add per end per sweep: the
+            # one gather of both contact ends and one scatter-add onto both per sweep: the
             # balls' velocities and spins side by side, (n_node, 6)
             state = jnp.concatenate([geo["v_node"] + dv, geo["w_node"] + dw], axis=-1)
             at_recv, at_send = at_both_ends(state, receivers, senders)
