@@ -2,7 +2,8 @@
 
     python experiments/charges/evaluate.py --model runs/contact_charge/second \
         [--data data/charges_heldout] [--names heldout_00 ...] [--seeds 100 101 ...] \
-        [--out runs/charge_eval] [--name heldout] [--dem-reference runs/charge_eval/heldout.json]
+        [--out runs/charge_eval] [--name heldout] [--dem-reference runs/charge_eval/heldout.json] \
+        [--split train]
     python experiments/charges/evaluate.py --bars runs/charge_eval/heldout.json
 
 Every complete DEM record ``DATA/NAME/seed_K.npz`` of the held-out charges of
@@ -98,6 +99,10 @@ def main() -> None:
     ap.add_argument("--model")
     ap.add_argument("--data", default="data/charges_heldout")
     ap.add_argument("--names", nargs="*", default=None)
+    ap.add_argument("--split", choices=("heldout", "train"), default="heldout",
+                    help="the design's held-out charges (the bars) or its training charges "
+                         "(free rollouts of the training records: a check of a model choice "
+                         "that leaves the held-out charges unseen)")
     ap.add_argument("--seeds", type=int, nargs="*", default=None)
     ap.add_argument("--out", default="runs/charge_eval")
     ap.add_argument("--name", default="heldout")
@@ -120,7 +125,7 @@ def main() -> None:
     refs = {}
     for path in args.dem_reference:
         refs.update(json.loads(Path(path).read_text())["runs"])
-    design = tomllib.loads((HERE / "design.toml").read_text())["heldout"]
+    design = tomllib.loads((HERE / "design.toml").read_text())[args.split]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / f"{args.name}.json"
