@@ -324,7 +324,8 @@ def _contact_columns(gap: jax.Array) -> jax.Array:
 
 
 def build_graph(window: Window, sdf: Any, spec: GraphSpec,
-                query: SDFQuery | None = None) -> tuple[jraph.GraphsTuple, EdgeCounts]:
+                query: SDFQuery | None = None,
+                candidates: jax.Array | None = None) -> tuple[jraph.GraphsTuple, EdgeCounts]:
     """Featurize one window (static shapes, jittable, differentiable in positions and offsets).
 
     Args:
@@ -333,6 +334,11 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
         spec: static :class:`GraphSpec`.
         query: ``query(sdf, points_lab, offset) -> (phi, unit normal)``; default
             ``sgn_jax.geometry.query_sdf_grid``.
+        candidates: (C, 2) int32 ball pairs (i, j), i < j, in the order of
+            ``np.triu_indices`` (unused rows (N, N)): the only pairs tested for ball-ball
+            edges, e.g. a neighbour list (:func:`neighbour_pairs`) that holds every pair within
+            reach. Default: all N (N - 1) / 2 pairs. A list that holds every pair within the
+            graph's reach gives the same graph, edge for edge.
 
     Returns:
         ``(graph, counts)``: the padded graph (layout in the module docstring; raw, un-normalised
@@ -378,14 +384,19 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     phi_now, normal_now = phi[-1], normal[-1]
 
     # Ball-ball: unordered pairs i < j; both directions of a kept pair are kept together.
-    pi, pj = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(n, k=1))
+    if candidates is None:
+        pi, pj = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(n, k=1))
+        listed = True
+    else:   # a neighbour list: its unused rows (N, N) are clamped for the gathers, never kept
+        listed = candidates[:, 0] < n
+        pi, pj = (jnp.minimum(candidates[:, c], n - 1).astype(jnp.int32) for c in (0, 1))
     rij = x[pj] - x[pi]
     if charge is None:
-        pair_ok = jnp.sum(rij * rij, axis=-1) <= spec.pp_cutoff ** 2
+        pair_ok = (jnp.sum(rij * rij, axis=-1) <= spec.pp_cutoff ** 2) & listed
     else:
         reach = radius[pi] + radius[pj]          # the pair's contact distance r_i + r_j
         pair_ok = ((jnp.sum(rij * rij, axis=-1) <= (reach + spec.pp_skin) ** 2)
-                   & present[pi] & present[pj])
+                   & present[pi] & present[pj] & listed)
     n_pairs = jnp.sum(pair_ok, dtype=jnp.int32)
     pair_rank = jnp.cumsum(pair_ok, dtype=jnp.int32) - 1
     cap_pairs = spec.pp_pair_capacity
@@ -468,6 +479,45 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     counts = EdgeCounts(n_pp=2 * n_pairs, n_pw=2 * n_walled,
                         pp_dropped=2 * (n_pairs - kept_pairs))
     return graph, counts
+
+
+def neighbour_pairs(positions: jax.Array, spec: GraphSpec, charge: BallCharge | None,
+                    extra_skin: float, capacity: int) -> tuple[jax.Array, jax.Array]:
+    """The ball pairs within the graph's reach plus ``extra_skin``: a neighbour (Verlet) list.
+
+    A pair (i, j), i < j, is listed when |x_j - x_i| <= reach + ``extra_skin`` (reach: the
+    graph's ``pp_cutoff``, or r_i + r_j + ``pp_skin`` with a charge, both balls present).
+    While no ball has moved more than ``extra_skin`` / 2 since, the list holds every pair that
+    :func:`build_graph` would keep, so ``build_graph(..., candidates=pairs)`` builds the same
+    graph from C rows instead of N (N - 1) / 2 (what makes a rollout step of many balls
+    linear in N; :class:`sgn_jax.surrogate.rollout.NeighbourList` keeps it up to date).
+
+    Args:
+        positions: (N, 3) m. spec: the graph's. charge: the window's charge or None.
+        extra_skin: m, the list's margin over the graph's reach. capacity: C, pairs it holds.
+    Returns:
+        ``(pairs (C, 2) int32 in the order of np.triu_indices, unused rows (N, N); n_found ()
+        int32)``: more than C found is an overflow (the list misses pairs), for the caller to
+        refuse.
+    """
+    n = spec.n_particles
+    x = jnp.asarray(positions, jnp.float64)
+    pi, pj = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(n, k=1))
+    rij = x[pj] - x[pi]
+    if charge is None:
+        reach = jnp.full(pi.shape, spec.pp_cutoff, jnp.float64)
+        ok = jnp.ones(pi.shape, bool)
+    else:
+        radius = jnp.asarray(charge.radius, jnp.float64)
+        present = jnp.asarray(charge.present, bool)
+        reach = radius[pi] + radius[pj] + spec.pp_skin
+        ok = present[pi] & present[pj]
+    ok = ok & (jnp.sum(rij * rij, axis=-1) <= (reach + extra_skin) ** 2)
+    rank = jnp.cumsum(ok, dtype=jnp.int32) - 1
+    slot = jnp.where(ok & (rank < capacity), rank, capacity)
+    pairs = jnp.full((capacity, 2), n, jnp.int32).at[slot].set(
+        jnp.stack([pi, pj], axis=-1), mode="drop")
+    return pairs, jnp.sum(ok, dtype=jnp.int32)
 
 
 def compact_edge_pairs(graph: jraph.GraphsTuple, keep: jax.Array, capacity: int

@@ -74,6 +74,7 @@ from sgn_jax.surrogate.graph import (
     GraphSpec,
     Window,
     build_graph,
+    neighbour_pairs,
     slide_window,
     with_spins,
 )
@@ -111,12 +112,78 @@ class RolloutState:
         collisions: the collision ledger (:class:`sgn_jax.surrogate.collisions.CollisionCarry`:
             the open events and the table of the closed ones) of a rollout with
             ``collisions=True``; None otherwise.
+        neighbours: a :class:`NeighbourList` (:func:`empty_neighbour_list`): each step's
+            ball-ball candidates come from it instead of all N (N - 1) / 2 pairs, the same
+            graph; None (the default): all pairs.
     """
 
     window: Window
     step: jax.Array
     energy: jax.Array
     collisions: Any = None
+    neighbours: Any = None
+
+
+@flax.struct.dataclass
+class NeighbourList:
+    """The ball pairs a rollout step tests for ball-ball edges, carried from step to step.
+
+    A Verlet list (as the DEM's, docs/dem.md): every pair within the graph's reach plus
+    ``skin`` at the positions ``reference`` (:func:`sgn_jax.surrogate.graph.neighbour_pairs`),
+    rebuilt at the start of a step in which some ball has moved more than ``skin`` / 2 from
+    its reference position. Until then no pair outside the list can come within the graph's
+    reach, so the graph is the one of all pairs, edge for edge, at the cost of C rows a step
+    instead of N (N - 1) / 2 (and one all-pairs build every few steps).
+
+    Attributes:
+        pairs: (C, 2) int32 (i, j), i < j, unused rows (N, N).
+        reference: (N, 3) m, the newest positions at the last build.
+        overflow: () bool, True once a build found more than C pairs (sticky: the host refuses
+            the run, :func:`check_neighbours`).
+        skin: m, the list's margin over the graph's reach (static).
+    """
+
+    pairs: jax.Array
+    reference: jax.Array
+    overflow: jax.Array
+    skin: float = flax.struct.field(pytree_node=False, default=1e-3)
+
+
+def empty_neighbour_list(window: Window, capacity: int, skin: float) -> NeighbourList:
+    """A list of ``capacity`` pairs and margin ``skin`` (m) that the rollout's first step
+    builds (its reference lies 1 m from every ball)."""
+    if capacity < 1 or not skin > 0:
+        raise RolloutError(f"a neighbour list needs capacity >= 1 and skin > 0 m, got "
+                           f"{capacity} and {skin}")
+    x = jnp.asarray(window.positions[-1], F64)
+    n = x.shape[0]
+    return NeighbourList(pairs=jnp.full((capacity, 2), n, I32), reference=x + 1.0,
+                         overflow=jnp.zeros((), bool), skin=float(skin))
+
+
+def _refresh_neighbours(nl: NeighbourList, window: Window, spec: GraphSpec) -> NeighbourList:
+    """``nl`` rebuilt at the window's newest positions when a ball has moved more than half
+    the skin since the last build (``lax.cond``: a step that keeps it pays N distances)."""
+    x = jnp.asarray(window.positions[-1], F64)
+    moved2 = jnp.max(jnp.sum((x - nl.reference) ** 2, axis=-1))
+
+    def rebuild(old: NeighbourList) -> NeighbourList:
+        pairs, found = neighbour_pairs(x, spec, window.charge, old.skin, old.pairs.shape[0])
+        return old.replace(pairs=pairs, reference=x,
+                           overflow=old.overflow | (found > old.pairs.shape[0]))
+
+    return jax.lax.cond(moved2 > (0.5 * nl.skin) ** 2, rebuild, lambda old: old, nl)
+
+
+def check_neighbours(state: RolloutState) -> None:
+    """Refuse (host side) a rollout whose neighbour list overflowed: its graphs may have
+    missed ball-ball contacts."""
+    nl = state.neighbours
+    if nl is not None and bool(nl.overflow):
+        raise RolloutError(
+            f"the rollout's neighbour list of {nl.pairs.shape[0]} ball pairs overflowed (more "
+            f"pairs within the graph's reach + {nl.skin:g} m); give it a larger capacity "
+            "(sgn_jax.pipelines.rollout_run.NEIGHBOUR_PAIRS_PER_BALL)")
 
 
 @flax.struct.dataclass
@@ -447,7 +514,7 @@ def check_tiers(spec: GraphSpec, tiers: Any) -> tuple[int, ...]:
 
 def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predictor,
                     query: SDFQuery, params: Any, stats: Any, sdf: Any, window: Window,
-                    step: jax.Array):
+                    step: jax.Array, candidates: jax.Array | None = None):
     """Build the graph with the smallest capacity tier that holds all ball pairs and predict.
 
     Padding edges are masked in the network, so every tier gives the same prediction (up to
@@ -456,7 +523,7 @@ def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predicto
     (under ``vmap`` all branches run: use no tiers there).
     """
     specs = [dataclasses.replace(spec, pp_pair_capacity=t) for t in tiers] + [spec]
-    graph0, counts0 = build_graph(window, sdf, specs[0], query)
+    graph0, counts0 = build_graph(window, sdf, specs[0], query, candidates)
     n_pairs = counts0.n_pp // 2
     dropped = 2 * jnp.maximum(n_pairs - spec.pp_pair_capacity, 0)
     counts = counts0._replace(pp_dropped=dropped.astype(counts0.pp_dropped.dtype))
@@ -466,7 +533,7 @@ def _predict_tiered(spec: GraphSpec, tiers: tuple[int, ...], predictor: Predicto
 
     def branch(k: int):
         def run(_: Any):
-            graph = graph0 if k == 0 else build_graph(window, sdf, specs[k], query)[0]
+            graph = graph0 if k == 0 else build_graph(window, sdf, specs[k], query, candidates)[0]
             accel, de, ledger, grid = _with_ledger(predictor(params, stats, graph, step))
             n = spec.n_particles
             return (jnp.asarray(accel)[:n].astype(F64), jnp.asarray(de).astype(F64).reshape(()),
@@ -491,8 +558,13 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
 
     def step_fn(state: RolloutState, _: Any) -> tuple[RolloutState, StepRecord]:
         window = state.window
+        neighbours, candidates = state.neighbours, None
+        if neighbours is not None:
+            neighbours = _refresh_neighbours(neighbours, window, spec)
+            candidates = neighbours.pairs
         (accel, de, ledger, grid), counts = _predict_tiered(spec, tiers, predictor, query, params,
-                                                            stats, sdf, window, state.step)
+                                                            stats, sdf, window, state.step,
+                                                            candidates)
         ledger_carry = state.collisions
         if collisions:
             if grid is None:
@@ -555,7 +627,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                             n_outside=jnp.sum(phi_after > 0, dtype=I32), n_snapped=n_snapped,
                             diss_pp=ledger[0], diss_pw=ledger[1], work_wall=ledger[2])
         return RolloutState(window=window, step=state.step + 1, energy=energy,
-                            collisions=ledger_carry), record
+                            collisions=ledger_carry, neighbours=neighbours), record
 
     return step_fn
 
@@ -803,6 +875,7 @@ def make_rollout(spec: GraphSpec, predictor: Any, n_steps: int, save_every: int 
 
 
 __all__ = [
+    "NeighbourList",
     "Predictor",
     "ReplayTable",
     "RolloutError",
@@ -811,6 +884,8 @@ __all__ = [
     "SnapBack",
     "StepRecord",
     "analytic_jar_query",
+    "check_neighbours",
+    "empty_neighbour_list",
     "init_state",
     "jar_state_window",
     "make_rollout",
