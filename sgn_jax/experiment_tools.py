@@ -39,6 +39,7 @@ from sgn_jax.config import (
     config_from_dict,
     config_to_dict,
     config_to_toml,
+    replace_section,
     resolve_config,
     save_config,
 )
@@ -117,6 +118,32 @@ from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 from sgn_jax.surrogate.rollout import make_rollout_advance, model_predictor
 
 
+def with_model_keys(trained: Any, assignments: list[str] | None) -> Any:
+    """``trained`` (a :class:`sgn_jax.records.checkpoint.TrainedModel`) with ``[model]`` keys
+    of its config replaced, e.g. ``["friction_sweeps=12"]`` (each ``KEY=VALUE``, VALUE a TOML
+    value) and the module rebuilt from them: the same weights with another setting of the
+    built-in physics (the solver's sweeps), for an evaluation's ``--model-set``."""
+    if not assignments:
+        return trained
+    import dataclasses
+    import tomllib
+
+    from sgn_jax.surrogate.model import model_factory, model_kind
+
+    values = {}
+    for item in assignments:
+        key, eq, raw = item.partition("=")
+        if not eq or not key.strip():
+            raise SystemExit(f"--model-set takes KEY=VALUE (a [model] key), got {item!r}")
+        try:
+            values[key.strip()] = tomllib.loads(f"value = {raw.strip()}")["value"]
+        except tomllib.TOMLDecodeError as exc:
+            raise SystemExit(f"--model-set {item!r}: VALUE must be a TOML value ({exc})") from None
+    cfg = replace_section(trained.config, "model", **values)
+    return dataclasses.replace(trained, config=cfg,
+                               model=model_factory(model_kind(cfg.model)).build_model(cfg))
+
+
 def new_figure(width: float, height: float, **kwargs: Any) -> Any:
     """:func:`sgn_jax.analysis.plots.new_figure`: a matplotlib ``Figure`` on the Agg canvas (no
     pyplot), ``width`` x ``height`` inches."""
@@ -142,6 +169,7 @@ def plot_case_curves(title: str, preds: list[str | Path], refs: list[str | Path]
 
 
 __all__ = [
+    "with_model_keys",
     "collision_statistics",
     "decade_comparison",
     "ensemble_statistics",

@@ -208,3 +208,21 @@ def test_run_pinned_runs_jobs_side_by_side_each_with_its_log(tmp_path, monkeypat
     printed = capsys.readouterr().out
     assert "start first on core 0" in printed and "start second on core 1" in printed
     assert "FAILED third (exit 3" in printed
+
+
+def test_with_model_keys_changes_a_built_in_setting_and_keeps_the_weights():
+    """An evaluation's ``--model-set friction_sweeps=12``: the same weights, the module rebuilt
+    with the new [model] key; a malformed assignment is a clear error."""
+    import sgn_jax.experiment_tools as tools
+
+    trained = tools.load_trained_model(tools.resolve_checkpoint("contact_charge"))
+    varied = tools.with_model_keys(trained, ["friction_sweeps=12", "overlap_sweeps = 4"])
+    assert varied.model.physics.friction_sweeps == 12
+    assert varied.model.physics.overlap_sweeps == 4
+    assert trained.model.physics.friction_sweeps == 6          # the original is untouched
+    assert varied.params is trained.params
+    assert tools.with_model_keys(trained, []) is trained
+    with pytest.raises(SystemExit, match="KEY=VALUE"):
+        tools.with_model_keys(trained, ["friction_sweeps"])
+    with pytest.raises(SystemExit, match="TOML value"):
+        tools.with_model_keys(trained, ["law_rebound_exact=wall"])

@@ -3,7 +3,7 @@
     python experiments/charges/evaluate.py --model runs/contact_charge/second \
         [--data data/charges_heldout] [--names heldout_00 ...] [--seeds 100 101 ...] \
         [--out runs/charge_eval] [--name heldout] [--dem-reference runs/charge_eval/heldout.json] \
-        [--split train]
+        [--split train] [--model-set friction_sweeps=12]
     python experiments/charges/evaluate.py --bars runs/charge_eval/heldout.json
 
 Every complete DEM record ``DATA/NAME/seed_K.npz`` of the held-out charges of
@@ -104,6 +104,9 @@ def main() -> None:
                          "(free rollouts of the training records: a check of a model choice "
                          "that leaves the held-out charges unseen)")
     ap.add_argument("--seeds", type=int, nargs="*", default=None)
+    ap.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [model] key of the checkpoint's config replaced, e.g. "
+                         "friction_sweeps=12 (repeatable; the same weights)")
     ap.add_argument("--out", default="runs/charge_eval")
     ap.add_argument("--name", default="heldout")
     ap.add_argument("--dem-reference", action="append", default=[], metavar="JSON",
@@ -119,7 +122,8 @@ def main() -> None:
     checkpoint = tools.resolve_checkpoint(args.model)
     # a training run's latest step (its stages' last); a derived model has only its best
     which = "latest" if (Path(checkpoint) / "checkpoints" / "latest").exists() else "best"
-    model = tools.load_trained_model(checkpoint, which=which)
+    model = tools.with_model_keys(tools.load_trained_model(checkpoint, which=which),
+                                  args.model_set)
     model_dt = float(model.config.dem.dt)
     window = int(model.config.graph.window)
     refs = {}
@@ -172,6 +176,8 @@ def main() -> None:
             summaries.append(summary)
     done["summaries"] = summaries
     done["model"] = str(args.model)
+    if args.model_set:
+        done["model_set"] = list(args.model_set)
     if args.dem_reference:
         done["dem_reference"] = [str(p) for p in args.dem_reference]
     write_json(json_path, done)

@@ -3,7 +3,7 @@ from its first window, block by block.
 
     python experiments/charges/hold_state.py --config experiments/charges/configs/heldout_05.toml \
         --seed 105 [--model contact_charge] [--duration 2.4] [--block 0.2] \
-        [--out runs/hold_state]
+        [--out runs/hold_state] [--model-set friction_sweeps=12]
 
 Runs the DEM of the config (its charge, jar and motion; samples at the model's step) for
 ``--duration`` s from placement seed ``--seed`` (``sgn_jax.api.run_dem``; resumed if the record
@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 import sgn_jax.api as sj
-from sgn_jax.experiment_tools import DAMPING, contact_census, jar_frame_speed, write_json
+from sgn_jax.experiment_tools import (
+    DAMPING,
+    contact_census,
+    jar_frame_speed,
+    with_model_keys,
+    write_json,
+)
 
 
 def block_rows(t: np.ndarray, pos: np.ndarray, off: np.ndarray, power_per_step: np.ndarray,
@@ -52,9 +58,11 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=2.4)
     ap.add_argument("--block", type=float, default=0.2)
     ap.add_argument("--out", default="runs/hold_state")
+    ap.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [model] key of the model's config replaced, e.g. friction_sweeps=12")
     args = ap.parse_args()
     sj.enable_compilation_cache()
-    model = sj.load_surrogate(args.model)
+    model = with_model_keys(sj.load_surrogate(args.model), args.model_set)
     dt = float(model.config.dem.dt)
     window = int(model.config.graph.window)
     cfg = sj.load_config(args.config)
@@ -92,7 +100,7 @@ def main() -> None:
               f"{d['pw_contacts']:6.1f} / {m['pw_contacts']:5.1f}     "
               f"{d['speed_m_s']:5.3f} / {m['speed_m_s']:5.3f}")
     summary = {"config": str(args.config), "seed": args.seed, "model": args.model,
-               "dt_s": dt, "block_s": block * dt, "dem": dem, "model_blocks": mod}
+               "model_set": list(args.model_set), "dt_s": dt, "block_s": block * dt, "dem": dem, "model_blocks": mod}
     write_json(out / f"{stem}.json", summary)
     print(json.dumps({"json": str(out / f"{stem}.json")}))
 

@@ -148,6 +148,8 @@ def main() -> None:
     ap.add_argument("--seeds", default=None, help="comma-separated subset of the eval seeds")
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--rollout", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [model] key of the checkpoint's config replaced (the same weights)")
     ap.add_argument("--out", default="runs/contact_eval")
     ap.add_argument("--dem-reference", default=None, metavar="JSON",
                     help="an earlier evaluation's JSON of the same ensembles: the DEM's numbers "
@@ -167,7 +169,9 @@ def main() -> None:
         reference = json.loads(Path(args.dem_reference).read_text())["runs"]
 
     tools.enable_compilation_cache()
-    model = tools.load_trained_model(tools.resolve_checkpoint(args.model), which=args.which)
+    model = tools.with_model_keys(
+        tools.load_trained_model(tools.resolve_checkpoint(args.model), which=args.which),
+        args.model_set)
     settings = {"pp_separation": False, **parse_settings(args.rollout)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
