@@ -17,6 +17,8 @@ The figure helpers import matplotlib on their first call only.
 
 from __future__ import annotations
 
+import dataclasses
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +117,7 @@ from sgn_jax.scene import analytic_jar_query
 from sgn_jax.surrogate.contact_charge import ball_charge
 from sgn_jax.surrogate.contact_train import UnrollSpec, tangential_damping_shares
 from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
+from sgn_jax.surrogate.model import model_factory, model_kind
 from sgn_jax.surrogate.rollout import make_rollout_advance, model_predictor
 
 
@@ -125,11 +128,6 @@ def with_model_keys(trained: Any, assignments: list[str] | None) -> Any:
     built-in physics (the solver's sweeps), for an evaluation's ``--model-set``."""
     if not assignments:
         return trained
-    import dataclasses
-    import tomllib
-
-    from sgn_jax.surrogate.model import model_factory, model_kind
-
     values = {}
     for item in assignments:
         key, eq, raw = item.partition("=")
