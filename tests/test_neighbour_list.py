@@ -62,6 +62,12 @@ def brute_force_pairs(x: np.ndarray, radius: np.ndarray, present: np.ndarray, re
     return np.asarray(pairs, np.int32)
 
 
+@jax.jit
+def graph_of(window, candidates=None):
+    """``build_graph`` of ``window`` (jitted: eager it dispatches op by op)."""
+    return build_graph(window, None, GRAPH_SPEC, no_walls, candidates)
+
+
 def assert_same_graph(a, b):
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -81,16 +87,16 @@ def test_a_graph_from_the_list_is_the_all_pairs_graph_until_a_ball_moves_half_th
     x = packing(1)
     charge = ball_charge(MIX, n_balls=N)
     pairs, _ = neighbour_pairs(jnp.asarray(x), GRAPH_SPEC, charge, SKIN, 10 * N)
-    graph_all, counts_all = build_graph(window_at(x), None, GRAPH_SPEC, no_walls)
-    graph_list, counts_list = build_graph(window_at(x), None, GRAPH_SPEC, no_walls, pairs)
+    graph_all, counts_all = graph_of(window_at(x))
+    graph_list, counts_list = graph_of(window_at(x), pairs)
     assert int(counts_all.n_pp) > 20
     assert_same_graph(graph_all, graph_list)
     # every ball moved by up to half the skin in a random direction: the old list still holds
     # every pair within reach
     step = np.random.default_rng(2).normal(size=(N, 3))
     moved = x + 0.499 * SKIN * step / np.linalg.norm(step, axis=-1, keepdims=True)
-    graph_all, counts_all = build_graph(window_at(moved), None, GRAPH_SPEC, no_walls)
-    graph_list, counts_list = build_graph(window_at(moved), None, GRAPH_SPEC, no_walls, pairs)
+    graph_all, counts_all = graph_of(window_at(moved))
+    graph_list, counts_list = graph_of(window_at(moved), pairs)
     assert_same_graph(graph_all, graph_list)
     assert int(counts_list.n_pp) == int(counts_all.n_pp)
 
