@@ -323,6 +323,24 @@ def _contact_columns(gap: jax.Array) -> jax.Array:
     return jnp.stack([gap, jnp.maximum(0.0, -gap)], axis=-1)
 
 
+def _pairs_within_reach(x: jax.Array, spec: GraphSpec, charge: BallCharge | None,
+                        pi: jax.Array, pj: jax.Array, extra: float = 0.0
+                        ) -> tuple[jax.Array, jax.Array | None, jax.Array]:
+    """The ball-ball edge rule on the pairs (pi, pj) (P,) at positions ``x`` (N, 3) m:
+    ``(rij = x_j - x_i (P, 3), contact distance r_i + r_j (P,) or None without a charge,
+    within (P,) bool)`` with within: |rij| <= the graph's reach + ``extra`` (the reach
+    ``pp_cutoff``, or r_i + r_j + ``pp_skin`` with both balls present)."""
+    rij = x[pj] - x[pi]
+    dist2 = jnp.sum(rij * rij, axis=-1)
+    if charge is None:
+        return rij, None, dist2 <= (spec.pp_cutoff + extra) ** 2
+    radius = jnp.asarray(charge.radius, jnp.float64)
+    present = jnp.asarray(charge.present, bool)
+    reach = radius[pi] + radius[pj]          # the pair's contact distance r_i + r_j
+    return rij, reach, ((dist2 <= (reach + spec.pp_skin + extra) ** 2)
+                        & present[pi] & present[pj])
+
+
 def build_graph(window: Window, sdf: Any, spec: GraphSpec,
                 query: SDFQuery | None = None,
                 candidates: jax.Array | None = None) -> tuple[jraph.GraphsTuple, EdgeCounts]:
@@ -390,13 +408,8 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     else:   # a neighbour list: its unused rows (N, N) are clamped for the gathers, never kept
         listed = candidates[:, 0] < n
         pi, pj = (jnp.minimum(candidates[:, c], n - 1).astype(jnp.int32) for c in (0, 1))
-    rij = x[pj] - x[pi]
-    if charge is None:
-        pair_ok = (jnp.sum(rij * rij, axis=-1) <= spec.pp_cutoff ** 2) & listed
-    else:
-        reach = radius[pi] + radius[pj]          # the pair's contact distance r_i + r_j
-        pair_ok = ((jnp.sum(rij * rij, axis=-1) <= (reach + spec.pp_skin) ** 2)
-                   & present[pi] & present[pj] & listed)
+    rij, reach, pair_ok = _pairs_within_reach(x, spec, charge, pi, pj)
+    pair_ok = pair_ok & listed
     n_pairs = jnp.sum(pair_ok, dtype=jnp.int32)
     pair_rank = jnp.cumsum(pair_ok, dtype=jnp.int32) - 1
     cap_pairs = spec.pp_pair_capacity
@@ -501,18 +514,9 @@ def neighbour_pairs(positions: jax.Array, spec: GraphSpec, charge: BallCharge | 
         refuse.
     """
     n = spec.n_particles
-    x = jnp.asarray(positions, jnp.float64)
     pi, pj = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(n, k=1))
-    rij = x[pj] - x[pi]
-    if charge is None:
-        reach = jnp.full(pi.shape, spec.pp_cutoff, jnp.float64)
-        ok = jnp.ones(pi.shape, bool)
-    else:
-        radius = jnp.asarray(charge.radius, jnp.float64)
-        present = jnp.asarray(charge.present, bool)
-        reach = radius[pi] + radius[pj] + spec.pp_skin
-        ok = present[pi] & present[pj]
-    ok = ok & (jnp.sum(rij * rij, axis=-1) <= (reach + extra_skin) ** 2)
+    _, _, ok = _pairs_within_reach(jnp.asarray(positions, jnp.float64), spec, charge, pi, pj,
+                                   extra_skin)
     rank = jnp.cumsum(ok, dtype=jnp.int32) - 1
     slot = jnp.where(ok & (rank < capacity), rank, capacity)
     pairs = jnp.full((capacity, 2), n, jnp.int32).at[slot].set(
