@@ -227,6 +227,8 @@ def main() -> None:
             summaries.append(tools.summarize_runs(case.name, runs))
     done["summaries"] = summaries
     done["model"] = str(args.model)
+    if args.model_set:
+        done["model_set"] = list(args.model_set)
     done["settings"] = settings
     if args.dem_reference:
         done["dem_reference"] = args.dem_reference
