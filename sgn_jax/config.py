@@ -532,13 +532,16 @@ class ModelConfig:
             rebound: once the law's contact time t_c(v) at its closing speed v has passed, the
             step ends with the pair separating at e v at least (docs/contact.md, "One step",
             item 7).
-        law_rebound_exact: contact kinds only; "off", "wall" or "all" ("wall" and "all" need
-            law_rebound): the law rebound is also the ceiling of a fresh impact's normal
-            impulse, so the step ends with the pair separating at e v exactly (or as the
-            overlap limit needs), not faster: at every fresh impact ("all") or at ball-wall
-            ones ("wall"), where also a contact closed over the whole window (a ball resting
-            on the wall) separates no faster than e times the largest closing speed the
-            ball's contacts saw in the window.
+        law_rebound_exact: contact kinds only; "off", "wall", "all" or "fresh" (all but
+            "off" need law_rebound): the law rebound is also the ceiling of a fresh impact's
+            normal impulse, so the step ends with the pair separating at e v exactly (or as
+            the overlap limit needs), not faster: at every fresh impact ("all") or at
+            ball-wall ones ("wall"), where also a contact closed over the whole window (a
+            ball resting on the wall) separates no faster than e times the largest closing
+            speed the ball's contacts saw in the window; "fresh": as "all", and before its
+            contact time a fresh impact separates no faster than e times the largest
+            closing speed its balls' contacts saw in the window (no impact gives back more
+            than its restitution leaves).
         overlap_sweeps: kind "contact" only; 0 = off (needs overlap_limit > 0). Jacobi sweeps
             of the limit over all contacts together after the impulses, so that a ball's other
             contacts cannot push it deeper than the limit into this one (a chain, a bed
@@ -595,9 +598,10 @@ class ModelConfig:
             raise ConfigError("[model] law_rebound = true needs overlap_law_factor > 0 (the "
                               "law's scale, from which its contact time follows), got "
                               f"overlap_law_factor = {self.overlap_law_factor}")
-        if self.law_rebound_exact not in ("off", "wall", "all"):
+        if self.law_rebound_exact not in ("off", "wall", "all", "fresh"):
             raise ConfigError("[model] law_rebound_exact must be 'off', 'wall' (ball-wall "
-                              "impacts) or 'all' (every fresh impact), got "
+                              "impacts), 'all' (every fresh impact past its contact time) or "
+                              "'fresh' (every fresh impact, through it), got "
                               f"{self.law_rebound_exact!r}")
         if self.law_rebound_exact != "off" and not self.law_rebound:
             raise ConfigError(f"[model] law_rebound_exact = {self.law_rebound_exact!r} needs "

@@ -933,36 +933,38 @@ def test_a_fresh_impact_ends_with_the_laws_rebound_once_its_contact_time_has_pas
     np.testing.assert_allclose(with_rule[1:], without[1:], rtol=0, atol=1e-12)
 
 
+def hard_push_end_velocity(v, e, exact, ratio=3.4):
+    """The balls' velocities (5, 3) at the end of the step of :func:`fresh_impact_scene` under
+    a network whose ball-wall normal impulse is large everywhere, with ``rebound_exact``."""
+    vel, graph = fresh_impact_scene(v)
+    phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
+                             "overlap_law_factor": 1.5, "rebound_time_pp": ratio,
+                             "rebound_time_pw": ratio, "restitution": e,
+                             "rebound_exact": exact})
+    net = ContactNet(physics=phys, hidden=16, mlp_layers=2, spin=False)
+    params = net.init(jax.random.PRNGKey(0), graph)["params"]
+    last = max(k for k in params["pw_net"] if k.startswith("dense_"))
+    bias = params["pw_net"][last]["bias"]
+    params = {**params, "pw_net": {**params["pw_net"], last: {
+        **params["pw_net"][last], "bias": bias.at[0].set(8.0)}}}   # pushes hard
+    terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
+    return vel + np.asarray(terms["dv"][:5], np.float64)
+
+
 def test_the_exact_law_rebound_caps_a_network_that_pushes_harder():
     """``rebound_exact`` (``[model] law_rebound_exact``): the same fresh impact as above, with a
     network whose normal impulse is large everywhere, ends leaving the floor at e v exactly
     (not faster, as the floor alone lets it); the contact that began within the step and the
     resting one keep the network's impulse."""
-    v, e, ratio = 0.3, 0.74, 3.4
-    vel, graph = fresh_impact_scene(v)
-
-    def end_velocity(exact):
-        phys = ContactPhysics(**{**PHYS.__dict__, "overlap_limit": 5e-5,
-                                 "overlap_law_factor": 1.5, "rebound_time_pp": ratio,
-                                 "rebound_time_pw": ratio, "restitution": e,
-                                 "rebound_exact": exact})
-        net = ContactNet(physics=phys, hidden=16, mlp_layers=2, spin=False)
-        params = net.init(jax.random.PRNGKey(0), graph)["params"]
-        last = max(k for k in params["pw_net"] if k.startswith("dense_"))
-        bias = params["pw_net"][last]["bias"]
-        params = {**params, "pw_net": {**params["pw_net"], last: {
-            **params["pw_net"][last], "bias": bias.at[0].set(8.0)}}}   # pushes hard
-        terms = net.apply({"params": params}, graph, method=ContactNet.step_terms)
-        return vel + np.asarray(terms["dv"][:5], np.float64)
-
-    floor_only, exact = end_velocity("off"), end_velocity("all")
+    v, e = 0.3, 0.74
+    floor_only, exact = (hard_push_end_velocity(v, e, x) for x in ("off", "all"))
     assert floor_only[0, 1] > e * v + 0.05                 # the network pushes past e v
     assert exact[0, 1] == pytest.approx(e * v, abs=1e-5)   # the law's rebound, exactly
     np.testing.assert_allclose(exact[1:], floor_only[1:], rtol=0, atol=1e-12)
     # "wall": the same at these ball-wall contacts (ball-ball ones: the next test) but the
     # resting ball's: closed over the whole window, it separates no faster than e times the
     # window's largest closing speed (here none), where "all" lets the network push it off
-    wall = end_velocity("wall")
+    wall = hard_push_end_velocity(v, e, "wall")
     np.testing.assert_array_equal(wall[:2], exact[:2])
     assert exact[2, 1] > 0.05 and wall[2, 1] < 1e-3
     np.testing.assert_array_equal(wall[3:], exact[3:])
@@ -972,6 +974,21 @@ def test_the_exact_law_rebound_caps_a_network_that_pushes_harder():
         ContactPhysics(rebound_exact="all")
     with pytest.raises(ContactModelError, match="rebound_exact"):
         ContactPhysics(rebound_exact=True)
+
+
+def test_the_fresh_exact_rebound_caps_an_impact_from_its_first_step():
+    """``rebound_exact = "fresh"``: the fresh impact past its contact time ends at e v, as with
+    "all"; the ball that meets the floor within this step (fresh, before its contact time),
+    which "all" leaves to a network that pushes hard, leaves the floor no faster than e times
+    its closing speed either; the resting ball (closed over the window) keeps the network's
+    push, and the far balls are untouched."""
+    v, e = 0.3, 0.74
+    exact, fresh = (hard_push_end_velocity(v, e, x) for x in ("all", "fresh"))
+    assert fresh[0, 1] == pytest.approx(e * v, abs=1e-5)
+    assert exact[1, 1] > e * v + 0.05                       # "all": the network's push
+    assert 0.0 < fresh[1, 1] <= e * v + 1e-5                # "fresh": at most e v
+    np.testing.assert_array_equal(fresh[2:], exact[2:])
+    assert fresh[2, 1] > 0.05
 
 
 def test_the_exact_law_rebound_on_walls_leaves_a_ball_ball_impact_to_the_network():

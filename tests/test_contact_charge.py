@@ -530,3 +530,51 @@ def test_the_shipped_charge_model_lets_a_two_size_mixture_fall_in_the_moving_jar
     height = arrays["pos"][:, :, 1].mean(axis=1)   # y is up; the jar moves in x and z
     assert height[-1] < height[0] - 0.005
     assert np.sum(arrays["diss_pp_model"]) > 0 and np.sum(arrays["diss_pw_model"]) > 0
+
+
+def test_the_shipped_charge_model_rebounds_a_mixed_pair_at_its_materials_restitution():
+    """The shipped ``contact_charge`` (its ``law_rebound_exact = "fresh"``, docs/contact.md,
+    "One step", item 7) on a head-on impact of two free balls it never saw as a pair, a 10 mm
+    steel ball and a 6 mm zirconia one (the pair's restitution by the charge's mixing rule),
+    at 0.2 and 1 m/s, each at eight phases of the step: the balls part at e v, e the pair's
+    own (float32), and the pair's momentum is kept."""
+    from sgn_jax.api import load_surrogate, replace_section
+    from sgn_jax.motion import CircleMotion
+    from sgn_jax.pipelines.configure import graph_spec_from_config
+    from sgn_jax.surrogate.rollout import make_rollout, model_predictor, single_rollout_model
+
+    trained = load_surrogate("contact_charge")
+    pair = Charge(classes=(BallClass(1, 0.005, 7700.0, STEEL), BallClass(1, 0.003, 6000.0,
+                                                                         ZIRCONIA)),
+                  wall=STEEL)
+    e = pair.pair_rule(STEEL, ZIRCONIA).restitution
+    masses = pair.masses
+    # no wall patches: the floor below is one plane, far from both balls
+    spec = graph_spec_from_config(replace_section(trained.config, "graph", wall_patches=0),
+                                  n_particles=2)
+    dt, w = spec.dt, spec.window
+    model, _ = single_rollout_model(trained.model)
+
+    def far_floor(sdf, points, offset):   # a floor 1 m below: no ball-wall contact
+        del sdf, offset
+        return -(points[..., 1] + 1.0), jnp.broadcast_to(jnp.array([0.0, -1.0, 0.0]),
+                                                        points.shape)
+
+    roll = make_rollout(spec, model_predictor(model), 40, 1, query=far_floor, snap_back=False)
+    for v in (0.2, 1.0):
+        for phase in np.linspace(0.0, 1.0, 8, endpoint=False):
+            gap0 = (4.0 + phase) * v * dt            # touching 4-5 steps into the rollout
+            x = np.array([[-0.005 - gap0 / 2, 0.0, 0.0], [0.003 + gap0 / 2, 0.0, 0.0]])
+            vel = np.array([[v, 0.0, 0.0], [0.0, 0.0, 0.0]])   # the steel ball hits the other
+            pos = x[None] + (np.arange(w + 1) - w)[:, None, None] * dt * vel[None]
+            window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((w, 3)),
+                            offset_velocities=jnp.zeros((w, 3)), frequency_hz=jnp.asarray(0.0),
+                            spins=jnp.zeros((2, 3)), charge=ball_charge(pair))
+            out = roll(trained.params, trained.norm_stats, window, CircleMotion(0.0, 0.0),
+                       None, 0.0)
+            p = np.asarray(out.positions, np.float64)
+            end_vel = (p[-1] - p[-2]) / dt
+            parting = end_vel[1, 0] - end_vel[0, 0]
+            assert parting == pytest.approx(e * v, rel=2e-3), (v, phase)
+            momentum = masses @ end_vel[:, 0]
+            assert momentum == pytest.approx(masses[0] * v, rel=1e-4)

@@ -91,11 +91,13 @@ SINGLE_ROLLOUT_COMPACT_PER_BALL = 1.5
 DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
 """The dissipation targets of :class:`ContactPhysics` ``damping_target``."""
 
-REBOUND_EXACT: tuple[str, ...] = ("off", "wall", "all")
+REBOUND_EXACT: tuple[str, ...] = ("off", "wall", "all", "fresh")
 """Where :class:`ContactPhysics` ``rebound_exact`` makes the law rebound the impulse's ceiling:
 nowhere; at ball-wall contacts (a fresh impact ends at e v, a resting contact separates no
 faster than e times the largest closing speed the ball's contacts saw in the window); at
-every fresh impact (docs/contact.md, "One step", item 7)."""
+every fresh impact; at every fresh impact and through it ("fresh": before its contact time
+the step ends separating no faster than e times the largest closing speed its balls' acting
+contacts saw in the window) (docs/contact.md, "One step", item 7)."""
 
 
 def check_rebound_exact(rebound_exact: str, rebound_on: bool, rebound_name: str) -> None:
@@ -154,8 +156,11 @@ class ContactPhysics:
             whose normal impulse is then exactly that floor, the network's answer unused;
             "wall": the same at ball-wall impacts, and a ball-wall contact closed over the
             whole window separates no faster than e times the largest closing speed the
-            ball's contacts (this one, its ball-ball ones) saw in the window
-            (docs/contact.md, "One step", item 7).
+            ball's contacts (this one, its ball-ball ones) saw in the window; "fresh": as
+            "all", and before its contact time a fresh impact (ball-ball or ball-wall) ends
+            the step separating no faster than e times the largest closing speed its balls'
+            acting contacts saw in the window, so that no impact gives back more than its
+            material's restitution leaves (docs/contact.md, "One step", item 7).
         overlap_sweeps: 0 = off (``[model] overlap_sweeps``; needs ``overlap_limit`` > 0). The
             floor above is computed for each contact alone; in a chain (a ball struck while it
             rests on others, a bed compressed by an impact) the impulses of a ball's other
@@ -367,6 +372,16 @@ class GateRule:
     rebound_exact: str = "off"
 
 
+def _largest_at_balls(values: jax.Array, receivers: jax.Array, senders: jax.Array,
+                      is_pp: jax.Array, n_node: int) -> jax.Array:
+    """(n_node,) the largest of ``values`` (E,) >= 0 over each ball's contact rows (a row
+    counts at its receiver, a ball-ball row at its sender too); 0 for a ball without rows."""
+    largest = jnp.maximum(jax.ops.segment_max(values, receivers, num_segments=n_node),
+                          jax.ops.segment_max(jnp.where(is_pp, values, 0.0), senders,
+                                              num_segments=n_node))
+    return jnp.maximum(largest, 0.0)
+
+
 def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: jax.Array,
                  slip_c: jax.Array, *, history: int, dt: float, gravity: Any,
                  scales: InputScales, gate_rule: GateRule, spin: bool,
@@ -459,15 +474,31 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
                 # chatter on the wall, pushed off faster than they came (docs/contact.md,
                 # item 7).
                 closing_window = jnp.maximum(-jnp.min(u, axis=0), 0.0)          # (E,) m/s
-                n_node = graph.nodes["features"].shape[0]
-                pp_closing = jnp.where(is_pp, closing_window, 0.0)
-                ball_in = jnp.maximum(
-                    jax.ops.segment_max(pp_closing, receivers, num_segments=n_node),
-                    jax.ops.segment_max(pp_closing, senders, num_segments=n_node))
-                came_in = jnp.maximum(closing_window, jnp.maximum(ball_in, 0.0)[receivers])
+                ball_in = _largest_at_balls(jnp.where(is_pp, closing_window, 0.0), receivers,
+                                            senders, is_pp, graph.nodes["features"].shape[0])
+                came_in = jnp.maximum(closing_window, ball_in[receivers])
                 resting = jnp.maximum(floor, rule.restitution * came_in - u[-1] - acc_term)
                 ceiling = jnp.where(is_pw & over, floor,
                                     jnp.where(is_pw & ~fresh, resting, jnp.inf))
+            elif rule.rebound_exact == "fresh":
+                # Every fresh impact, ball-ball and ball-wall, is passive from its first step:
+                # past its contact time it ends at e v exactly (as "all"), and before that it
+                # ends the step separating no faster than e times the largest closing speed
+                # that its balls' acting contacts saw in the window (this one's, or another's
+                # through which an impact reaches its balls). A network that pushes a pair
+                # apart within its contact time can give back no more than the restitution
+                # leaves, so a binary impact's restitution is its material's. Contacts closed
+                # over the whole window (resting, rolling) keep the network's impulse. Only
+                # acting (gated) rows count, so the compacted single-rollout step (which drops
+                # rows that cannot act) gives the same ceilings.
+                acting = (is_pp | is_pw) & (jnp.minimum(gap[-1], gap_end) < rule.gate_margin)
+                closing_window = jnp.where(acting, jnp.maximum(-jnp.min(u, axis=0), 0.0), 0.0)
+                ball_in = _largest_at_balls(closing_window, receivers, senders, is_pp,
+                                            graph.nodes["features"].shape[0])
+                came_in = jnp.maximum(jnp.maximum(closing_window, ball_in[receivers]),
+                                      jnp.where(is_pp, ball_in[senders], 0.0))
+                passive = jnp.maximum(floor, rule.restitution * came_in - u[-1] - acc_term)
+                ceiling = jnp.where(over, floor, jnp.where(fresh, passive, jnp.inf))
     else:
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)

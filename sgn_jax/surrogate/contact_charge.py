@@ -126,7 +126,7 @@ class ChargePhysics:
         law_rebound: fresh impacts end with each contact's own law's rebound, as the contact
             kind's ``rebound_time_pp/pw`` (the pair table's ``rebound_time`` column; needs
             ``overlap_law_factor``).
-        rebound_exact: "off", "wall" or "all": where the law rebound is also the normal
+        rebound_exact: "off", "wall", "all" or "fresh": where the law rebound is also the normal
             impulse's ceiling, as the contact kind's (``ContactPhysics.rebound_exact``, with
             each contact's own restitution).
         overlap_sweeps, friction_sweeps: as the contact kind's.
