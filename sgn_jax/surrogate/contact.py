@@ -422,6 +422,8 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
 
     rule = gate_rule
     gap_end = gap[-1] + u[-1] * dt
+    # the contacts that act this step: the gate (and the "fresh" ceiling's acting rows)
+    acting = (is_pp | is_pw) & (jnp.minimum(gap[-1], gap_end) < rule.gate_margin)
     ceiling = None
     if rule.limit_on:
         limit = rule.limit
@@ -491,7 +493,6 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
                 # over the whole window (resting, rolling) keep the network's impulse. Only
                 # acting (gated) rows count, so the compacted single-rollout step (which drops
                 # rows that cannot act) gives the same ceilings.
-                acting = (is_pp | is_pw) & (jnp.minimum(gap[-1], gap_end) < rule.gate_margin)
                 closing_window = jnp.where(acting, jnp.maximum(-jnp.min(u, axis=0), 0.0), 0.0)
                 ball_in = _largest_at_balls(closing_window, receivers, senders, is_pp,
                                             graph.nodes["features"].shape[0])
@@ -502,8 +503,7 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
     else:
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
-    reachable = jnp.minimum(gap[-1], gap_end) < rule.gate_margin
-    gate = ((is_pp | is_pw) & reachable).astype(DTYPE)
+    gate = acting.astype(DTYPE)
     extra = {}
     if spin:
         # Each contact's stick impulse is computed as if it were the ball's only one (a Jacobi
