@@ -60,6 +60,7 @@ def test_second_run_reuses_the_settled_packing_bit_for_bit(tiny_cfg, cache_dir):
                               progress=False).summary["settle_cached"]
 
 
+@pytest.mark.slow
 def test_a_damaged_entry_is_settled_again(tiny_cfg, cache_dir):
     driver.run_dem(tiny_cfg, duration=0.001, seed=7, progress=False)
     (entry,) = (cache_dir / "settled").glob("*.npz")

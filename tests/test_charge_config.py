@@ -109,6 +109,7 @@ def test_the_step_resolves_the_shortest_contact_of_the_charge():
     assert setup.dt_dem < standard.dem.dt_dem_max
 
 
+@pytest.mark.slow
 def test_a_short_dem_run_of_a_mixture(tmp_path):
     data = _mixed()
     data["dem"].update(settle_time=0.03, chunk_samples=50)
@@ -157,6 +158,7 @@ def test_charge_points_hold_the_filling_or_the_count():
         charge_point(config_from_dict(_mixed()), "fill", 0.1)
 
 
+@pytest.mark.slow
 def test_a_tiny_charge_sweep_against_its_own_dem_runs(tmp_path):
     cfg = replace_section(load_config(builtin("emax_300rpm")), "dem", settle_time=0.02)
     result = charge_sweep(cfg, "fill", [0.02], packings=2, duration=0.02, burn_in=0.01)

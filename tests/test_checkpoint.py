@@ -87,6 +87,7 @@ def test_save_restore_gives_bit_identical_predictions(setup, tmp_path):
     np.testing.assert_array_equal(np.asarray(a3), np.asarray(predict(params, stats, graphs[1])[0]))
 
 
+@pytest.mark.slow
 def test_optimiser_state_round_trip_and_keep(setup, tmp_path):
     params = setup[4]
     tx = make_optimizer(1e-3)

@@ -177,6 +177,7 @@ def test_its_graphs_skip_the_node_wall_columns_it_never_reads():
     np.testing.assert_array_equal(dv[0], dv[1])
 
 
+@pytest.mark.slow
 def test_ball_ball_momentum_is_conserved_to_rounding():
     window, _ = scene(np.random.default_rng(0))
     terms, _, graph = terms_of(window)
@@ -191,6 +192,7 @@ def test_ball_ball_momentum_is_conserved_to_rounding():
     np.testing.assert_allclose(impulses.sum(axis=0), 0.0, atol=1e-6 * scale)
 
 
+@pytest.mark.slow
 def test_gradients_are_finite_for_balls_at_rest():
     """Balls at rest in a still jar have a relative tangential velocity of exactly 0: the
     derivative of |v_t| must stay finite there (it was infinite, which made the design study's
@@ -524,6 +526,7 @@ def test_rolling_friction_brakes_a_twisting_ball_and_never_reverses_it():
     assert abs(dw[2, 1]) > 0
 
 
+@pytest.mark.slow
 def test_spin_energy_ledger_closes_over_a_rollout():
     """With spin, the ledger counts the rotational energy: jar work + gravity's work - change
     of translational and rotational kinetic energy = the model's dissipation, every step and
@@ -631,6 +634,7 @@ def test_a_contact_config_refuses_an_unknown_damping_target_and_an_exact_rebound
         ContactPhysics(damping_target="share")
 
 
+@pytest.mark.slow
 def test_the_rollout_integrates_the_spins_of_a_spin_model():
     """The rollout carries the spins: w_{n+1} = w_n + dw of the model's step, saved per frame
     (``RolloutResult.spins``, the prediction's ``omega_model``); a window without spins starts
@@ -825,6 +829,7 @@ def test_the_overlap_limit_stops_fast_impacts_within_it_and_keeps_the_physics(sp
     assert int(np.asarray(terms["at_floor"]).sum()) == 2
 
 
+@pytest.mark.slow
 def test_overlap_sweeps_keep_a_chain_within_the_limit(spin=False):
     """``overlap_sweeps``: a ball falls at 6 m/s onto a ball that rests on the floor. The
     per-contact floor stops the pair within the limit by pushing the resting ball down, and

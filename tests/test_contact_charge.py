@@ -118,6 +118,7 @@ def test_the_kind_is_registered_and_builds_from_the_whole_config():
     assert isinstance(model, ContactChargeNet) and model.physics.dt == cfg.dem.dt
 
 
+@pytest.mark.slow
 def test_edges_follow_each_balls_own_radius():
     """A 6 mm ball 1 mm from a 10 mm ball is joined (gap < skin 1.5 mm), at 2 mm it is not;
     the wall edge of a 6 mm ball starts 1 mm beyond its own contact (pw_skin), not the
@@ -145,6 +146,7 @@ def test_edges_follow_each_balls_own_radius():
     assert np.asarray(graph.nodes["present"]).tolist() == [True] * 5 + [False] * 4
 
 
+@pytest.mark.slow
 def test_rotating_a_two_size_scene_rotates_the_accelerations():
     rng = np.random.default_rng(1)
     a = np.linalg.qr(np.random.default_rng(7).normal(size=(3, 3)))[0]
@@ -208,6 +210,7 @@ def test_permuting_the_balls_of_a_mixture_permutes_the_accelerations():
 
 
 @pytest.mark.parametrize("spin", [False, True])
+@pytest.mark.slow
 def test_untrained_and_random_params_give_finite_outputs_for_a_padded_mixture(spin):
     """A mixture padded with 2 absent balls: finite outputs with the initial and with random
     parameters; the absent balls do not move; the present ones get what they get unpadded."""
@@ -230,6 +233,7 @@ def test_untrained_and_random_params_give_finite_outputs_for_a_padded_mixture(sp
         assert np.all(np.isfinite(np.asarray(accel))) and np.isfinite(np.asarray(d_e)).all()
 
 
+@pytest.mark.slow
 def test_the_same_impact_of_a_6mm_and_a_15mm_ball_is_the_same_input():
     """A steel ball of 6 mm and one of 15 mm, both at 1 m/s onto the floor, each at the deepest
     overlap of that impact by the DEM's own law (27 and 68 um): the model's gap input is the
@@ -458,6 +462,7 @@ def test_the_exact_law_rebound_at_the_wall_caps_the_charge_kinds_resting_balls()
         dataclasses.replace(PHYS, law_rebound=True, rebound_exact="walls")
 
 
+@pytest.mark.slow
 def test_a_rollout_step_on_the_rows_that_may_act_gives_what_the_whole_graph_gives():
     """The single-rollout step on the rows that may act (``compact_per_ball``,
     ``ContactNet.rollout_terms``) with the charge kind's own gate margin, L / L_REF per
@@ -532,6 +537,7 @@ def test_the_shipped_charge_model_lets_a_two_size_mixture_fall_in_the_moving_jar
     assert np.sum(arrays["diss_pp_model"]) > 0 and np.sum(arrays["diss_pw_model"]) > 0
 
 
+@pytest.mark.slow
 def test_the_shipped_charge_model_rebounds_a_mixed_pair_at_its_materials_restitution():
     """The shipped ``contact_charge`` (its ``law_rebound_exact = "fresh"``, docs/contact.md,
     "One step", item 7) on a head-on impact of two free balls it never saw as a pair, a 10 mm

@@ -43,6 +43,7 @@ def rollout(model, centres):
     return np.asarray(res.positions), res
 
 
+@pytest.mark.slow
 def test_a_ball_on_the_floor_of_a_still_jar_stays_at_rest(model):
     r = model.config.balls.radius
     start = np.array([[0.0, r - 0.5e-6, 0.0]])        # the DEM's static overlap, 0.5 um
@@ -56,6 +57,7 @@ def test_a_ball_on_the_floor_of_a_still_jar_stays_at_rest(model):
     assert np.linalg.norm(v_end) < 2e-3
 
 
+@pytest.mark.slow
 def test_a_ball_resting_on_another_ball_stays_on_it(model):
     r = model.config.balls.radius
     bottom = np.array([0.0, r - 0.5e-6, 0.0])

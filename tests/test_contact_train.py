@@ -33,6 +33,7 @@ def unbroken_run(tmp_path_factory):
     return train_contact(small_config(), trajs, out, log=lambda _: None, **TRAIN_KWARGS), out
 
 
+@pytest.mark.slow
 def test_a_resumed_run_equals_an_unbroken_one(tmp_path, unbroken_run):
     cfg = small_config()
     trajs = [synthetic_trajectory(40, 6, seed=s) for s in (1, 2)]

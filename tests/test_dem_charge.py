@@ -149,6 +149,7 @@ def _momenta(charge: Charge, state) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("pair_mode", ["neighbour", "nxn"])
+@pytest.mark.slow
 def test_mixture_keeps_momentum_and_closes_its_ledger(pair_mode):
     charge, pos, vel, omega = _cloud(1)
     params = charge_params(charge, (0.0, 0.0, 0.0), FAR_WALL, AT_REST)
@@ -240,6 +241,7 @@ def test_pair_tables_and_rules():
         Material("bad", 2e9, 0.3, restitution=1.5, friction=0.3, rolling_friction=0.0)
 
 
+@pytest.mark.slow
 def test_cell_list_rebuilds_give_the_same_run_as_all_pairs():
     charge, pos, vel, omega = _cloud(4)
     params = charge_params(charge, (0.0, 0.0, 0.0), FAR_WALL, AT_REST)

@@ -107,6 +107,7 @@ def _closed_and_open(state):
     return np.concatenate([ints, open_ints]), np.concatenate([floats, open_floats])
 
 
+@pytest.mark.slow
 def test_events_add_up_to_the_energy_ledger_kind_by_kind():
     spec, params, state = _box_run("neighbour")
     assert not bool(state.pairs.overflow) and int(state.pairs.rebuilds) > 10
@@ -124,6 +125,7 @@ def test_events_add_up_to_the_energy_ledger_kind_by_kind():
     assert np.all(floats[:, coll.PEAK_FORCE] > 0) and np.all(floats[:, coll.MAX_OVERLAP] > 0)
 
 
+@pytest.mark.slow
 def test_the_events_do_not_depend_on_the_pair_list():
     """The Verlet list moves pairs between slots at every rebuild; the events must not see it."""
     def table(mode):
@@ -139,6 +141,7 @@ def test_the_events_do_not_depend_on_the_pair_list():
     np.testing.assert_allclose(floats_n, floats_p, rtol=1e-9, atol=1e-18)
 
 
+@pytest.mark.slow
 def test_an_overflowing_buffer_keeps_counting():
     spec, params, state = _box_run("neighbour", capacity=2, steps=20_000)
     count = int(state.collisions.buffer.count)
@@ -163,6 +166,7 @@ def tiny_cfg():
     return replace_section(cfg, "dem", settle_time=0.06, chunk_samples=50, duration=0.02)
 
 
+@pytest.mark.slow
 def test_the_record_carries_the_collision_table(tiny_cfg, tmp_path):
     out = tmp_path / "traj.npz"
     result = driver.run_dem(tiny_cfg, out_path=out, seed=2, progress=False)
@@ -187,6 +191,7 @@ def test_the_record_carries_the_collision_table(tiny_cfg, tmp_path):
     assert trajectory.meta["extra_arrays"][-1] == "collision_flags"
 
 
+@pytest.mark.slow
 def test_an_overflowing_chunk_stops_the_run(tiny_cfg):
     # Seed 2 closes two contacts in the first chunk of 5 ms.
     cfg = replace_section(tiny_cfg, "dem", collision_capacity=1)

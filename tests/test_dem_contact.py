@@ -132,6 +132,7 @@ def _simulate_pair(restitution: float, n_steps: int):
 
 
 @pytest.mark.parametrize("simulate", [_simulate_wall, _simulate_pair], ids=["wall", "pair"])
+@pytest.mark.slow
 def test_restitution_and_duration_match_ode(simulate):
     law, overlap, out_speed, final, params = simulate(0.3, 700)
     for k, speed in enumerate(SPEEDS):

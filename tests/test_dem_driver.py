@@ -25,6 +25,7 @@ def tiny_cfg():
     return replace_section(cfg, "dem", settle_time=0.002, chunk_samples=10, duration=DURATION)
 
 
+@pytest.mark.slow
 def test_run_dem_writes_a_valid_dataset(tiny_cfg, tmp_path):
     out = tmp_path / "traj.npz"
     result = driver.run_dem(tiny_cfg, out_path=out, seed=3, progress=False)
@@ -48,6 +49,7 @@ def test_run_dem_writes_a_valid_dataset(tiny_cfg, tmp_path):
     assert abs(s["ledger_residual_J"]) < 1e-3 * total_energy_change
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_from_its_last_chunk(tiny_cfg, tmp_path, monkeypatch):
     reference = driver.run_dem(tiny_cfg, out_path=tmp_path / "ref.npz", seed=1, progress=False)
 
@@ -97,6 +99,7 @@ def test_dt_dem_override_and_float32(tiny_cfg):
     np.testing.assert_allclose(single.arrays["pos"], result.arrays["pos"], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_pp_capacity_overflow_is_an_error(tiny_cfg):
     cfg = replace_section(tiny_cfg, "dem", pp_capacity=1, settle_time=0.0)
     cfg = replace_section(cfg, "balls", count=40)

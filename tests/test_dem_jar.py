@@ -133,6 +133,7 @@ def test_no_escape_300rpm_2s(standard):
     _check_run(setup, setup.params, settled, 20000)
 
 
+@pytest.mark.slow
 def test_no_escape_2000rpm_short(standard):
     """0.1 s at the machine's maximum speed, from the settled bed (the short twin of the
     0.5-s test below: 19.7 J dissipated, centres at least 4.7 mm inside)."""
@@ -149,6 +150,7 @@ def test_no_escape_2000rpm(standard):
     _check_run(setup, fast, settled, 5000)
 
 
+@pytest.mark.slow
 def test_pair_modes_agree(standard):
     """Verlet list, static pair list and dense N x N give the same motion.
 
@@ -219,6 +221,7 @@ def test_ball_in_floor_side_edge_stays_put():
     assert bool(obs["pw_contact"][0])
 
 
+@pytest.mark.slow
 def test_vmap_over_seeds_and_motions():
     """Independent runs batch with vmap: same result as one at a time."""
     cfg = load_config(builtin_config_path("emax_300rpm"))

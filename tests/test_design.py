@@ -170,6 +170,7 @@ def test_design_config_round_trips_the_parameters(cfg):
                                theta)
 
 
+@pytest.mark.slow
 def test_cli_sensitivity_prints_json_and_writes_plot(cfg, tmp_path, session_cache):
     # Seeds 0 and 1 (--first-seed 0) in the session's cache (conftest.py): the command reads
     # the packings the other tests use instead of settling two more.

@@ -200,6 +200,7 @@ def linear_dem(tmp_path_factory):
     return traj, spec, sdf_grid_from_config(traj.config), motion_from_config(traj.config.motion)
 
 
+@pytest.mark.slow
 def test_linear_law_runs_in_the_jar_and_the_replay_rollout_reproduces_it(linear_dem):
     traj, spec, grid, motion = linear_dem
     from sgn_jax.pipelines.rollout_run import initial_window

@@ -343,6 +343,7 @@ def test_ball_in_floor_side_edge_feels_both_walls():
 # Mesh distance (exact branch-and-bound on grids vs brute force)
 
 
+@pytest.mark.slow
 def test_grid_mesh_distance_matches_brute_force(post_mesh):
     origin = np.array([-0.041, -0.0033, -0.0237])  # unaligned on purpose
     shape = (23, 17, 15)

@@ -272,6 +272,7 @@ def test_permutation_equivariance(setup, windows, builder):
         np.testing.assert_allclose(float(e2[0]), float(e1[0]), rtol=1e-5, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_padding_and_batching_do_not_change_real_outputs(setup):
     graphs, stats, model, params = setup
     apply = jax.jit(model.apply)

@@ -113,6 +113,7 @@ def test_unknown_and_duplicate_kinds_are_clear_errors(node_mlp_kind):
     assert isinstance(make_model(ModelConfig(kind=KIND, hidden=4)), NodeMLP)
 
 
+@pytest.mark.slow
 def test_a_registered_kind_trains_saves_and_loads_through_the_same_path(cfg, node_mlp_kind,
                                                                          tmp_path):
     grid = sdf_grid_from_config(cfg)

@@ -265,6 +265,7 @@ def test_bad_inputs_give_clear_errors():
 # jit / vmap
 
 
+@pytest.mark.slow
 def test_time_shapes_and_jit():
     circle = standard_circle()
     grid = np.linspace(0, 0.1, 12).reshape(3, 4)

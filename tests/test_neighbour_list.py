@@ -83,6 +83,7 @@ def test_the_list_holds_the_pairs_within_reach_and_skin_in_all_pairs_order():
     assert np.all(np.asarray(pairs[len(expected):]) == N)        # unused rows
 
 
+@pytest.mark.slow
 def test_a_graph_from_the_list_is_the_all_pairs_graph_until_a_ball_moves_half_the_skin():
     x = packing(1)
     charge = ball_charge(MIX, n_balls=N)
@@ -125,6 +126,7 @@ def test_the_list_is_rebuilt_once_a_ball_has_moved_half_the_skin_and_overflow_is
         empty_neighbour_list(window, 10, 0.0)
 
 
+@pytest.mark.slow
 def test_a_rollout_with_the_list_is_the_all_pairs_rollout_bit_for_bit():
     """30 steps of balls flying apart from a dense start (the list is rebuilt on the way)
     under a predictor that pushes every ball-ball edge's receiver away from its sender."""

@@ -371,6 +371,7 @@ def test_vmap_over_motions_matches_separate_calls(tiny):
     assert np.ptp(batched.steps.energy_cum[:, -1]) > 0
 
 
+@pytest.mark.slow
 def test_no_recompilation_between_calls_with_the_same_shapes(tiny):
     t = tiny
     rollout, traj = t["rollout"], t["traj"]
@@ -386,6 +387,7 @@ def test_no_recompilation_between_calls_with_the_same_shapes(tiny):
     assert len(t["traces"]) - before <= 1  # traced at most once (zero if an earlier test did)
 
 
+@pytest.mark.slow
 def test_capacity_tiers_give_the_same_rollout(tiny):
     t = tiny
     spec = t["spec"]
@@ -457,6 +459,7 @@ def checkpoint(dem, tiny, tmp_path_factory):
     return directory.parent.parent, cfg
 
 
+@pytest.mark.slow
 def test_run_rollout_in_chunks_equals_one_call(dem, tiny, checkpoint):
     from sgn_jax.records.checkpoint import load_trained_model
     from sgn_jax.records.prediction import load_prediction
@@ -520,6 +523,7 @@ def test_run_rollout_with_a_coarser_step_starts_from_the_coarsened_record(dem, t
         _effective_config(coarse_cfg, replace_section(trained.config, "dem", dt=0.8 * traj.dt))
 
 
+@pytest.mark.slow
 def test_cli_rollout(dem, checkpoint, tmp_path, capsys):
     from sgn_jax.cli import main
     from sgn_jax.config import save_config

@@ -33,6 +33,7 @@ def _points(n=3000, seed=0):
     return jnp.asarray(rng.uniform([-0.045, -0.003, -0.03], [0.045, 0.05, 0.03], (n, 3)))
 
 
+@pytest.mark.slow
 def test_the_grid_query_is_the_sdf_grid_lookup_bit_for_bit(jar):
     grid = sdf_grid_from_jar(jar, 1e-3, 3e-3, jnp.float32)
     pts, off = _points(), jnp.asarray([0.01, 0.0, -0.005])
@@ -43,6 +44,7 @@ def test_the_grid_query_is_the_sdf_grid_lookup_bit_for_bit(jar):
     assert grid_walls(grid, pts)[0].shape == (len(pts), 1)
 
 
+@pytest.mark.slow
 def test_the_dem_patches_and_the_surrogate_view_agree_inside_the_cavity(jar):
     """The DEM's per-patch walls and the surrogate's exact query are one protocol: the nearest
     patch is the exact SDF wherever one wall is clearly nearest (away from medial kinks)."""

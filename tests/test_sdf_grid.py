@@ -382,6 +382,7 @@ def test_patch_grid_outside_the_cavity_has_the_right_sign(grids, name):
     assert np.all(phi[outside] >= exact[outside] / math.sqrt(2) - 6e-6)
 
 
+@pytest.mark.slow
 def test_mesh_grid_matches_analytic_grid(tmp_path):
     spacing = 1e-3
     for params in (DEFAULT, POST_JAR):
@@ -399,6 +400,7 @@ def test_mesh_grid_matches_analytic_grid(tmp_path):
         assert diff.max() <= sag + 1e-8
 
 
+@pytest.mark.slow
 def test_mesh_grid_cache(tmp_path):
     mesh = jar_mesh(DEFAULT, 64)
     first = sdf_grid_from_mesh(mesh, 2e-3, cache_dir=tmp_path)
@@ -514,6 +516,7 @@ def test_offset_translates_the_field(grids):
     np.testing.assert_allclose(np.asarray(n_lab), np.asarray(n_jar), atol=1e-3)
 
 
+@pytest.mark.slow
 def test_jit_and_vmap(grids):
     grid = grids[("post", "f32")]
     pts = jnp.asarray(cavity_points(POST_JAR, 256, seed=16), jnp.float32)

@@ -30,6 +30,7 @@ def _check_ensemble(out: dict) -> None:
     assert "multiple of 2" in out["odd"]
 
 
+@pytest.mark.slow
 def test_sharded_ensemble_equals_unsharded_on_two_host_devices(two_device_results):
     """The default run: the sharded ensemble rollout (the design study's sharding, the same
     ``shard_packings`` placement under a gradient, is checked in the slow tier below)."""
@@ -68,6 +69,7 @@ def result(two_device_results):
     return two_device_results["step"]
 
 
+@pytest.mark.slow
 def test_the_sharded_step_gives_the_one_device_update_on_the_same_samples(result):
     assert all(group == [4, 4] for group in result["plan"][:5])    # 8 samples a step
     for name, tol in (("sgd", 1e-9), ("adam", 1e-5)):

@@ -176,6 +176,7 @@ def head_on(speed, n_samples=12):
     return pos
 
 
+@pytest.mark.slow
 def test_a_head_on_impact_is_one_event_with_the_approach_speed_of_its_inputs():
     """An untrained model (the same impulse, 0.21 m/s, on every acting contact): the pair acts
     from the step its gap can close until it has separated, one event."""
@@ -211,6 +212,7 @@ def test_a_head_on_impact_is_one_event_with_the_approach_speed_of_its_inputs():
     assert abs(events["collision_energy"][0, 1]) <= 1e-6 * abs(total)
 
 
+@pytest.mark.slow
 def test_run_rollout_writes_the_collision_table_into_the_prediction(tmp_path):
     """The shipped contact model on a head-on pair (the public path: run_rollout, as
     `sgn-jax rollout --collisions`); the prediction reads back with the table."""
@@ -254,6 +256,7 @@ def test_run_rollout_writes_the_collision_table_into_the_prediction(tmp_path):
     assert pred.meta["collisions"]["capacity"] == 16
 
 
+@pytest.mark.slow
 def test_an_ensemble_records_each_packings_events(contact_short_packings):
     """rollout_ensemble(collisions=True) of the shipped model: each packing's events add up to
     its own ledger (the standard case: 24 balls in their settled bed)."""
@@ -281,6 +284,7 @@ def test_the_cli_refuses_a_capacity_below_one(tmp_path, capsys):
     assert "--collision-capacity must be >= 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_design_study_gives_a_collision_statistic_and_its_gradient(contact_short_packings):
     """sj.design_study's collision statistics: events of the measurement interval only, the
     estimate the packings' mean, a finite central-difference gradient; a jar parameter and an

@@ -31,6 +31,7 @@ def setting(contact_short_packings):
     return cfg, model, packings
 
 
+@pytest.mark.slow
 def test_a_sweep_equals_one_ensemble_per_motion(setting):
     cfg, model, packings = setting
     cfgs = [replace_section(cfg, "motion", rpm=rpm) for rpm in (250.0, 350.0)]
@@ -61,6 +62,7 @@ def test_a_sweep_varies_the_motion_only(setting):
         sj.rollout_sweep(model, [], packings, duration=0.01)
 
 
+@pytest.mark.slow
 def test_an_ensemble_mapped_one_packing_after_another_equals_the_vmapped_one(
         contact_short_packings):
     """``batching="map"``: the packings one after another (``lax.map``) in the model's

@@ -112,6 +112,7 @@ def _assert_batches_match_single_windows(traj, spec, raw, stats, grid, idx, seed
 
 
 @pytest.mark.parametrize("encoding", ["absolute", "differences"])
+@pytest.mark.slow
 def test_batch_predictions_equal_the_single_window_path(data, grid, encoding):
     """Training batches (dataset path) and the rollout's build_graph + predict agree."""
     traj, spec, raw, _, _ = data
@@ -126,6 +127,7 @@ def test_huber_is_paper_eq30():
     np.testing.assert_allclose(np.asarray(huber_eq30(e, 2.0)), expected, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_loss_ignores_padding_and_noise_touches_only_ball_velocities(data):
     ds = data[4]
     model = SGN(hidden=24)
@@ -166,6 +168,7 @@ def tiny_batch(data):
     return packer.make(sub)
 
 
+@pytest.mark.slow
 def test_tiny_model_overfits_tiny_dataset(tiny_batch):
     batch = tiny_batch
     model = SGN(hidden=32)
@@ -191,6 +194,7 @@ def test_tiny_model_overfits_tiny_dataset(tiny_batch):
     assert final < first / 10, (first, final)
 
 
+@pytest.mark.slow
 def test_no_global_loss_leaves_the_global_readout_untrained(tiny_batch):
     """global_loss_weight = 0 (the paper's appendix ablation): the dE head gets no gradient,
     so Adam leaves its parameters exactly as initialised, while the rest of the network moves.
@@ -220,6 +224,7 @@ def test_no_global_loss_leaves_the_global_readout_untrained(tiny_batch):
         assert max(decoder) > 0
 
 
+@pytest.mark.slow
 def test_train_writes_metrics_checkpoints_and_resumes_identically(cfg, grid, tmp_path):
     from sgn_jax.records.checkpoint import load_trained_model
 
@@ -269,6 +274,7 @@ def test_train_refuses_data_that_do_not_match_the_config(cfg, grid, tmp_path):
         train(cfg, [traj], tmp_path / "x", sdf=grid, progress=False, log=lambda m: None)
 
 
+@pytest.mark.slow
 def test_cli_train_on_trajectory_files(cfg, tmp_path):
     from sgn_jax.cli import main
     from sgn_jax.config import save_config

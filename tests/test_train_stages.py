@@ -72,6 +72,7 @@ def test_stages_run_in_order_each_from_the_last(tmp_path, data_dir):
     assert again["model"] == summary["model"]
 
 
+@pytest.mark.slow
 def test_a_killed_staged_run_resumes_in_its_stage(tmp_path, data_dir):
     cfg = staged_config(stage("first", ["a/*.npz"]), stage("second", ["a/r1.npz"]))
 

@@ -149,6 +149,7 @@ def test_check_samples_names_sample_ball_and_cause(setup3):
     assert driver.check_samples(setup, s, sdf) is None
 
 
+@pytest.mark.slow
 def test_a_run_with_an_unresolved_contact_stops_with_the_time_and_keeps_the_valid_part(
         std, tmp_path):
     cfg = replace_section(std, "balls", count=4)

@@ -3,18 +3,19 @@
     python experiments/charges/evaluate.py --model runs/contact_charge/second \
         [--data data/charges_heldout] [--names heldout_00 ...] [--seeds 100 101 ...] \
         [--out runs/charge_eval] [--name heldout] [--dem-reference runs/charge_eval/heldout.json] \
-        [--split train] [--model-set friction_sweeps=12]
+        [--split train] [--model-set friction_sweeps=12] [--separation]
     python experiments/charges/evaluate.py --bars runs/charge_eval/heldout.json
 
 Every complete DEM record ``DATA/NAME/seed_K.npz`` of the held-out charges of
 experiments/charges/design.toml is rolled out by ``sgn_jax.api.run_rollout`` from its first
 window for the whole record, with the case's config (its charge, jar and motion), the ball-ball
-separation OFF and the wall snap-back as configured (each ball's own threshold), and compared
-with the DEM over the same interval by ``rollout_against_dem`` (``sgn_jax.pipelines.rollout_eval``):
-power (the DEM's normal + tangential damping against the model's target), mean jar-frame speed,
-touching ball-ball and ball-wall contacts per step (each pair's own r_i + r_j), the deepest
-ball-ball overlap as a fraction of the pair's smaller radius, balls outside, non-finite runs,
-the model's ledger. Resumable (runs already in OUT/NAME.json are kept).
+separation OFF (``--separation``: on, at the config's ``[rollout] pp_max_overlap``) and the wall
+snap-back as configured (each ball's own threshold), and compared with the DEM over the same
+interval by ``rollout_against_dem`` (``sgn_jax.pipelines.rollout_eval``): power (the DEM's
+normal + tangential damping against the model's target), mean jar-frame speed, touching
+ball-ball and ball-wall contacts per step (each pair's own r_i + r_j), the deepest ball-ball
+overlap as a fraction of the pair's smaller radius, balls outside, non-finite runs, the model's
+ledger. Resumable (runs already in OUT/NAME.json are kept).
 
 With ``--dem-reference JSON`` (repeatable: earlier evaluations, e.g. of another model on the same
 records) a record whose run (``<charge>_seed_<K>``) is in one of them takes the DEM's numbers
@@ -107,6 +108,9 @@ def main() -> None:
     ap.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
                     help="a [model] key of the checkpoint's config replaced, e.g. "
                          "friction_sweeps=12 (repeatable; the same weights)")
+    ap.add_argument("--separation", action="store_true",
+                    help="roll out with the ball-ball separation on (the config's "
+                         "[rollout] pp_max_overlap); off by default, the model's own setting")
     ap.add_argument("--out", default="runs/charge_eval")
     ap.add_argument("--name", default="heldout")
     ap.add_argument("--dem-reference", action="append", default=[], metavar="JSON",
@@ -137,7 +141,7 @@ def main() -> None:
     summaries = []
     for name in args.names or sorted(design):
         cfg = sj.load_config(HERE / "configs" / f"{name}.toml")
-        cfg = sj.replace_section(cfg, "rollout", pp_separation=False)
+        cfg = sj.replace_section(cfg, "rollout", pp_separation=bool(args.separation))
         cfg = sj.replace_section(cfg, "dem", dt=model_dt)
         records = sorted((Path(args.data) / name).glob("seed_*.npz"))
         if args.seeds:
