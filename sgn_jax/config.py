@@ -556,12 +556,6 @@ class ModelConfig:
             contact: the normal losses whole, the tangential ones by the DEM's tangential
             damping share, rolling friction's none; the charge kind's rule; docs/contact.md,
             "The dissipation target").
-        law_resting_overlap: kind "contact_charge" only. A contact closed over the whole
-            window (resting, pressed, rolling) ends the step no deeper than its own Hertz
-            law's overlap for the normal impulse the network gives it (the overlap at which
-            the law's force over one step is that impulse), the excess removed by a normal
-            impulse computed for the contact alone (docs/contact_charge.md, "The resting
-            overlap").
     """
 
     kind: str = "sgn"
@@ -577,7 +571,6 @@ class ModelConfig:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     damping_target: str = "kind"
-    law_resting_overlap: bool = False
 
     # The keys a built-in kind reads, for a kind that does not read them all; a kind not listed
     # (the SGN, a registered kind) reads every key or refuses a value it cannot use itself.
@@ -587,7 +580,7 @@ class ModelConfig:
                     "friction_sweeps", "damping_target"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
                            "overlap_law_factor", "law_rebound", "law_rebound_exact",
-                           "overlap_sweeps", "friction_sweeps", "law_resting_overlap"},
+                           "overlap_sweeps", "friction_sweeps"},
     }
 
     def __post_init__(self) -> None:
@@ -622,10 +615,6 @@ class ModelConfig:
                               f"sweeps stop the contact point's slip, which turns the balls), "
                               f"got friction_sweeps = {self.friction_sweeps} and spin = "
                               f"{self.spin}")
-        if self.law_resting_overlap and self.kind != "contact_charge":
-            raise ConfigError("[model] law_resting_overlap = true needs kind "
-                              "'contact_charge' (it uses each contact's own Hertz law), got "
-                              f"kind {self.kind!r}: remove the key")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
         # later loads.

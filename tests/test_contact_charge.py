@@ -462,65 +462,6 @@ def test_the_exact_law_rebound_at_the_wall_caps_the_charge_kinds_resting_balls()
         dataclasses.replace(PHYS, law_rebound=True, rebound_exact="walls")
 
 
-def test_the_resting_overlap_rule_ends_a_closed_contact_no_deeper_than_its_law_allows():
-    """``law_resting_overlap`` (``ChargePhysics.law_resting_overlap``): the mixture at rest 1 mm
-    above the floor, no gravity, each ball-ball pair 0.1 mm into contact over the whole window
-    (closed), no rigid limit. With random weights the network's impulses leave such contacts
-    deeper than the
-    Hertz overlap at which the law's force over one step is the impulse; with the rule every
-    closed contact ends the step (ballistically, alone) no deeper than that overlap of its own
-    impulse, each impulse at least the network's. Off, the impulses are the contact kind's.
-    The config key reaches the physics and is refused for another kind."""
-    from sgn_jax.config import ConfigError, builtin_config_path, load_config, replace_section
-    from sgn_jax.surrogate.contact_charge import physics_from_config
-
-    pos = np.broadcast_to(CENTRES + np.array([0.0, 1e-3, 0.0]), (W + 1, 5, 3))
-    window = Window(positions=jnp.asarray(pos), offsets=jnp.zeros((W, 3)),
-                    offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(5.0),
-                    spins=jnp.zeros((5, 3)), charge=ball_charge(MIX, n_balls=5, classes=3))
-    graph, _ = build_graph(window, None, spec(5), floor_query((0.0, 1.0, 0.0)))
-
-    def normal_impulses(rule):
-        net = net_with(gravity=(0.0, 0.0, 0.0), overlap_limit=0.0, overlap_law_factor=0.0,
-                       overlap_sweeps=0, law_resting_overlap=rule)
-        params = random_params(net, graph)
-
-        def run(module):
-            geo = module._edge_geometry(graph)
-            logits = module._per_kind(module.pp_net, module.pw_net, geo, geo["inputs"],
-                                      graph.nodes["features"].shape[0] - 2)
-            return geo, module._learned_normal(geo, logits), module._normal_impulse(geo, logits)
-
-        return net.apply({"params": params}, method=run)
-
-    geo, learned, du_on = normal_impulses(True)
-    _, learned_off, du_off = normal_impulses(False)
-    closed = np.asarray(geo["closed"]) & (np.asarray(geo["gate"]) > 0)
-    assert closed.sum() >= 4 and np.asarray(geo["is_pp"])[closed].all()
-    np.testing.assert_array_equal(np.asarray(learned), np.asarray(learned_off))
-
-    def end_overlap_and_law_depth(du):
-        end = -(np.asarray(geo["gap"]) + (np.asarray(geo["u_n"]) + np.asarray(geo["acc_term"])
-                                          + du) * DT)
-        law = (np.maximum(du, 0.0) / (np.asarray(geo["hertz_rate"]) * DT)) ** (2.0 / 3.0)
-        return end[closed], law[closed]
-
-    end_off, law_off = end_overlap_and_law_depth(np.asarray(du_off))
-    assert np.sum(end_off > 1.5 * law_off) >= 2       # the network alone leaves them deep
-    end_on, law_on = end_overlap_and_law_depth(np.asarray(du_on))
-    assert np.all(end_on <= law_on * (1.0 + 1e-4) + 1e-9)   # float32 steps
-    assert np.all(np.asarray(du_on)[closed] >= np.asarray(learned)[closed])
-    np.testing.assert_allclose(np.asarray(du_off), np.maximum(
-        np.asarray(learned), np.asarray(geo["floor"])) * np.asarray(geo["gate"]))
-
-    cfg = load_config(builtin_config_path("contact_charge_train"))
-    assert physics_from_config(replace_section(cfg, "model", law_resting_overlap=True)) \
-        .law_resting_overlap
-    with pytest.raises(ConfigError, match="law_resting_overlap"):
-        replace_section(load_config(builtin_config_path("contact_train")), "model",
-                        law_resting_overlap=True)
-
-
 @pytest.mark.slow
 def test_a_rollout_step_on_the_rows_that_may_act_gives_what_the_whole_graph_gives():
     """The single-rollout step on the rows that may act (``compact_per_ball``,

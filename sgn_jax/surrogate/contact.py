@@ -390,11 +390,9 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
     kinematics (:func:`edge_kinematics`) and their slip: the tangent, the wall's relative
     acceleration term, the inputs (the newest ``history`` slots' gap and gap rate, the
     tangential and, with ``spin``, slip speeds by ``scales``; then ``constant_inputs``, (E,)
-    each), the overlap limit, the floor that keeps it, the gate (``gate_rule``),
-    ``contacts_max``, ``acc_term`` (E,) m/s (the wall's relative acceleration term over one
-    step, 0 for ball-ball rows) and ``closed`` (E,) bool (the gap below 0 at every slot of the
-    window). Returns the keys of :func:`edge_geometry` but ``speed_c`` and the kind's
-    extras."""
+    each), the overlap limit, the floor that keeps it, the gate (``gate_rule``), and with
+    ``spin`` ``contacts_max``. Returns the keys of :func:`edge_geometry` but ``speed_c`` and
+    the kind's extras."""
     senders, receivers, is_pp, is_pw = (kin[k] for k in ("senders", "receivers", "is_pp",
                                                          "is_pw"))
     jar_vel, normal, u, gap, speed_t = (kin[k] for k in ("jar_vel", "normal", "u", "gap",
@@ -506,22 +504,20 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
         limit = jnp.zeros_like(gap_end)
         floor = jnp.zeros_like(gap_end)
     gate = acting.astype(DTYPE)
-    # Each contact's stick impulse (with spin) and the charge kind's resting-overlap impulse
-    # are computed as if it were the ball's only contact (a Jacobi sweep); a ball in a bed has
-    # several, whose impulses add up and would overshoot (and pump spin). Relaxed by the
-    # larger number of acting contacts of its two balls. (Unused, it costs nothing in a jitted
-    # step: XLA drops it.)
-    extra = {"contacts_max": _larger_ball_count(gate, receivers, senders, is_pp,
-                                                graph.nodes["features"].shape[0])}
+    extra = {}
+    if spin:
+        # Each contact's stick impulse is computed as if it were the ball's only one (a Jacobi
+        # sweep); a ball in a bed has several, whose impulses add up and would overshoot (and
+        # pump spin). Relaxed by the larger number of acting contacts of its two balls.
+        n_node = graph.nodes["features"].shape[0]
+        extra["contacts_max"] = _larger_ball_count(gate, receivers, senders, is_pp, n_node)
     return {
         "normal": normal, "tangent": tangent, "inputs": inputs, "gate": gate, "floor": floor,
         "is_pp": is_pp, "is_pw": is_pw, "senders": senders, "receivers": receivers,
         "gap": gap[-1], "limit": jnp.broadcast_to(limit, gap_end.shape),
         "u_wall": jnp.where(is_pw[:, None], jar_vel[-1, senders], 0.0),
         "jar_dv": jnp.where(is_pw[:, None], jar_dv, 0.0),
-        "v_node": kin["vel"][-1], "u_n": u[-1], "acc_term": acc_term,
-        # closed over the whole window: resting, pressed or rolling, not a fresh impact
-        "closed": jnp.all(gap < 0, axis=0), **extra,
+        "v_node": kin["vel"][-1], "u_n": u[-1], **extra,
         # the exact law rebound's ceiling, only where it is on (the step's hot path is
         # unchanged without it)
         **({} if ceiling is None else {"ceiling": ceiling}),
@@ -563,11 +559,8 @@ def edge_geometry(graph: jraph.GraphsTuple, phys: ContactPhysics, primary_only: 
     tangent is that of the slip at the CONTACT POINT, v_rel - R (w_r + w_s) x n (a wall does
     not turn: its node's spin is 0), the inputs gain its speed (clipped and fine-scaled), and
     the dict gains ``w_node`` (n_node, 3) rad/s, ``w_rel`` (E, 3), w_r - w_s (w_r for a wall),
-    ``arm`` (E,) m, the contact arm R - overlap / 2, ``slip`` (E,) m/s, |v_t,c|. Every kind
-    gets ``contacts_max`` (E,), the larger number of acting contacts of the edge's two balls
-    (>= 1), ``acc_term`` (E,) m/s, what the wall's acceleration and gravity add to the gap
-    rate over one step (0 for ball-ball rows), and ``closed`` (E,) bool, the gap below 0 at
-    every slot of the window.
+    ``arm`` (E,) m, the contact arm R - overlap / 2, ``slip`` (E,) m/s, |v_t,c|, and
+    ``contacts_max`` (E,), the larger number of acting contacts of the edge's two balls (>= 1).
     """
     w, h, dt, radius = phys.window, phys.history, phys.dt, phys.ball_radius
     kin = edge_kinematics(graph, w, dt, 2.0 * radius, radius, primary_only)

@@ -130,14 +130,6 @@ class ChargePhysics:
             impulse's ceiling, as the contact kind's (``ContactPhysics.rebound_exact``, with
             each contact's own restitution).
         overlap_sweeps, friction_sweeps: as the contact kind's.
-        law_resting_overlap: a contact closed over the whole window (resting, pressed,
-            rolling) ends the step no deeper than its own Hertz law's overlap for the normal
-            impulse the network gives it, ``d = (du_n / (hertz_rate dt))^(2/3)`` with
-            ``hertz_rate = (4/3) Y* sqrt(R*) / m*`` (the overlap at which the law's force over
-            one step is that impulse), computed for the contact alone, ballistically; the
-            extra normal impulse is equal and opposite and in the ledger. A network that
-            carries a contact's load with a small impulse cannot also let it sink deeper than
-            that load allows (docs/contact_charge.md, "The resting overlap").
     """
 
     dt: float = 2.0e-4
@@ -152,7 +144,6 @@ class ChargePhysics:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     rebound_exact: str = "off"
-    law_resting_overlap: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
@@ -324,8 +315,6 @@ class ContactChargeNet(ContactNet):
             **rows, "speed_c": slip_c,
             "m_node": m_node, "m_star": m_star, "scale_l": scale_l, "scale_v": scale_v,
             "mu": mat["friction"], "mu_r": mat["rolling_friction"], "k": k, **extra,
-            # (4/3) Y* sqrt(R*) / m* (1/(s^2 m^0.5)): L = peak_coef (m* / (Y* sqrt(R*)))^(2/5)
-            "hertz_rate": (4.0 / 3.0) * (mat["peak_coef"] / scale_l) ** 2.5,
         }
 
     def _contact_scale(self, graph: jraph.GraphsTuple, receivers: jax.Array,
@@ -364,26 +353,6 @@ class ContactChargeNet(ContactNet):
 
     def _reduced_mass(self, geo: dict[str, jax.Array]) -> jax.Array:
         return geo["m_star"]
-
-    def _normal_impulse(self, geo: dict[str, jax.Array], logits: jax.Array) -> jax.Array:
-        """(E,) m/s: the contact kind's du_n (:meth:`ContactNet._normal_impulse`), with
-        ``law_resting_overlap`` at least the impulse that ends a contact closed over the
-        whole window no deeper than its law's overlap for the learned impulse (computed for
-        the contact alone, ballistically, as the rigid limit's floor)."""
-        if not self.physics.law_resting_overlap:
-            return super()._normal_impulse(geo, logits)
-        learned = self._learned_normal(geo, logits)
-        # the law's overlap whose force over one step is the learned impulse (m); the floor
-        # keeps the power's gradient finite where the impulse is ~0
-        law_depth = jnp.power(jnp.maximum(learned / (geo["hertz_rate"] * self.physics.dt),
-                                          1e-30), 2.0 / 3.0)
-        # the gap at the end of the step is gap + (u_n + acc_term + du_n) dt
-        to_depth = -(geo["gap"] + law_depth) / self.physics.dt - geo["u_n"] - geo["acc_term"]
-        du_n = jnp.maximum(learned, geo["floor"])
-        du_n = jnp.where(geo["closed"], jnp.maximum(du_n, to_depth), du_n)
-        if "ceiling" in geo:   # the exact law rebound
-            du_n = jnp.minimum(du_n, geo["ceiling"])
-        return du_n * geo["gate"]
 
     def _impulses(self, geo: dict[str, jax.Array], logits: jax.Array):
         """As the contact kind's (:meth:`ContactNet._impulses`) with the contact's own cone
@@ -498,9 +467,7 @@ def physics_from_config(cfg: Any) -> ChargePhysics:
                          law_rebound=bool(getattr(cfg.model, "law_rebound", False)),
                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
-                         rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")),
-                         law_resting_overlap=bool(getattr(cfg.model, "law_resting_overlap",
-                                                          False)))
+                         rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")))
 
 
 def make_contact_charge_net(cfg: Any) -> ContactChargeNet:
