@@ -550,6 +550,10 @@ class ModelConfig:
             Coulomb sticking over all contacts together after the impulses, so that a packed
             bed holds as the DEM's does instead of creeping (docs/contact.md, "One step",
             item 8).
+        friction_sweep_contacts: kind "contact_charge" only: which contacts the friction
+            sweeps act on, "all" (default) or "wall" (ball-wall contacts only; each ball-ball
+            contact keeps its learned stick, so balls that ride the wall side by side are not
+            bound into one body; docs/contact_charge.md, "Limits").
         damping_target: kind "contact" only: how the model's dissipation target (the DEM's
             damping, what `dE` and the power report) comes from its own losses: "kind" (a
             share of all losses per contact kind, fitted from the records) or "contact" (per
@@ -570,6 +574,7 @@ class ModelConfig:
     law_rebound_exact: str = "off"
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
+    friction_sweep_contacts: str = "all"
     damping_target: str = "kind"
 
     # The keys a built-in kind reads, for a kind that does not read them all; a kind not listed
@@ -580,7 +585,7 @@ class ModelConfig:
                     "friction_sweeps", "damping_target"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
                            "overlap_law_factor", "law_rebound", "law_rebound_exact",
-                           "overlap_sweeps", "friction_sweeps"},
+                           "overlap_sweeps", "friction_sweeps", "friction_sweep_contacts"},
     }
 
     def __post_init__(self) -> None:
@@ -615,6 +620,10 @@ class ModelConfig:
                               f"sweeps stop the contact point's slip, which turns the balls), "
                               f"got friction_sweeps = {self.friction_sweeps} and spin = "
                               f"{self.spin}")
+        if self.friction_sweep_contacts not in ("all", "wall"):
+            raise ConfigError("[model] friction_sweep_contacts must be 'all' (every acting "
+                              "contact) or 'wall' (ball-wall contacts only), got "
+                              f"{self.friction_sweep_contacts!r}")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
         # later loads.

@@ -584,3 +584,25 @@ def test_the_shipped_charge_model_rebounds_a_mixed_pair_at_its_materials_restitu
             assert parting == pytest.approx(e * v, rel=2e-3), (v, phase)
             momentum = masses @ end_vel[:, 0]
             assert momentum == pytest.approx(masses[0] * v, rel=1e-4)
+
+
+def test_friction_sweeps_on_the_walls_only_leave_each_ball_ball_stick_to_the_network():
+    """``friction_sweep_contacts = "wall"``: the sweeps change the ball-wall contacts'
+    tangential impulses and leave every ball-ball contact's at the network's (what the model
+    gives without sweeps), where ``"all"`` changes both kinds."""
+    window = scene(np.random.default_rng(3))
+    off, params, graph = terms_of(window, friction_sweeps=0)
+    walls, _, _ = terms_of(window, params=params, friction_sweeps=3,
+                           friction_sweep_contacts="wall")
+    every, _, _ = terms_of(window, params=params, friction_sweeps=3)
+    net = net_with()
+    geo = net.apply({"params": params}, graph, method=ContactChargeNet._edge_geometry)
+    acting = np.asarray(geo["gate"]) > 0
+    pp, pw = acting & np.asarray(geo["is_pp"]), acting & np.asarray(geo["is_pw"])
+    assert pp.sum() >= 3 and pw.sum() >= 2
+    du_off, du_walls, du_every = (np.asarray(t["du_t"]) for t in (off, walls, every))
+    np.testing.assert_allclose(du_walls[pp], du_off[pp], rtol=1e-6, atol=1e-12)
+    assert np.max(np.abs(du_walls[pw] - du_off[pw])) > 1e-3 * np.max(np.abs(du_off[pw]))
+    assert np.max(np.abs(du_every[pp] - du_off[pp])) > 1e-3 * np.max(np.abs(du_off[pp]))
+    with pytest.raises(Exception, match="friction_sweep_contacts"):
+        net_with(friction_sweep_contacts="pp")

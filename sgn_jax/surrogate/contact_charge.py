@@ -130,6 +130,8 @@ class ChargePhysics:
             impulse's ceiling, as the contact kind's (``ContactPhysics.rebound_exact``, with
             each contact's own restitution).
         overlap_sweeps, friction_sweeps: as the contact kind's.
+        friction_sweep_contacts: "all" (the contact kind's) or "wall": the friction sweeps act
+            on the ball-wall contacts only, each ball-ball contact keeping its learned stick.
     """
 
     dt: float = 2.0e-4
@@ -144,6 +146,7 @@ class ChargePhysics:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     rebound_exact: str = "off"
+    friction_sweep_contacts: str = "all"
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
@@ -158,6 +161,9 @@ class ChargePhysics:
             raise ContactModelError("overlap_sweeps must be >= 0 and needs overlap_limit > 0")
         if self.friction_sweeps < 0:
             raise ContactModelError(f"friction_sweeps must be >= 0, got {self.friction_sweeps}")
+        if self.friction_sweep_contacts not in ("all", "wall"):
+            raise ContactModelError("friction_sweep_contacts must be 'all' or 'wall', got "
+                                    f"{self.friction_sweep_contacts!r}")
         check_rebound_exact(self.rebound_exact, self.law_rebound, "the law rebound (law_rebound)")
 
 
@@ -408,9 +414,14 @@ class ContactChargeNet(ContactNet):
                           dv: jax.Array, dw: jax.Array, angular: tuple[jax.Array, jax.Array],
                           n_node: int, is_particle: jax.Array):
         """The contact kind's friction sweeps (:meth:`ContactNet._project_friction`) with each
-        contact's own cone, slip factor and arms and each ball's own mass and inertia."""
+        contact's own cone, slip factor and arms and each ball's own mass and inertia; with
+        ``friction_sweep_contacts = "wall"`` on the ball-wall contacts only (a ball-ball
+        contact's tangential impulse stays the network's)."""
         receivers, senders, normal = geo["receivers"], geo["senders"], geo["normal"]
         gate, arm, arm_s, k = geo["gate"], geo["arm"], geo["arm_s"], geo["k"]
+        swept = (geo["is_pw"] if self.physics.friction_sweep_contacts == "wall"
+                 else jnp.ones_like(gate)).astype(gate.dtype)   # (E,) 1: the sweeps act on it
+        gate = gate * swept
         m_star = geo["m_star"]
         count = _larger_ball_count(gate, receivers, senders, geo["is_pp"], n_node)
         cone = geo["mu"] * m_star * du_n
@@ -433,7 +444,7 @@ class ContactChargeNet(ContactNet):
             wanted = tangential + (m_star * gate / (k * count))[:, None] * slip
             size = _safe_norm(wanted)
             scale = jnp.minimum(1.0, cone / jnp.maximum(size, 1e-30))
-            extra = wanted * scale[:, None] - tangential
+            extra = (wanted * scale[:, None] - tangential) * swept[:, None]
             tangential = tangential + extra
             impulse = impulse + extra
             n_x_extra = jnp.cross(normal, extra)
@@ -467,7 +478,9 @@ def physics_from_config(cfg: Any) -> ChargePhysics:
                          law_rebound=bool(getattr(cfg.model, "law_rebound", False)),
                          overlap_sweeps=int(getattr(cfg.model, "overlap_sweeps", 0)),
                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
-                         rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")))
+                         rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")),
+                         friction_sweep_contacts=str(getattr(cfg.model, "friction_sweep_contacts",
+                                                             "all")))
 
 
 def make_contact_charge_net(cfg: Any) -> ContactChargeNet:
