@@ -36,6 +36,7 @@ from sgn_jax.analysis.metrics import (
     mse_plateau,
     position_mse,
     pp_contact_counts,
+    wall_contact_lifetimes,
 )
 from sgn_jax.config import (
     config_from_dict,
@@ -223,6 +224,7 @@ __all__ = [
     # metrics of trajectories and predictions
     "align",
     "contact_census",
+    "wall_contact_lifetimes",
     "rollout_against_dem",
     "DAMPING",
     "reference_span",

@@ -320,6 +320,30 @@ def test_contact_census_counts_each_pair_by_its_own_radii():
     assert one["pp_touching_mean"] == 2.0
 
 
+def test_wall_contact_lifetimes_count_each_run_of_frames_by_each_balls_own_radius():
+    from sgn_jax.analysis.metrics import wall_contact_lifetimes
+    from sgn_jax.geometry import JarParams
+
+    jar = JarParams(radius=0.02, straight_length=0.035, height=0.047)
+    # (the jar's floor is y = 0) ball 0 (5 mm) 4.9 mm above the floor in frames 1-3 and 6
+    # (two runs: 3 frames and 1), else 10 mm; ball 1 (3 mm) always 4 mm above it (never
+    # touching; a 5 mm ball there would)
+    frames = 8
+    pos = np.zeros((frames, 2, 3))
+    pos[:, 0] = [0.0, 0.010, 0.0]
+    pos[[1, 2, 3, 6], 0] = [0.0, 0.0049, 0.0]
+    pos[:, 1] = [0.008, 0.004, 0.0]
+    out = wall_contact_lifetimes(pos, np.zeros((frames, 3)), jar, np.asarray([0.005, 0.003]),
+                                 longest=3)
+    assert out["pw_contacts"] == 2
+    assert out["pw_contact_frames_hist"] == [1, 0, 1]
+    assert out["pw_contact_frames_mean"] == 2.0
+    np.testing.assert_allclose(out["pw_fraction_per_ball"], [4 / frames, 0.0])
+    np.testing.assert_allclose(out["pw_touching_mean"], 4 / frames)
+    one = wall_contact_lifetimes(pos, np.zeros((frames, 3)), jar, 0.005, longest=3)
+    assert one["pw_contact_frames_hist"] == [1, 0, 2]   # ball 1 touches in all 8 frames too
+
+
 @pytest.mark.slow   # ~25 s: the walls' SDF grid and a rollout compile
 def test_run_rollout_rolls_a_mixture_out_with_the_records_own_charge():
     """``sgn_jax.api.run_rollout`` of the charge-reading kind from a record of a two-size

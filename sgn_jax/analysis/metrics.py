@@ -262,6 +262,35 @@ def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float 
             "pp_contact_frames_mean": float(lengths.mean()) if lengths.size else 0.0}
 
 
+def wall_contact_lifetimes(pos: np.ndarray, offset: np.ndarray, jar: Any,
+                           radius: float | np.ndarray, longest: int = 20) -> dict[str, Any]:
+    """How long the balls' wall contacts last, counted as :func:`contact_census` counts them.
+
+    Args:
+        pos: (P, N, 3) ball centres (m, lab frame), one frame per step; offset: (P, 3) jar
+            offsets (m); jar: the ``JarParams``; radius: R (m) or (N,) each ball's r_i.
+        longest: the last bin of the histogram holds contacts of this many frames or more.
+    Returns:
+        ``pw_touching_mean`` (balls touching the wall per frame), ``pw_contacts`` (touching
+        runs: a ball's frames with phi > -r_i in a row; a run cut by the record's ends counts),
+        ``pw_contact_frames_mean`` (their mean length, frames), ``pw_contact_frames_hist``
+        (``longest`` counts: runs of 1, 2, ..., ``longest`` or more frames) and
+        ``pw_fraction_per_ball`` (N,) (the fraction of frames each ball touches the wall).
+    """
+    rel = np.asarray(pos, np.float64) - np.asarray(offset, np.float64)[:, None, :]
+    r = np.broadcast_to(np.asarray(radius, np.float64), (rel.shape[1],))
+    phi = np.asarray(jar_sdf(jar, jnp.asarray(rel)))
+    touch = (phi > -r).astype(np.int8)                                  # (P, N)
+    edges = np.diff(np.pad(touch, ((1, 1), (0, 0))), axis=0)
+    lengths = np.nonzero(edges.T == -1)[1] - np.nonzero(edges.T == 1)[1]
+    return {"pw_touching_mean": float(touch.sum(axis=1).mean()),
+            "pw_contacts": int(lengths.size),
+            "pw_contact_frames_mean": float(lengths.mean()) if lengths.size else 0.0,
+            "pw_contact_frames_hist": np.bincount(np.minimum(lengths, longest),
+                                                  minlength=longest + 1)[1:].tolist(),
+            "pw_fraction_per_ball": touch.mean(axis=0)}
+
+
 def _state_value(regime: Mapping[str, Any], which: str, classify_by: str,
                  n_balls: int) -> float:
     """The number a state rule thresholds, for ``which`` in ("pred", "ref")."""
