@@ -419,9 +419,10 @@ class ContactChargeNet(ContactNet):
         contact's tangential impulse stays the network's)."""
         receivers, senders, normal = geo["receivers"], geo["senders"], geo["normal"]
         gate, arm, arm_s, k = geo["gate"], geo["arm"], geo["arm_s"], geo["k"]
-        swept = (geo["is_pw"] if self.physics.friction_sweep_contacts == "wall"
-                 else jnp.ones_like(gate)).astype(gate.dtype)   # (E,) 1: the sweeps act on it
-        gate = gate * swept
+        walls_only = self.physics.friction_sweep_contacts == "wall"
+        if walls_only:   # (E,) 1 where the sweeps act: the ball-wall rows
+            swept = geo["is_pw"].astype(gate.dtype)
+            gate = gate * swept
         m_star = geo["m_star"]
         count = _larger_ball_count(gate, receivers, senders, geo["is_pp"], n_node)
         cone = geo["mu"] * m_star * du_n
@@ -444,7 +445,9 @@ class ContactChargeNet(ContactNet):
             wanted = tangential + (m_star * gate / (k * count))[:, None] * slip
             size = _safe_norm(wanted)
             scale = jnp.minimum(1.0, cone / jnp.maximum(size, 1e-30))
-            extra = (wanted * scale[:, None] - tangential) * swept[:, None]
+            extra = wanted * scale[:, None] - tangential
+            if walls_only:
+                extra = extra * swept[:, None]
             tangential = tangential + extra
             impulse = impulse + extra
             n_x_extra = jnp.cross(normal, extra)
