@@ -122,6 +122,15 @@ from sgn_jax.surrogate.model import model_factory, model_kind
 from sgn_jax.surrogate.rollout import make_rollout_advance, model_predictor
 
 
+def load_model_to_evaluate(name_or_path: str, assignments: list[str] | None = None) -> Any:
+    """A shipped model's name or a run or checkpoint directory (:func:`resolve_checkpoint`),
+    loaded at a training run's latest step (its stages' last; a derived model has only its
+    best), with ``[model]`` keys replaced as :func:`with_model_keys` does."""
+    checkpoint = resolve_checkpoint(name_or_path)
+    which = "latest" if (Path(checkpoint) / "checkpoints" / "latest").exists() else "best"
+    return with_model_keys(load_trained_model(checkpoint, which=which), assignments)
+
+
 def with_model_keys(trained: Any, assignments: list[str] | None) -> Any:
     """``trained`` (a :class:`sgn_jax.records.checkpoint.TrainedModel`) with ``[model]`` keys
     of its config replaced, e.g. ``["friction_sweeps=12"]`` (each ``KEY=VALUE``, VALUE a TOML
@@ -225,6 +234,7 @@ __all__ = [
     "align",
     "contact_census",
     "wall_contact_lifetimes",
+    "load_model_to_evaluate",
     "rollout_against_dem",
     "DAMPING",
     "reference_span",

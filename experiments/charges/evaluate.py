@@ -123,11 +123,7 @@ def main() -> None:
     if not args.model:
         ap.error("--model required (or --bars)")
     tools.enable_compilation_cache()
-    checkpoint = tools.resolve_checkpoint(args.model)
-    # a training run's latest step (its stages' last); a derived model has only its best
-    which = "latest" if (Path(checkpoint) / "checkpoints" / "latest").exists() else "best"
-    model = tools.with_model_keys(tools.load_trained_model(checkpoint, which=which),
-                                  args.model_set)
+    model = tools.load_model_to_evaluate(args.model, args.model_set)
     model_dt = float(model.config.dem.dt)
     window = int(model.config.graph.window)
     refs = {}

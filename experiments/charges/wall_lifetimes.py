@@ -44,10 +44,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=0.9, help="s of rollout (default 0.9)")
     ap.add_argument("--out", default="runs/wall_life.json")
     args = ap.parse_args()
-    checkpoint = tools.resolve_checkpoint(args.model)
-    which = "latest" if (Path(checkpoint) / "checkpoints" / "latest").exists() else "best"
-    model = tools.with_model_keys(tools.load_trained_model(checkpoint, which=which),
-                                  args.model_set)
+    model = tools.load_model_to_evaluate(args.model, args.model_set)
     cfg = sj.replace_section(sj.load_config(args.config), "dem", dt=float(model.config.dem.dt))
     record = sj.load_trajectory(args.record)
     res = sj.run_rollout(model, record, None, args.duration, None, cfg, save_every=1,

@@ -250,11 +250,7 @@ def contact_census(pos: np.ndarray, offset: np.ndarray, jar: Any, radius: float 
         pw_count.append((phi > -r).sum(axis=1))
         pw_deep = max(pw_deep, float((phi + r).max()))
         touching_runs.append(touch)
-    touch_all = np.concatenate(touching_runs, axis=0).astype(np.int8)
-    # run lengths of 1s per pair column
-    edges = np.diff(np.pad(touch_all, ((1, 1), (0, 0))), axis=0)
-    starts, ends = np.nonzero(edges.T == 1), np.nonzero(edges.T == -1)
-    lengths = ends[1] - starts[1]
+    lengths = _touching_runs(np.concatenate(touching_runs, axis=0))
     return {"pp_touching_mean": float(np.concatenate(pp_count).mean()),
             "pw_touching_mean": float(np.concatenate(pw_count).mean()),
             "deepest_pp_overlap_m": pp_deep, "deepest_pw_overlap_m": pw_deep,
@@ -280,15 +276,21 @@ def wall_contact_lifetimes(pos: np.ndarray, offset: np.ndarray, jar: Any,
     rel = np.asarray(pos, np.float64) - np.asarray(offset, np.float64)[:, None, :]
     r = np.broadcast_to(np.asarray(radius, np.float64), (rel.shape[1],))
     phi = np.asarray(jar_sdf(jar, jnp.asarray(rel)))
-    touch = (phi > -r).astype(np.int8)                                  # (P, N)
-    edges = np.diff(np.pad(touch, ((1, 1), (0, 0))), axis=0)
-    lengths = np.nonzero(edges.T == -1)[1] - np.nonzero(edges.T == 1)[1]
+    touch = phi > -r                                                    # (P, N)
+    lengths = _touching_runs(touch)
     return {"pw_touching_mean": float(touch.sum(axis=1).mean()),
             "pw_contacts": int(lengths.size),
             "pw_contact_frames_mean": float(lengths.mean()) if lengths.size else 0.0,
             "pw_contact_frames_hist": np.bincount(np.minimum(lengths, longest),
                                                   minlength=longest + 1)[1:].tolist(),
             "pw_fraction_per_ball": touch.mean(axis=0)}
+
+
+def _touching_runs(touch: np.ndarray) -> np.ndarray:
+    """The lengths (frames) of every run of True in each column of ``touch`` (P, K) bool, column
+    by column (a run cut by either end of the record counts)."""
+    edges = np.diff(np.pad(touch.astype(np.int8), ((1, 1), (0, 0))), axis=0)
+    return np.nonzero(edges.T == -1)[1] - np.nonzero(edges.T == 1)[1]
 
 
 def _state_value(regime: Mapping[str, Any], which: str, classify_by: str,
