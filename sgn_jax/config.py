@@ -554,6 +554,11 @@ class ModelConfig:
             sweeps act on, "all" (default) or "wall" (ball-wall contacts only; each ball-ball
             contact keeps its learned stick, so balls that ride the wall side by side are not
             bound into one body; docs/contact_charge.md, "Limits").
+        rebound_sweeps: kind "contact_charge" only (needs law_rebound and overlap_sweeps):
+            "off" (default), "all" or "pp": the overlap sweeps also keep each impact past its
+            contact time (every one, or the ball-ball ones) at its law's rebound, e v, with
+            every ball's other contacts acting (a ball struck while it touches the wall or
+            another ball), not only for the contact alone (docs/contact_charge.md, "Limits").
         damping_target: kind "contact" only: how the model's dissipation target (the DEM's
             damping, what `dE` and the power report) comes from its own losses: "kind" (a
             share of all losses per contact kind, fitted from the records) or "contact" (per
@@ -575,6 +580,7 @@ class ModelConfig:
     overlap_sweeps: int = 0
     friction_sweeps: int = 0
     friction_sweep_contacts: str = "all"
+    rebound_sweeps: str = "off"
     damping_target: str = "kind"
 
     # The keys a built-in kind reads, for a kind that does not read them all; a kind not listed
@@ -585,7 +591,8 @@ class ModelConfig:
                     "friction_sweeps", "damping_target"},
         "contact_charge": {"kind", "hidden", "mlp_layers", "spin", "overlap_limit",
                            "overlap_law_factor", "law_rebound", "law_rebound_exact",
-                           "overlap_sweeps", "friction_sweeps", "friction_sweep_contacts"},
+                           "overlap_sweeps", "friction_sweeps", "friction_sweep_contacts",
+                           "rebound_sweeps"},
     }
 
     def __post_init__(self) -> None:
@@ -624,6 +631,14 @@ class ModelConfig:
             raise ConfigError("[model] friction_sweep_contacts must be 'all' (every acting "
                               "contact) or 'wall' (ball-wall contacts only), got "
                               f"{self.friction_sweep_contacts!r}")
+        if self.rebound_sweeps not in ("off", "all", "pp"):
+            raise ConfigError("[model] rebound_sweeps must be 'off', 'all' (every impact past "
+                              "its contact time) or 'pp' (ball-ball impacts only), got "
+                              f"{self.rebound_sweeps!r}")
+        if self.rebound_sweeps != "off" and not (self.law_rebound and self.overlap_sweeps > 0):
+            raise ConfigError(f"[model] rebound_sweeps = {self.rebound_sweeps!r} needs law_rebound = true and "
+                              f"overlap_sweeps > 0 (the sweeps it joins), got law_rebound = "
+                              f"{self.law_rebound} and overlap_sweeps = {self.overlap_sweeps}")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered
         # later loads.

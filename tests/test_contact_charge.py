@@ -630,3 +630,69 @@ def test_friction_sweeps_on_the_walls_only_leave_each_ball_ball_stick_to_the_net
     assert np.max(np.abs(du_every[pp] - du_off[pp])) > 1e-3 * np.max(np.abs(du_off[pp]))
     with pytest.raises(Exception, match="friction_sweep_contacts"):
         net_with(friction_sweep_contacts="pp")
+
+
+def test_rebound_sweeps_keep_an_impact_at_its_rebound_with_the_struck_balls_other_contact():
+    """``rebound_sweeps``: a 10 mm steel ball strikes a 6 mm zirconia ball that rests against
+    another 10 mm ball (a chain, in free space). Past the impact's contact time the step alone
+    ends the impact at e v only for the pair by itself; the resting contact behind then
+    pushes the struck ball back and the pair parts slower. With the sweeps the pair parts at
+    e v with both contacts acting; without an impact the sweeps change nothing."""
+    from sgn_jax.surrogate.contact import ContactModelError
+
+    # materials of the DEM's stiffness, so that the impact is over within the window
+    steel = dataclasses.replace(STEEL, young=2.1e11)
+    zirconia = dataclasses.replace(ZIRCONIA, young=2.1e11)
+    chain = Charge(classes=(BallClass(2, 0.005, 7700.0, steel),
+                            BallClass(1, 0.003, 6000.0, zirconia)), wall=steel)
+    e = chain.pair_rule(steel, zirconia).restitution
+    v = 0.2
+    pos = np.zeros((W + 1, 3, 3))
+    # ball 2 (zirconia) at the origin; ball 0 (steel) strikes it at v, its gap +10 um at the
+    # oldest slot of the window and closing 20 um per step (the impact began 2.5 steps before
+    # the end of this one, past its contact time); ball 1 (steel) rests 0.5 um into ball 2
+    pos[:, 0, 0] = -0.008 - 30e-6 + v * DT * np.arange(W + 1)
+    pos[:, 1, 0] = 0.008 - 0.5e-6
+    radii = np.array([0.005, 0.005, 0.003])
+
+    def window_of(positions):
+        return Window(positions=jnp.asarray(positions), offsets=jnp.zeros((W, 3)),
+                      offset_velocities=jnp.zeros((W, 3)), frequency_hz=jnp.asarray(0.0),
+                      spins=jnp.zeros((3, 3)), charge=ball_charge(chain, radii=radii))
+
+    # the floor 1 m below (no wall); a limit deep enough that the rebound alone sets the step
+    physics = dict(gravity=(0.0, 0.0, 0.0), law_rebound=True, rebound_exact="fresh",
+                   overlap_limit=3e-4, overlap_sweeps=4, floor_height=1.0)
+    alone, params, _ = terms_of(window_of(pos), **physics)
+    swept, _, _ = terms_of(window_of(pos), params=params, rebound_sweeps="all", **physics)
+    vel = (pos[-1] - pos[-2]) / DT
+
+    def parting(terms):
+        end = vel + np.asarray(terms["dv"])[:3]
+        return end[2, 0] - end[0, 0]
+
+    assert parting(alone) < 0.97 * e * v              # pushed back by the resting contact
+    assert parting(swept) == pytest.approx(e * v, rel=2e-3)
+    # the resting contact alone (ball 0 far away): the sweeps have nothing to add
+    apart = pos.copy()
+    apart[:, 0, 0] -= 0.01
+    quiet, _, _ = terms_of(window_of(apart), params=params, **physics)
+    quiet_swept, _, _ = terms_of(window_of(apart), params=params, rebound_sweeps="all",
+                                 **physics)
+    np.testing.assert_array_equal(np.asarray(quiet["dv"]), np.asarray(quiet_swept["dv"]))
+    with pytest.raises(ContactModelError, match="rebound_sweeps"):
+        dataclasses.replace(PHYS, rebound_sweeps="all")       # without the law rebound
+    with pytest.raises(ContactModelError, match="rebound_sweeps"):
+        dataclasses.replace(PHYS, law_rebound=True, rebound_sweeps="walls")
+    from sgn_jax.api import load_config, replace_section
+    from sgn_jax.config import ConfigError
+    from sgn_jax.surrogate.contact_charge import physics_from_config
+
+    cfg = replace_section(load_config("emax_300rpm"), "model", kind="contact_charge", spin=True,
+                          overlap_limit=5e-5, overlap_law_factor=1.5, law_rebound=True,
+                          overlap_sweeps=3, rebound_sweeps="pp")
+    assert physics_from_config(cfg).rebound_sweeps == "pp"
+    with pytest.raises(ConfigError, match="rebound_sweeps"):
+        replace_section(cfg, "model", overlap_sweeps=0)
+    with pytest.raises(ConfigError, match="rebound_sweeps"):
+        replace_section(cfg, "model", rebound_sweeps="walls")

@@ -91,6 +91,10 @@ SINGLE_ROLLOUT_COMPACT_PER_BALL = 1.5
 DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
 """The dissipation targets of :class:`ContactPhysics` ``damping_target``."""
 
+NO_REBOUND_RATE = -1.0e3      # m/s: the rebound rate of a contact the law rebound leaves alone
+REBOUND_SWEEPS: tuple[str, ...] = ("off", "all", "pp")
+"""Which impacts past their contact time the overlap sweeps keep at the law's rebound with every
+ball's other contacts (``ChargePhysics.rebound_sweeps``): none, all, or the ball-ball ones."""
 REBOUND_EXACT: tuple[str, ...] = ("off", "wall", "all", "fresh")
 """Where :class:`ContactPhysics` ``rebound_exact`` makes the law rebound the impulse's ceiling:
 nowhere; at ball-wall contacts (a fresh impact ends at e v, a resting contact separates no
@@ -370,6 +374,7 @@ class GateRule:
     rebound_time: Any = None
     restitution: Any = None
     rebound_exact: str = "off"
+    rebound_sweeps: str = "off"
 
 
 def _largest_at_balls(values: jax.Array, receivers: jax.Array, senders: jax.Array,
@@ -462,6 +467,11 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
             over = fresh & (closing > 0) & (since_touch > t_contact)
             rebound = rule.restitution * closing - u[-1] - acc_term
             floor = jnp.where(over, jnp.maximum(floor, rebound), floor)
+            if rule.rebound_sweeps != "off":
+                # the gap rate each impact past its contact time ends the step with, for the
+                # overlap sweeps to keep with every ball's other contacts (m/s; none elsewhere)
+                swept = over & is_pp if rule.rebound_sweeps == "pp" else over
+                rebound_rate = jnp.where(swept, rule.restitution * closing, NO_REBOUND_RATE)
             if rule.rebound_exact == "all":
                 # ...and not faster: the contact's own impulse ends it at e v (or at what the
                 # overlap limit needs), whatever the network would add
@@ -521,6 +531,8 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
         # the exact law rebound's ceiling, only where it is on (the step's hot path is
         # unchanged without it)
         **({} if ceiling is None else {"ceiling": ceiling}),
+        **({"rebound_rate": rebound_rate} if rule.limit_on and rule.rebound_time is not None
+           and rule.rebound_sweeps != "off" else {}),
     }
 
 
@@ -909,7 +921,10 @@ class ContactNet(nn.Module):
         speed too many, ``need = max(0, -(gap_end + limit) / dt)``, shared by the larger
         number of violated contacts of its two balls, added as a normal impulse
         ``m* need / n`` (it raises that contact's gap rate by ``need / n``, m* its reduced
-        mass). A normal impulse has no torque, so the spins are unchanged."""
+        mass). A normal impulse has no torque, so the spins are unchanged. With the geometry's
+        ``rebound_rate`` (the charge kind's ``rebound_sweeps``) a contact also needs
+        ``rebound_rate - rate_end``: an impact past its contact time ends the step parting at
+        its law's rebound with the balls' other contacts acting, not only by itself."""
         phys = self.physics
         if phys.overlap_sweeps == 0:
             return impulse, du_n, dv
@@ -923,7 +938,12 @@ class ContactNet(nn.Module):
             partner = jnp.where(geo["is_pw"][:, None], wall_end, v_send)
             u_end = jnp.einsum("ec,ec->e", partner - v_recv, normal)
             gap_end = geo["gap"] + u_end * phys.dt
-            need = jnp.maximum(-(gap_end + geo["limit"]) / phys.dt, 0.0) * gate
+            need = -(gap_end + geo["limit"]) / phys.dt
+            if "rebound_rate" in geo:   # and each impact past its contact time ends at e v
+                gravity_n = jnp.einsum("c,ec->e", jnp.asarray(phys.gravity, DTYPE), normal)
+                rate_end = u_end - jnp.where(geo["is_pw"], gravity_n * phys.dt, 0.0)
+                need = jnp.maximum(need, geo["rebound_rate"] - rate_end)
+            need = jnp.maximum(need, 0.0) * gate
             violated = (need > 0).astype(need.dtype)
             extra = need / _larger_ball_count(violated, receivers, senders, is_pp, n_node)
             extra_impulse = (m_star * (-extra))[:, None] * normal

@@ -67,6 +67,7 @@ from sgn_jax.dem.charge import Charge
 from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.surrogate.contact import (
     DTYPE,
+    REBOUND_SWEEPS,
     ContactModelError,
     ContactNet,
     GateRule,
@@ -132,6 +133,11 @@ class ChargePhysics:
         overlap_sweeps, friction_sweeps: as the contact kind's.
         friction_sweep_contacts: "all" (the contact kind's) or "wall": the friction sweeps act
             on the ball-wall contacts only, each ball-ball contact keeping its learned stick.
+        rebound_sweeps: "off", "all" or "pp" (:data:`sgn_jax.surrogate.contact.REBOUND_SWEEPS`):
+            the overlap sweeps also keep each impact past its contact time (every one, or the
+            ball-ball ones) separating at its law's rebound e v with all contacts acting; the
+            law rebound alone sets it for the contact by itself (needs ``law_rebound`` and
+            ``overlap_sweeps``).
     """
 
     dt: float = 2.0e-4
@@ -147,6 +153,7 @@ class ChargePhysics:
     friction_sweeps: int = 0
     rebound_exact: str = "off"
     friction_sweep_contacts: str = "all"
+    rebound_sweeps: str = "off"
 
     def __post_init__(self) -> None:
         if not 1 <= self.history <= self.window:
@@ -165,6 +172,11 @@ class ChargePhysics:
             raise ContactModelError("friction_sweep_contacts must be 'all' or 'wall', got "
                                     f"{self.friction_sweep_contacts!r}")
         check_rebound_exact(self.rebound_exact, self.law_rebound, "the law rebound (law_rebound)")
+        if self.rebound_sweeps not in REBOUND_SWEEPS:
+            raise ContactModelError(f"rebound_sweeps must be one of {REBOUND_SWEEPS}, got "
+                                    f"{self.rebound_sweeps!r}")
+        if self.rebound_sweeps != "off" and not (self.law_rebound and self.overlap_sweeps > 0):
+            raise ContactModelError("rebound_sweeps needs law_rebound = true and overlap_sweeps > 0")
 
 
 # --------------------------------------------------------------------------------------------
@@ -312,7 +324,8 @@ class ContactChargeNet(ContactNet):
                                SPEED_REF,
                                rebound_time=mat["rebound_time"] if phys.law_rebound else None,
                                restitution=mat["restitution"],
-                               rebound_exact=phys.rebound_exact),
+                               rebound_exact=phys.rebound_exact,
+                               rebound_sweeps=phys.rebound_sweeps),
             spin=self.spin,
             constant_inputs=(jnp.log10(scale_v / SPEED_REF), mat["restitution"],
                              mat["friction"], ROLLING_INPUT * mat["rolling_friction"],
@@ -483,7 +496,8 @@ def physics_from_config(cfg: Any) -> ChargePhysics:
                          friction_sweeps=int(getattr(cfg.model, "friction_sweeps", 0)),
                          rebound_exact=str(getattr(cfg.model, "law_rebound_exact", "off")),
                          friction_sweep_contacts=str(getattr(cfg.model, "friction_sweep_contacts",
-                                                             "all")))
+                                                             "all")),
+                         rebound_sweeps=str(getattr(cfg.model, "rebound_sweeps", "off")))
 
 
 def make_contact_charge_net(cfg: Any) -> ContactChargeNet:
