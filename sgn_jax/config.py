@@ -555,10 +555,12 @@ class ModelConfig:
             contact keeps its learned stick, so balls that ride the wall side by side are not
             bound into one body; docs/contact_charge.md, "Limits").
         rebound_sweeps: kind "contact_charge" only (needs law_rebound and overlap_sweeps):
-            "off" (default), "all" or "pp": the overlap sweeps also keep each impact past its
-            contact time (every one, or the ball-ball ones) at its law's rebound, e v, with
-            every ball's other contacts acting (a ball struck while it touches the wall or
-            another ball), not only for the contact alone (docs/contact_charge.md, "Limits").
+            "off" (default), "all" or "free": the overlap sweeps also keep each impact past its
+            contact time at its law's rebound, e v, with every ball's other contacts acting
+            (a ball struck while it touches the wall or another ball), not only for the
+            contact alone: every such impact ("all"), or the ball-ball impacts of balls that
+            no contact closed over the window holds ("free"; docs/contact_charge.md,
+            "Limits").
         damping_target: kind "contact" only: how the model's dissipation target (the DEM's
             damping, what `dE` and the power report) comes from its own losses: "kind" (a
             share of all losses per contact kind, fitted from the records) or "contact" (per
@@ -631,9 +633,10 @@ class ModelConfig:
             raise ConfigError("[model] friction_sweep_contacts must be 'all' (every acting "
                               "contact) or 'wall' (ball-wall contacts only), got "
                               f"{self.friction_sweep_contacts!r}")
-        if self.rebound_sweeps not in ("off", "all", "pp"):
+        if self.rebound_sweeps not in ("off", "all", "free"):
             raise ConfigError("[model] rebound_sweeps must be 'off', 'all' (every impact past "
-                              "its contact time) or 'pp' (ball-ball impacts only), got "
+                              "its contact time) or 'free' (ball-ball impacts of balls held by "
+                              "no resting contact), got "
                               f"{self.rebound_sweeps!r}")
         if self.rebound_sweeps != "off" and not (self.law_rebound and self.overlap_sweeps > 0):
             raise ConfigError(f"[model] rebound_sweeps = {self.rebound_sweeps!r} needs law_rebound = true and "

@@ -636,8 +636,9 @@ def test_rebound_sweeps_keep_an_impact_at_its_rebound_with_the_struck_balls_othe
     """``rebound_sweeps``: a 10 mm steel ball strikes a 6 mm zirconia ball that rests against
     another 10 mm ball (a chain, in free space). Past the impact's contact time the step alone
     ends the impact at e v only for the pair by itself; the resting contact behind then
-    pushes the struck ball back and the pair parts slower. With the sweeps the pair parts at
-    e v with both contacts acting; without an impact the sweeps change nothing."""
+    pushes the struck ball back and the pair parts slower. With the sweeps ("all") the pair
+    parts at e v with both contacts acting; with "free" the struck ball, held by its resting
+    contact, is left to the step; without an impact the sweeps change nothing."""
     from sgn_jax.surrogate.contact import ContactModelError
 
     # materials of the DEM's stiffness, so that the impact is over within the window
@@ -673,6 +674,9 @@ def test_rebound_sweeps_keep_an_impact_at_its_rebound_with_the_struck_balls_othe
 
     assert parting(alone) < 0.97 * e * v              # pushed back by the resting contact
     assert parting(swept) == pytest.approx(e * v, rel=2e-3)
+    # "free": the struck ball is held by its resting contact, so the impact is left to the step
+    held, _, _ = terms_of(window_of(pos), params=params, rebound_sweeps="free", **physics)
+    np.testing.assert_array_equal(np.asarray(held["dv"]), np.asarray(alone["dv"]))
     # the resting contact alone (ball 0 far away): the sweeps have nothing to add
     apart = pos.copy()
     apart[:, 0, 0] -= 0.01
@@ -690,9 +694,9 @@ def test_rebound_sweeps_keep_an_impact_at_its_rebound_with_the_struck_balls_othe
 
     cfg = replace_section(load_config("emax_300rpm"), "model", kind="contact_charge", spin=True,
                           overlap_limit=5e-5, overlap_law_factor=1.5, law_rebound=True,
-                          overlap_sweeps=3, rebound_sweeps="pp")
-    assert physics_from_config(cfg).rebound_sweeps == "pp"
+                          overlap_sweeps=3, rebound_sweeps="free")
+    assert physics_from_config(cfg).rebound_sweeps == "free"
     with pytest.raises(ConfigError, match="rebound_sweeps"):
         replace_section(cfg, "model", overlap_sweeps=0)
     with pytest.raises(ConfigError, match="rebound_sweeps"):
-        replace_section(cfg, "model", rebound_sweeps="walls")
+        replace_section(cfg, "model", rebound_sweeps="pp")

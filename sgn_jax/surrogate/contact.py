@@ -92,9 +92,11 @@ DAMPING_TARGETS: tuple[str, ...] = ("kind", "contact")
 """The dissipation targets of :class:`ContactPhysics` ``damping_target``."""
 
 NO_REBOUND_RATE = -1.0e3      # m/s: the rebound rate of a contact the law rebound leaves alone
-REBOUND_SWEEPS: tuple[str, ...] = ("off", "all", "pp")
+REBOUND_SWEEPS: tuple[str, ...] = ("off", "all", "free")
 """Which impacts past their contact time the overlap sweeps keep at the law's rebound with every
-ball's other contacts (``ChargePhysics.rebound_sweeps``): none, all, or the ball-ball ones."""
+ball's other contacts acting (``ChargePhysics.rebound_sweeps``): none; all; or the ball-ball
+impacts of two "free" balls, neither held by a contact closed over the whole window (resting
+on, rolling on or pressed against the wall or another ball)."""
 REBOUND_EXACT: tuple[str, ...] = ("off", "wall", "all", "fresh")
 """Where :class:`ContactPhysics` ``rebound_exact`` makes the law rebound the impulse's ceiling:
 nowhere; at ball-wall contacts (a fresh impact ends at e v, a resting contact separates no
@@ -470,7 +472,14 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
             if rule.rebound_sweeps != "off":
                 # the gap rate each impact past its contact time ends the step with, for the
                 # overlap sweeps to keep with every ball's other contacts (m/s; none elsewhere)
-                swept = over & is_pp if rule.rebound_sweeps == "pp" else over
+                swept = over
+                if rule.rebound_sweeps == "free":
+                    # A ball held by a contact closed over the window (in a bed, on the wall)
+                    # shares an impact with what holds it: a collision of many bodies, more
+                    # lossy than the pair's own rebound, left to the network and the step.
+                    held = _largest_at_balls((acting & ~fresh).astype(gap.dtype), receivers,
+                                             senders, is_pp, graph.nodes["features"].shape[0])
+                    swept = over & is_pp & (held[receivers] == 0) & (held[senders] == 0)
                 rebound_rate = jnp.where(swept, rule.restitution * closing, NO_REBOUND_RATE)
             if rule.rebound_exact == "all":
                 # ...and not faster: the contact's own impulse ends it at e v (or at what the

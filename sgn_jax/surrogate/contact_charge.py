@@ -133,11 +133,11 @@ class ChargePhysics:
         overlap_sweeps, friction_sweeps: as the contact kind's.
         friction_sweep_contacts: "all" (the contact kind's) or "wall": the friction sweeps act
             on the ball-wall contacts only, each ball-ball contact keeping its learned stick.
-        rebound_sweeps: "off", "all" or "pp" (:data:`sgn_jax.surrogate.contact.REBOUND_SWEEPS`):
+        rebound_sweeps: "off", "all" or "free" (:data:`sgn_jax.surrogate.contact.REBOUND_SWEEPS`):
             the overlap sweeps also keep each impact past its contact time (every one, or the
-            ball-ball ones) separating at its law's rebound e v with all contacts acting; the
-            law rebound alone sets it for the contact by itself (needs ``law_rebound`` and
-            ``overlap_sweeps``).
+            ball-ball impacts of balls no resting contact holds) separating at its law's
+            rebound e v with all contacts acting; the law rebound alone sets it for the
+            contact by itself (needs ``law_rebound`` and ``overlap_sweeps``).
     """
 
     dt: float = 2.0e-4
