@@ -16,7 +16,9 @@ Two tables (compile time apart, best of ``--repeats``):
 
 ``--full-rows``: each surrogate rollout also with every step on the whole graph (the
 single-rollout form's compaction to the rows that may act off, docs/contact.md), and the
-speed-up of the compaction, in the same run.
+speed-up of the compaction, in the same run. ``--model-set KEY=VALUE`` (repeatable): the same
+weights with a ``[model]`` key replaced, e.g. ``'rebound_sweeps="free"'``, as the evaluation
+scripts' option.
 
 Writes JSON to --out; prints markdown tables (or replaces them in --markdown).
 """
@@ -38,6 +40,7 @@ import sgn_jax
 import sgn_jax.api as sj
 from sgn_jax.config import builtin_config_path, load_config, replace_section
 from sgn_jax.dem.engine import make_advance
+from sgn_jax.experiment_tools import with_model_keys
 from sgn_jax.pipelines.dem_run import initial_state, setup_from_config
 from sgn_jax.records.checkpoint import load_trained_model
 from sgn_jax.records.io_utils import git_commit, machine_info, write_json
@@ -105,8 +108,10 @@ def main() -> None:
     parser.add_argument("--markdown", default=None)
     parser.add_argument("--full-rows", action="store_true",
                         help="also time each rollout with every step on the whole graph")
+    parser.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a [model] key of the checkpoint's config replaced (repeatable)")
     args = parser.parse_args()
-    model = load_trained_model(args.model, which="latest")
+    model = with_model_keys(load_trained_model(args.model, which="latest"), args.model_set)
     model_dt = float(model.config.dem.dt)
     design = tomllib.loads((DESIGN / "design.toml").read_text())["heldout"]
     charges = []
@@ -136,11 +141,12 @@ def main() -> None:
         print(json.dumps(row), flush=True)
     machine = {**machine_info(), "affinity": sorted(os.sched_getaffinity(0))}
     result = {"benchmark": "charge_ratio", "commit": git_commit(), "model": args.model,
+              "model_set": args.model_set,
               "sgn_jax": sgn_jax.__version__, "machine": machine, "charges": charges,
               "counts": counts}
     write_json(args.out, result)
     head = (f"Commit {result['commit']}, jax {machine['jax']}, affinity {machine['affinity']}, "
-            f"model `{args.model}` (`{args.out}`):")
+            f"model `{args.model}`{''.join(f' {a}' for a in args.model_set)} (`{args.out}`):")
     full_head = " surrogate on the whole graph, s / simulated s | speed-up |" if args.full_rows else ""
     full_rule = "---|---|" if args.full_rows else ""
 
