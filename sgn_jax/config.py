@@ -636,11 +636,11 @@ class ModelConfig:
         if self.rebound_sweeps not in ("off", "all", "free"):
             raise ConfigError("[model] rebound_sweeps must be 'off', 'all' (every impact past "
                               "its contact time) or 'free' (ball-ball impacts of balls held by "
-                              "no resting contact), got "
-                              f"{self.rebound_sweeps!r}")
+                              f"no resting contact), got {self.rebound_sweeps!r}")
         if self.rebound_sweeps != "off" and not (self.law_rebound and self.overlap_sweeps > 0):
-            raise ConfigError(f"[model] rebound_sweeps = {self.rebound_sweeps!r} needs law_rebound = true and "
-                              f"overlap_sweeps > 0 (the sweeps it joins), got law_rebound = "
+            raise ConfigError(f"[model] rebound_sweeps = {self.rebound_sweeps!r} needs "
+                              "law_rebound = true and overlap_sweeps > 0 (the sweeps it joins), "
+                              "got law_rebound = "
                               f"{self.law_rebound} and overlap_sweeps = {self.overlap_sweeps}")
         # Whether the kind is registered is checked where the model is built (the registry
         # lives in the core, sgn_jax.surrogate.model): a config naming a kind registered

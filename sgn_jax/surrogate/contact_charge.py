@@ -133,7 +133,7 @@ class ChargePhysics:
         overlap_sweeps, friction_sweeps: as the contact kind's.
         friction_sweep_contacts: "all" (the contact kind's) or "wall": the friction sweeps act
             on the ball-wall contacts only, each ball-ball contact keeping its learned stick.
-        rebound_sweeps: "off", "all" or "free" (:data:`sgn_jax.surrogate.contact.REBOUND_SWEEPS`):
+        rebound_sweeps: "off", "all" or "free" (``contact.REBOUND_SWEEPS``):
             the overlap sweeps also keep each impact past its contact time (every one, or the
             ball-ball impacts of balls no resting contact holds) separating at its law's
             rebound e v with all contacts acting; the law rebound alone sets it for the
@@ -176,7 +176,8 @@ class ChargePhysics:
             raise ContactModelError(f"rebound_sweeps must be one of {REBOUND_SWEEPS}, got "
                                     f"{self.rebound_sweeps!r}")
         if self.rebound_sweeps != "off" and not (self.law_rebound and self.overlap_sweeps > 0):
-            raise ContactModelError("rebound_sweeps needs law_rebound = true and overlap_sweeps > 0")
+            raise ContactModelError("rebound_sweeps needs law_rebound = true and "
+                                    "overlap_sweeps > 0")
 
 
 # --------------------------------------------------------------------------------------------
