@@ -432,6 +432,7 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
     # the contacts that act this step: the gate (and the "fresh" ceiling's acting rows)
     acting = (is_pp | is_pw) & (jnp.minimum(gap[-1], gap_end) < rule.gate_margin)
     ceiling = None
+    sweep_rows = {}   # what the overlap sweeps read besides the limit (rebound_sweeps)
     if rule.limit_on:
         limit = rule.limit
         if rule.law_factor > 0:
@@ -480,7 +481,11 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
                     held = _largest_at_balls((acting & ~fresh).astype(gap.dtype), receivers,
                                              senders, is_pp, graph.nodes["features"].shape[0])
                     swept = over & is_pp & (held[receivers] == 0) & (held[senders] == 0)
-                rebound_rate = jnp.where(swept, rule.restitution * closing, NO_REBOUND_RATE)
+                # The sweeps see a wall's velocity at the end of the step but not gravity's
+                # g dt on the ball: a ball-wall target counts it here, once per step.
+                gravity_n = jnp.where(is_pw, jnp.einsum("c,ec->e", g, normal) * dt, 0.0)
+                sweep_rows["rebound_rate"] = jnp.where(
+                    swept, rule.restitution * closing + gravity_n, NO_REBOUND_RATE)
             if rule.rebound_exact == "all":
                 # ...and not faster: the contact's own impulse ends it at e v (or at what the
                 # overlap limit needs), whatever the network would add
@@ -540,8 +545,7 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
         # the exact law rebound's ceiling, only where it is on (the step's hot path is
         # unchanged without it)
         **({} if ceiling is None else {"ceiling": ceiling}),
-        **({"rebound_rate": rebound_rate} if rule.limit_on and rule.rebound_time is not None
-           and rule.rebound_sweeps != "off" else {}),
+        **sweep_rows,
     }
 
 
@@ -932,8 +936,8 @@ class ContactNet(nn.Module):
         ``m* need / n`` (it raises that contact's gap rate by ``need / n``, m* its reduced
         mass). A normal impulse has no torque, so the spins are unchanged. With the geometry's
         ``rebound_rate`` (the charge kind's ``rebound_sweeps``) a contact also needs
-        ``rebound_rate - rate_end``: an impact past its contact time ends the step parting at
-        its law's rebound with the balls' other contacts acting, not only by itself."""
+        ``rebound_rate - u_end``: an impact past its contact time ends the step parting at its
+        law's rebound with the balls' other contacts acting, not only by itself."""
         phys = self.physics
         if phys.overlap_sweeps == 0:
             return impulse, du_n, dv
@@ -949,9 +953,7 @@ class ContactNet(nn.Module):
             gap_end = geo["gap"] + u_end * phys.dt
             need = -(gap_end + geo["limit"]) / phys.dt
             if "rebound_rate" in geo:   # and each impact past its contact time ends at e v
-                gravity_n = jnp.einsum("c,ec->e", jnp.asarray(phys.gravity, DTYPE), normal)
-                rate_end = u_end - jnp.where(geo["is_pw"], gravity_n * phys.dt, 0.0)
-                need = jnp.maximum(need, geo["rebound_rate"] - rate_end)
+                need = jnp.maximum(need, geo["rebound_rate"] - u_end)
             need = jnp.maximum(need, 0.0) * gate
             violated = (need > 0).astype(need.dtype)
             extra = need / _larger_ball_count(violated, receivers, senders, is_pp, n_node)
