@@ -553,14 +553,15 @@ class ModelConfig:
         friction_sweep_contacts: kind "contact_charge" only: which contacts the friction
             sweeps act on, "all" (default) or "wall" (ball-wall contacts only; each ball-ball
             contact keeps its learned stick, so balls that ride the wall side by side are not
-            bound into one body; docs/contact_charge.md, "Limits").
+            bound into one body; the shipped contact_charge's setting; docs/contact_charge.md,
+            "Limits").
         rebound_sweeps: kind "contact_charge" only (needs law_rebound and overlap_sweeps):
             "off" (default), "all" or "free": the overlap sweeps also keep each impact past its
             contact time at its law's rebound, e v, with every ball's other contacts acting
             (a ball struck while it touches the wall or another ball), not only for the
             contact alone: every such impact ("all"), or the ball-ball impacts of balls that
-            no contact closed over the window holds ("free"; docs/contact_charge.md,
-            "Limits").
+            no contact closed over the window holds ("free", the shipped contact_charge's
+            setting; docs/contact_charge.md, "Limits").
         damping_target: kind "contact" only: how the model's dissipation target (the DEM's
             damping, what `dE` and the power report) comes from its own losses: "kind" (a
             share of all losses per contact kind, fitted from the records) or "contact" (per

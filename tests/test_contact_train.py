@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import sgn_jax.api as sj
+from sgn_jax.config import load_config
 from sgn_jax.pipelines.contact_replay import derive_contact_model
 from sgn_jax.pipelines.contact_train_run import train_contact
 from sgn_jax.records.checkpoint import load_trained_model
@@ -206,9 +207,14 @@ def test_the_checkpoint_states_its_envelope_and_a_derived_model_keeps_it(tmp_pat
     _, whole_dir = unbroken_run
     source = load_trained_model(whole_dir)
     assert model_envelope(source.config, source.meta).source == "the model's stated envelope"
-    out = derive_contact_model(str(whole_dir), str(tmp_path / "limited"), overlap_limit=1e-4)
+    out = derive_contact_model(str(whole_dir / "checkpoints" / "latest"),
+                               str(tmp_path / "limited"), overlap_limit=1e-4)
     derived = load_trained_model(out)
     assert derived.model.physics.overlap_limit == 1e-4
+    # it ships as a run: the changed config and the source run's own records beside it
+    assert load_config(tmp_path / "limited" / "config.toml").model.overlap_limit == 1e-4
+    for name in ("run_info.json", "summary.json"):
+        assert (tmp_path / "limited" / name).read_bytes() == (whole_dir / name).read_bytes()
     assert derived.meta["derived_from"]["change"] == {"overlap_limit": 1e-4}
     assert derived.meta["envelope"] == source.meta["envelope"]
     for x, y in zip(_leaves(derived.params), _leaves(source.params), strict=True):

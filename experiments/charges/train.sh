@@ -41,3 +41,12 @@ TRAINER="$DRIVER --config experiments/charges/rebound_fine_train.toml" \
 stage fine --records $CHARGES data/envelope/train_*.npz \
     --init-from "$OUT/rebound/checkpoints/latest" --unroll 24 --pushforward --touch-weight 30 \
     --lr-init 2e-4 --lr-final 1e-5 --steps 600 --batch-size 8 --checkpoint-every 100
+# 6. the shipped settings, the same weights rolled out with every fresh impact passive, the
+#    rebound in the overlap sweeps for free balls and the friction sweeps on the walls only
+#    (docs/contact_charge.md, "Training on charges of different ball counts")
+if [ ! -d "$OUT/shipped" ]; then
+    python -c "import sys, sgn_jax.experiment_tools as xt; xt.derive_contact_model(
+        sys.argv[1], sys.argv[2], law_rebound_exact='fresh', rebound_sweeps='free',
+        friction_sweep_contacts='wall')" "$OUT/fine/checkpoints/latest" "$OUT/shipped"
+fi
+echo "the shipped model: $OUT/shipped (experiments/tools/ship_model.py --run $OUT/shipped ...)"

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
 import time
 from typing import Any
 
@@ -36,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgn_jax.config import config_to_dict, replace_section
+from sgn_jax.config import config_to_dict, replace_section, save_config
 from sgn_jax.motion import frequency_hz, offset, velocity
 from sgn_jax.pipelines import configure
 from sgn_jax.pipelines.rollout_run import _effective_config, run_rollout
@@ -195,6 +196,9 @@ def derive_contact_model(checkpoint: str, out: str, shares: Any = None,
     they mean and needs them (``tangential_damping_shares`` or ``dissipation_shares`` of the
     model's training records, sgn_jax.surrogate.contact_train). Refuses an existing ``out``,
     a model that is not a contact model and a ``damping_target`` change without ``shares``.
+    ``out`` also gets the changed config as ``config.toml`` and the source run's own records
+    (``run_info.json``, ``summary.json``, ``loss.png``, ``metrics.csv``, where the source lies in a
+    run directory), so that it ships as a run (``experiments/tools/ship_model.py --run out``).
     Returns ``out``."""
     if os.path.exists(out):
         raise FileExistsError(f"{out} exists: choose a new directory")
@@ -220,4 +224,27 @@ def derive_contact_model(checkpoint: str, out: str, shares: Any = None,
                               "change": {k: model_changes[k] for k in sorted(model_changes)}})
     save_checkpoint(os.path.join(out, "checkpoints", "best"), int(meta.get("step", 0)),
                     params=params, norm_stats=trained.norm_stats, meta=meta, keep=1)
+    save_config(cfg, os.path.join(out, "config.toml"))
+    source_run = _run_directory(checkpoint)
+    if source_run is not None:
+        for name in RUN_RECORDS:
+            if os.path.isfile(os.path.join(source_run, name)):
+                shutil.copy2(os.path.join(source_run, name), os.path.join(out, name))
     return out
+
+
+RUN_RECORDS: tuple[str, ...] = ("run_info.json", "summary.json", "loss.png", "metrics.csv")
+"""A training run's own records that a model derived from it carries (its settings, its
+wall time and losses), for ``experiments/tools/ship_model.py``."""
+
+
+def _run_directory(checkpoint: str) -> str | None:
+    """The training run directory that holds ``checkpoint`` (RUN, RUN/checkpoints/NAME or
+    RUN/checkpoints/NAME/STEP: the nearest of it and its three parents with a
+    ``summary.json``), or None (a shipped model's folder, a bare checkpoint)."""
+    path = os.path.abspath(checkpoint)
+    for _ in range(4):
+        if os.path.isfile(os.path.join(path, "summary.json")):
+            return path
+        path = os.path.dirname(path)
+    return None
