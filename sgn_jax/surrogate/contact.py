@@ -382,10 +382,10 @@ class GateRule:
 def _largest_at_balls(values: jax.Array, receivers: jax.Array, senders: jax.Array,
                       is_pp: jax.Array, n_node: int) -> jax.Array:
     """(n_node,) the largest of ``values`` (E,) >= 0 over each ball's contact rows (a row
-    counts at its receiver, a ball-ball row at its sender too); 0 for a ball without rows."""
-    largest = jnp.maximum(jax.ops.segment_max(values, receivers, num_segments=n_node),
-                          jax.ops.segment_max(jnp.where(is_pp, values, 0.0), senders,
-                                              num_segments=n_node))
+    counts at its receiver, a ball-ball row at its sender too); 0 for a ball without rows.
+    Both ends in one scatter, as :func:`sum_at_both_ends`."""
+    largest = jax.ops.segment_max(jnp.concatenate([values, jnp.where(is_pp, values, 0.0)]),
+                                  jnp.concatenate([receivers, senders]), num_segments=n_node)
     return jnp.maximum(largest, 0.0)
 
 
@@ -480,7 +480,8 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
                     # lossy than the pair's own rebound, left to the network and the step.
                     held = _largest_at_balls((acting & ~fresh).astype(gap.dtype), receivers,
                                              senders, is_pp, graph.nodes["features"].shape[0])
-                    swept = over & is_pp & (held[receivers] == 0) & (held[senders] == 0)
+                    held_r, held_s = at_both_ends(held, receivers, senders)
+                    swept = over & is_pp & (held_r == 0) & (held_s == 0)
                 # The sweeps see a wall's velocity at the end of the step but not gravity's
                 # g dt on the ball: a ball-wall target counts it here, once per step.
                 gravity_n = jnp.where(is_pw, jnp.einsum("c,ec->e", g, normal) * dt, 0.0)
@@ -520,8 +521,9 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
                 closing_window = jnp.where(acting, jnp.maximum(-jnp.min(u, axis=0), 0.0), 0.0)
                 ball_in = _largest_at_balls(closing_window, receivers, senders, is_pp,
                                             graph.nodes["features"].shape[0])
-                came_in = jnp.maximum(jnp.maximum(closing_window, ball_in[receivers]),
-                                      jnp.where(is_pp, ball_in[senders], 0.0))
+                in_r, in_s = at_both_ends(ball_in, receivers, senders)
+                came_in = jnp.maximum(jnp.maximum(closing_window, in_r),
+                                      jnp.where(is_pp, in_s, 0.0))
                 passive = jnp.maximum(floor, rule.restitution * came_in - u[-1] - acc_term)
                 ceiling = jnp.where(over, floor, jnp.where(fresh, passive, jnp.inf))
     else:
