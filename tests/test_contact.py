@@ -18,7 +18,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sgn_jax.surrogate.contact import ContactNet, ContactPhysics, edge_geometry
+from sgn_jax.surrogate.contact import (
+    ContactNet,
+    ContactPhysics,
+    InputScales,
+    _scaled_inputs,
+    edge_geometry,
+)
 from sgn_jax.surrogate.graph import GraphSpec, Window, build_graph
 from sgn_jax.surrogate.model import model_factory
 
@@ -1032,3 +1038,29 @@ def test_the_exact_law_rebound_on_walls_leaves_a_ball_ball_impact_to_the_network
     assert np.isinf(pair_wall)                          # left to the network
     assert np.isinf(resting_all)
     assert resting_wall == pytest.approx(e * v, abs=2e-3)   # +- gravity over one step
+
+
+@pytest.mark.parametrize("per_contact", [False, True])
+def test_the_scaled_inputs_are_each_columns_clip_or_tanh(per_contact):
+    """_scaled_inputs with constant scales (the contact kind) and with scales per contact (the
+    charge kind, one elementwise expression over all columns) gives each column's own
+    ``clip(x / coarse)`` or ``tanh(x / fine)``, in the documented order."""
+    rng = np.random.default_rng(3)
+    w, h, e = 7, 3, 5
+    gap, u = (jnp.asarray(rng.normal(0, 1e-4, (w, e)), jnp.float32) for _ in range(2))
+    speed_t, acc, slip = (jnp.asarray(np.abs(rng.normal(0, 0.5, e)), jnp.float32)
+                          for _ in range(3))
+    values = (1e-4, 5e-6, 1.0, 1e-2)
+    scales = [jnp.asarray(rng.uniform(0.5, 2.0, e) * v, jnp.float32) if per_contact else v
+              for v in values]
+    sc = InputScales(*scales, 5.0)
+    got = np.asarray(_scaled_inputs(gap, u, speed_t, acc, slip, sc, h))
+    gc, gf, vc, vf = scales
+    want = []
+    for k in range(w - h, w):
+        want += [jnp.clip(gap[k] / gc, -1.0, 3.0), jnp.tanh(gap[k] / gf),
+                 jnp.clip(u[k] / vc, -5.0, 5.0), jnp.tanh(u[k] / vf)]
+    want += [jnp.clip(speed_t / vc, 0.0, 5.0), jnp.tanh(speed_t / vf), jnp.tanh(acc / vf),
+             jnp.clip(slip / vc, 0.0, 5.0), jnp.tanh(slip / vf)]
+    np.testing.assert_allclose(got, np.stack(want, axis=-1), rtol=1e-6, atol=1e-7)
+    assert got.shape == (e, 4 * h + 5)

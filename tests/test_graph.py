@@ -16,6 +16,7 @@ from sgn_jax.surrogate.graph import (
     Window,
     build_graph,
     slide_window,
+    true_indices,
     velocity_columns,
 )
 from sgn_jax.surrogate.train import split_window_ends
@@ -237,6 +238,17 @@ def test_bad_window_shape_is_a_clear_error(grid):
     win = _window(np.zeros((4, 3)), window=3)
     with pytest.raises(GraphError, match="W \\+ 1 positions"):
         build_graph(win.replace(positions=win.positions[1:]), grid, _spec(4))
+
+
+@pytest.mark.parametrize("size", [1, 5, 12])
+def test_true_indices_are_each_rows_nonzero(size):
+    """true_indices (one cumsum and one scatter for all rows) gives per row what jnp.nonzero
+    gives: the first ``size`` True indices in order, then the fill value."""
+    mask = np.random.default_rng(size).random((3, 12)) < np.array([[0.2], [0.7], [0.0]])
+    got = np.asarray(jax.jit(true_indices, static_argnums=(1, 2))(jnp.asarray(mask), size, 12))
+    for k in range(3):
+        (want,) = jnp.nonzero(mask[k], size=size, fill_value=12)
+        np.testing.assert_array_equal(got[k], np.asarray(want))
 
 
 def test_chronological_split():

@@ -178,6 +178,32 @@ def test_snap_back_position_mode_changes_fd_velocity():
     np.testing.assert_allclose(fd_velocity[-2, 0], [0.0, -0.2, 0.0], rtol=0, atol=1e-10)
 
 
+@pytest.mark.parametrize("snap_back", [True, False])
+def test_a_ball_outside_the_jar_is_snapped_or_counted_outside(snap_back):
+    """A ball whose centre ends a step 1 mm outside the floor (phi > 0): with the snap-back it
+    is moved back to phi_sb (snapped, and not outside after the step; it rests there as the jar
+    moves, and may be snapped again); without, it is counted outside, and the ball inside the
+    jar is neither."""
+    spec = GraphSpec(n_particles=2, window=3, ball_radius=0.005, dt=1e-4, pp_pair_capacity=1)
+    t0 = 0.01
+    last = np.array([[0.0, -0.001, 0.0], [0.0, 0.02, 0.0]]) + _circle_offset(300.0, 0.017, t0)
+    positions = np.broadcast_to(last, (spec.window + 1, 2, 3)).copy()
+    window0 = Window(positions=positions, offsets=np.zeros((3, 3)),
+                     offset_velocities=np.zeros((3, 3)), frequency_hz=np.float64(0.0))
+    table = ReplayTable(accel=np.zeros((2, 2, 3)), dE=np.zeros(2))
+    rollout = make_rollout(spec, replay_predictor(), 2, 1, snap_back=snap_back, phi_sb=-0.0049,
+                           query=analytic_jar_query)
+    res = jax.device_get(rollout(table, None, window0, CircleMotion(rpm=300.0, amplitude=0.017),
+                                 JarParams(), t0))
+    if snap_back:
+        assert res.steps.n_snapped[0] == 1 and res.steps.n_snapped.max() == 1
+        np.testing.assert_array_equal(res.steps.n_outside, [0, 0])
+        assert res.positions[-1, 0, 1] - res.offsets[-1, 1] > 0.0048
+    else:
+        np.testing.assert_array_equal(res.steps.n_snapped, [0, 0])
+        np.testing.assert_array_equal(res.steps.n_outside, [1, 1])
+
+
 def test_separate_pairs_known_answer():
     radius, limit = 0.005, 5e-5
     positions = jnp.array([[0.0, 0.0, 0.0], [0.009, 0.0, 0.0],  # 1 mm overlap

@@ -60,11 +60,12 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import jraph
+import numpy as np
 
 from sgn_jax.dem.contact import head_on_impact, make_contact_law
 from sgn_jax.errors import SGNJaxError
 from sgn_jax.surrogate.collisions import contact_grid
-from sgn_jax.surrogate.graph import SLOT_DIM, compact_edge_pairs
+from sgn_jax.surrogate.graph import SLOT_DIM, compact_edge_pairs, true_indices
 from sgn_jax.surrogate.model import register_model
 
 DTYPE = jnp.float32
@@ -389,6 +390,51 @@ def _largest_at_balls(values: jax.Array, receivers: jax.Array, senders: jax.Arra
     return jnp.maximum(largest, 0.0)
 
 
+def _scaled_inputs(gap: jax.Array, u: jax.Array, speed_t: jax.Array, acc_term: jax.Array,
+                   slip_c: jax.Array | None, sc: InputScales, history: int) -> jax.Array:
+    """(E, 4 history + 3 (+ 2 with ``slip_c``)) the kinematic inputs of :func:`contact_rows`:
+    per slot of the newest ``history`` (oldest first) ``clip(gap / gap_coarse, -1, 3)``,
+    ``tanh(gap / gap_fine)``, ``clip(u / speed_coarse, -bound, bound)``,
+    ``tanh(u / speed_fine)``; then ``clip(speed_t / speed_coarse, 0, bound)``,
+    ``tanh(speed_t / speed_fine)``, ``tanh(acc_term / speed_fine)`` and the slip speed's two
+    columns as the tangential speed's.
+
+    Scales per contact (arrays: the charge kind) give every column in one elementwise
+    expression over the (E, C) raw values and scales: a small charge's step costs per XLA
+    operation, and a column each is an operation each. Constant scales (floats) give each
+    column alone, the division by a constant as XLA folds it (the contact kind's numbers)."""
+    w = gap.shape[0]
+    b = sc.speed_bound
+    # per column: (raw value, scale, fine (tanh) or clipped to [low, high])
+    cols: list[tuple] = []
+    for k in range(w - history, w):  # the newest slots, oldest first
+        cols += [(gap[k], sc.gap_coarse, False, -1.0, 3.0), (gap[k], sc.gap_fine, True, 0, 0),
+                 (u[k], sc.speed_coarse, False, -b, b), (u[k], sc.speed_fine, True, 0, 0)]
+    cols += [(speed_t, sc.speed_coarse, False, 0.0, b), (speed_t, sc.speed_fine, True, 0, 0),
+             (acc_term, sc.speed_fine, True, 0, 0)]
+    if slip_c is not None:
+        cols += [(slip_c, sc.speed_coarse, False, 0.0, b), (slip_c, sc.speed_fine, True, 0, 0)]
+    scales = (sc.gap_coarse, sc.gap_fine, sc.speed_coarse, sc.speed_fine)
+    if all(isinstance(v, (int, float)) for v in scales):
+        return jnp.stack([jnp.tanh(x / v) if fine else jnp.clip(x / v, low, high)
+                          for x, v, fine, low, high in cols], axis=-1)
+    # the raw columns: per slot [gap, gap, u, u], slot-major, then the speeds' columns
+    g_h, u_h = gap[w - history:].T, u[w - history:].T                  # (E, history)
+    raw = jnp.concatenate([jnp.stack([g_h, g_h, u_h, u_h], axis=-1).reshape(g_h.shape[0], -1),
+                           jnp.stack([c[0] for c in cols[4 * history:]], axis=-1)], axis=-1)
+    # the scales by column: [gap coarse, gap fine, speed coarse, speed fine] per slot, then
+    # the speeds' columns
+    four = jnp.stack([jnp.broadcast_to(jnp.asarray(v, raw.dtype), raw.shape[:1])
+                      for v in scales], axis=-1)
+    tail_scale = [2, 3, 3] + ([2, 3] if slip_c is not None else [])
+    scale = jnp.concatenate([jnp.tile(four, (1, history)), four[:, tail_scale]], axis=-1)
+    fine = np.array([c[2] for c in cols])
+    low = np.array([c[3] for c in cols], np.float32)
+    high = np.array([c[4] for c in cols], np.float32)
+    x = raw / scale
+    return jnp.where(fine, jnp.tanh(x), jnp.minimum(high, jnp.maximum(low, x)))   # as jnp.clip
+
+
 def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: jax.Array,
                  slip_c: jax.Array, *, history: int, dt: float, gravity: Any,
                  scales: InputScales, gate_rule: GateRule, spin: bool,
@@ -413,19 +459,10 @@ def contact_rows(graph: jraph.GraphsTuple, kin: dict[str, jax.Array], v_slip: ja
     jar_dv = jar_vel[-1, senders] - jar_vel[-2, senders]
     acc_term = jnp.where(is_pw, jnp.einsum("ec,ec->e", jar_dv - g * dt, normal), 0.0)
 
-    sc = scales
-    cols = []
-    for k in range(w - history, w):  # the newest slots, oldest first
-        cols += [jnp.clip(gap[k] / sc.gap_coarse, -1.0, 3.0),
-                 jnp.tanh(gap[k] / sc.gap_fine),
-                 jnp.clip(u[k] / sc.speed_coarse, -sc.speed_bound, sc.speed_bound),
-                 jnp.tanh(u[k] / sc.speed_fine)]
-    cols += [jnp.clip(speed_t / sc.speed_coarse, 0.0, sc.speed_bound),
-             jnp.tanh(speed_t / sc.speed_fine), jnp.tanh(acc_term / sc.speed_fine)]
-    if spin:
-        cols += [jnp.clip(slip_c / sc.speed_coarse, 0.0, sc.speed_bound),
-                 jnp.tanh(slip_c / sc.speed_fine)]
-    inputs = jnp.stack(cols + list(constant_inputs), axis=-1)
+    inputs = _scaled_inputs(gap, u, speed_t, acc_term, slip_c if spin else None, scales,
+                            history)
+    if constant_inputs:
+        inputs = jnp.concatenate([inputs, jnp.stack(constant_inputs, axis=-1)], axis=-1)
 
     rule = gate_rule
     gap_end = gap[-1] + u[-1] * dt
@@ -780,12 +817,13 @@ class ContactNet(nn.Module):
         on the other rows."""
         rows = x.shape[0]
         acting = geo["gate"] > 0
-        out = jnp.zeros((rows, 2), x.dtype)
-        for net, kind in ((pp_net, geo["is_pp"]), (pw_net, geo["is_pw"])):
-            (index,) = jnp.nonzero(acting & kind, size=block, fill_value=rows)
-            outputs = net(x[jnp.minimum(index, rows - 1)])
-            out = out.at[index].set(outputs, mode="drop")
-        return out
+        # both kinds' acting rows at once, (2 block,): the ball-ball ones, then the ball-wall
+        # ones, each in order and then ``rows`` (no row); one gather, one scatter back
+        index = true_indices(jnp.stack([acting & geo["is_pp"], acting & geo["is_pw"]]), block,
+                             rows).reshape(-1)
+        picked = x[jnp.minimum(index, rows - 1)]
+        outputs = jnp.concatenate([pp_net(picked[:block]), pw_net(picked[block:])])
+        return jnp.zeros((rows, 2), x.dtype).at[index].set(outputs, mode="drop")
 
     def _rows_of_kind(self, pp_net: nn.Module, pw_net: nn.Module, geo: dict[str, jax.Array],
                       x: jax.Array, n_balls: int) -> jax.Array:

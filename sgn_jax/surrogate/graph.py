@@ -411,13 +411,9 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     rij, reach, pair_ok = _pairs_within_reach(x, spec, charge, pi, pj)
     pair_ok = pair_ok & listed
     n_pairs = jnp.sum(pair_ok, dtype=jnp.int32)
-    pair_rank = jnp.cumsum(pair_ok, dtype=jnp.int32) - 1
     cap_pairs = spec.pp_pair_capacity
     kept_pairs = jnp.minimum(n_pairs, cap_pairs)
     n_pp_kept = 2 * kept_pairs
-    # Slot 2r: j -> i (feature x_j - x_i); slot 2r + 1: i -> j. Out-of-capacity pairs go to an
-    # out-of-range slot and are dropped by the scatter (and counted in pp_dropped).
-    slot = jnp.where(pair_ok & (pair_rank < cap_pairs), 2 * pair_rank, spec.edge_capacity)
     e_cap = spec.edge_capacity
     pp_feat_j, pp_feat_i = rij, -rij
     if spec.contact_features:
@@ -439,7 +435,14 @@ def build_graph(window: Window, sdf: Any, spec: GraphSpec,
     else:
         ball_ok = (phi_now >= -(radius[balls] + spec.pw_skin)) & present[balls]
     n_walled = jnp.sum(ball_ok, dtype=jnp.int32)
-    ball_rank = jnp.cumsum(ball_ok, dtype=jnp.int32) - 1
+    # The ranks of the kept pairs and walled balls by one cumsum (a small charge's rollout
+    # step costs per XLA operation). Slot 2r: j -> i (feature x_j - x_i); slot 2r + 1: i -> j.
+    # Out-of-capacity pairs go to an out-of-range slot and are dropped by the scatter (and
+    # counted in pp_dropped).
+    ranks = jnp.cumsum(jnp.concatenate([pair_ok, ball_ok]), dtype=jnp.int32)
+    pair_rank = ranks[:pair_ok.shape[0]] - 1
+    ball_rank = ranks[pair_ok.shape[0]:] - n_pairs - 1
+    slot = jnp.where(pair_ok & (pair_rank < cap_pairs), 2 * pair_rank, spec.edge_capacity)
     bslot = jnp.where(ball_ok, n_pp_kept + 2 * ball_rank, e_cap)
     pw_feat = phi_now[:, None] * normal_now
     if spec.contact_features:
@@ -524,6 +527,21 @@ def neighbour_pairs(positions: jax.Array, spec: GraphSpec, charge: BallCharge | 
     return pairs, jnp.sum(ok, dtype=jnp.int32)
 
 
+def true_indices(mask: jax.Array, size: int, fill_value: int) -> jax.Array:
+    """(K, size) int32: per row of ``mask`` (K, R) bool the indices of its first ``size`` True
+    entries in order, then ``fill_value``: ``jnp.nonzero(mask[k], size=size,
+    fill_value=fill_value)[0]`` of every row, by one cumsum and one scatter for all rows
+    (nonzero takes two cumsums and a scatter per row, and a small charge's rollout step costs
+    per XLA operation)."""
+    k, rows = mask.shape
+    rank = jnp.cumsum(mask, axis=1, dtype=jnp.int32) - 1
+    slot = jnp.where(mask & (rank < size),
+                     rank + size * jnp.arange(k, dtype=jnp.int32)[:, None], k * size)
+    index = jnp.full((k * size,), fill_value, jnp.int32).at[slot.reshape(-1)].set(
+        jnp.tile(jnp.arange(rows, dtype=jnp.int32), k), mode="drop")
+    return index.reshape(k, size)
+
+
 def compact_edge_pairs(graph: jraph.GraphsTuple, keep: jax.Array, capacity: int
                        ) -> jraph.GraphsTuple:
     """The graph of :func:`build_graph` (one graph and its padding graph, no batch axis) with
@@ -542,7 +560,7 @@ def compact_edge_pairs(graph: jraph.GraphsTuple, keep: jax.Array, capacity: int
     (the contact kinds: an edge acts only through its gated impulse).
     """
     rows = keep.shape[0]
-    (index,) = jnp.nonzero(keep, size=capacity, fill_value=rows)
+    index = true_indices(keep[None], capacity, rows)[0]
     valid = jnp.repeat(index < rows, 2)                              # (2C,)
     slots = jnp.where(valid, jnp.stack([2 * index, 2 * index + 1], axis=-1).reshape(-1), 0)
     pad = graph.nodes["features"].shape[0] - 1

@@ -603,23 +603,32 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                 positions = window.positions.at[-1].add(shift)
             window = window.replace(positions=positions)
 
+        # the balls' wall distances after the step (snap-back or not); the wall normals only
+        # in a step that snaps a ball (lax.cond: a step without one pays one phi query)
+        x_new = window.positions[-1]
+        phi_new = _present_only(window, jnp.asarray(query(sdf, x_new, jar_offset)[0], F64))
         if snap.enabled:
-            phi, normal = query(sdf, x_next, jar_offset)
-            phi, normal = jnp.asarray(phi, F64), jnp.asarray(normal, F64)
-            phi = _present_only(window, phi)
             phi_sb = (snap.phi_sb if window.charge is None else
                       charge_snap_threshold(snap.phi_sb, spec.ball_radius, window.charge.radius))
-            shift, snapped = snap_back_shift(phi, normal, phi_sb)
-            if snap.keep_velocity:  # translate the whole history: velocities unchanged
-                positions = window.positions + shift[None]
-            else:  # only the newest position: the FD velocity follows the move
-                positions = window.positions.at[-1].add(shift)
+
+            def snap_back(positions: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+                phi, normal = query(sdf, positions[-1], jar_offset)
+                phi, normal = jnp.asarray(phi, F64), jnp.asarray(normal, F64)
+                shift, snapped = snap_back_shift(_present_only(window, phi), normal, phi_sb)
+                if snap.keep_velocity:  # translate the whole history: velocities unchanged
+                    positions = positions + shift[None]
+                else:  # only the newest position: the FD velocity follows the move
+                    positions = positions.at[-1].add(shift)
+                phi_after, _ = query(sdf, positions[-1], jar_offset)
+                return (positions, jnp.sum(snapped, dtype=I32),
+                        _present_only(window, jnp.asarray(phi_after, F64)))
+
+            positions, n_snapped, phi_after = jax.lax.cond(
+                jnp.any(phi_new >= phi_sb), snap_back,
+                lambda positions: (positions, jnp.zeros((), I32), phi_new), window.positions)
             window = window.replace(positions=positions)
-            n_snapped = jnp.sum(snapped, dtype=I32)
         else:
-            n_snapped = jnp.zeros((), I32)
-        phi_after, _ = query(sdf, window.positions[-1], jar_offset)
-        phi_after = _present_only(window, jnp.asarray(phi_after, F64))
+            n_snapped, phi_after = jnp.zeros((), I32), phi_new
         energy = state.energy + de
         record = StepRecord(dE=de, energy_cum=energy, n_pp_edges=counts.n_pp.astype(I32),
                             n_pw_edges=counts.n_pw.astype(I32),
