@@ -603,16 +603,22 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                 positions = window.positions.at[-1].add(shift)
             window = window.replace(positions=positions)
 
-        # the balls' wall distances after the step (snap-back or not); the wall normals only
-        # in a step that snaps a ball (lax.cond: a step without one pays one phi query)
-        x_new = window.positions[-1]
-        phi_new = _present_only(window, jnp.asarray(query(sdf, x_new, jar_offset)[0], F64))
+        # The balls' wall distances at the step's new positions and (with the separation on)
+        # after the separation; the wall normals only in a step that snaps a ball (lax.cond:
+        # a step without one pays one phi query, two with the separation). The snap-back
+        # reads the step's new positions x_next and moves the separated ones.
+        def wall_distance(x: jax.Array) -> jax.Array:
+            return _present_only(window, jnp.asarray(query(sdf, x, jar_offset)[0], F64))
+
+        phi_next = wall_distance(x_next)
+        phi_new = phi_next if snap.pp_max_overlap is None else wall_distance(
+            window.positions[-1])
         if snap.enabled:
             phi_sb = (snap.phi_sb if window.charge is None else
                       charge_snap_threshold(snap.phi_sb, spec.ball_radius, window.charge.radius))
 
             def snap_back(positions: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-                phi, normal = query(sdf, positions[-1], jar_offset)
+                phi, normal = query(sdf, x_next, jar_offset)
                 phi, normal = jnp.asarray(phi, F64), jnp.asarray(normal, F64)
                 shift, snapped = snap_back_shift(_present_only(window, phi), normal, phi_sb)
                 if snap.keep_velocity:  # translate the whole history: velocities unchanged
@@ -624,7 +630,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                         _present_only(window, jnp.asarray(phi_after, F64)))
 
             positions, n_snapped, phi_after = jax.lax.cond(
-                jnp.any(phi_new >= phi_sb), snap_back,
+                jnp.any(phi_next >= phi_sb), snap_back,
                 lambda positions: (positions, jnp.zeros((), I32), phi_new), window.positions)
             window = window.replace(positions=positions)
         else:
