@@ -405,29 +405,30 @@ def _scaled_inputs(gap: jax.Array, u: jax.Array, speed_t: jax.Array, acc_term: j
     column alone, the division by a constant as XLA folds it (the contact kind's numbers)."""
     w = gap.shape[0]
     b = sc.speed_bound
-    # per column: (raw value, scale, fine (tanh) or clipped to [low, high])
+    scales = (sc.gap_coarse, sc.gap_fine, sc.speed_coarse, sc.speed_fine)
+    gc, gf, vc, vf = range(4)   # which of ``scales``
+    # per column: (raw value, its scale's index, fine (tanh) or clipped to [low, high])
     cols: list[tuple] = []
     for k in range(w - history, w):  # the newest slots, oldest first
-        cols += [(gap[k], sc.gap_coarse, False, -1.0, 3.0), (gap[k], sc.gap_fine, True, 0, 0),
-                 (u[k], sc.speed_coarse, False, -b, b), (u[k], sc.speed_fine, True, 0, 0)]
-    cols += [(speed_t, sc.speed_coarse, False, 0.0, b), (speed_t, sc.speed_fine, True, 0, 0),
-             (acc_term, sc.speed_fine, True, 0, 0)]
+        cols += [(gap[k], gc, False, -1.0, 3.0), (gap[k], gf, True, 0, 0),
+                 (u[k], vc, False, -b, b), (u[k], vf, True, 0, 0)]
+    cols += [(speed_t, vc, False, 0.0, b), (speed_t, vf, True, 0, 0), (acc_term, vf, True, 0, 0)]
     if slip_c is not None:
-        cols += [(slip_c, sc.speed_coarse, False, 0.0, b), (slip_c, sc.speed_fine, True, 0, 0)]
-    scales = (sc.gap_coarse, sc.gap_fine, sc.speed_coarse, sc.speed_fine)
+        cols += [(slip_c, vc, False, 0.0, b), (slip_c, vf, True, 0, 0)]
     if all(isinstance(v, (int, float)) for v in scales):
-        return jnp.stack([jnp.tanh(x / v) if fine else jnp.clip(x / v, low, high)
-                          for x, v, fine, low, high in cols], axis=-1)
-    # the raw columns: per slot [gap, gap, u, u], slot-major, then the speeds' columns
+        return jnp.stack([jnp.tanh(x / scales[i]) if fine else
+                          jnp.clip(x / scales[i], low, high)
+                          for x, i, fine, low, high in cols], axis=-1)
+    # the raw columns and their scales: per slot [gap, gap, u, u] with the four scales in
+    # order (as ``cols``), slot-major, then the speeds' columns
     g_h, u_h = gap[w - history:].T, u[w - history:].T                  # (E, history)
+    tail = cols[4 * history:]
     raw = jnp.concatenate([jnp.stack([g_h, g_h, u_h, u_h], axis=-1).reshape(g_h.shape[0], -1),
-                           jnp.stack([c[0] for c in cols[4 * history:]], axis=-1)], axis=-1)
-    # the scales by column: [gap coarse, gap fine, speed coarse, speed fine] per slot, then
-    # the speeds' columns
+                           jnp.stack([c[0] for c in tail], axis=-1)], axis=-1)
     four = jnp.stack([jnp.broadcast_to(jnp.asarray(v, raw.dtype), raw.shape[:1])
                       for v in scales], axis=-1)
-    tail_scale = [2, 3, 3] + ([2, 3] if slip_c is not None else [])
-    scale = jnp.concatenate([jnp.tile(four, (1, history)), four[:, tail_scale]], axis=-1)
+    scale = jnp.concatenate([jnp.tile(four, (1, history)), four[:, [c[1] for c in tail]]],
+                            axis=-1)
     fine = np.array([c[2] for c in cols])
     low = np.array([c[3] for c in cols], np.float32)
     high = np.array([c[4] for c in cols], np.float32)

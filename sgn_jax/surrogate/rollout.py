@@ -625,9 +625,7 @@ def _make_step(spec: GraphSpec, predictor: Predictor, query: SDFQuery, snap: Sna
                     positions = positions + shift[None]
                 else:  # only the newest position: the FD velocity follows the move
                     positions = positions.at[-1].add(shift)
-                phi_after, _ = query(sdf, positions[-1], jar_offset)
-                return (positions, jnp.sum(snapped, dtype=I32),
-                        _present_only(window, jnp.asarray(phi_after, F64)))
+                return positions, jnp.sum(snapped, dtype=I32), wall_distance(positions[-1])
 
             positions, n_snapped, phi_after = jax.lax.cond(
                 jnp.any(phi_next >= phi_sb), snap_back,
